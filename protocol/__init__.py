@@ -1,0 +1,1 @@
+"""The contract between tagswarm processes: messages, keys, codec, scenario, bus."""

@@ -1,0 +1,229 @@
+"""Zenoh session setup and the small pub/sub surface the nodes use.
+
+This is the only module that imports ``zenoh``.  Rules it enforces (DESIGN.md
+section 4): callbacks only enqueue into an :class:`Inbox` and wake the owner's
+loop; sessions are opened in a ``with`` block (:func:`open_bus`) and always
+closed; large frames go out with DROP congestion control into newest-only
+inboxes, small must-arrive messages with BLOCK into FIFO inboxes.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import threading
+import time
+from collections import deque
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from typing import Any, Generic, Literal, TypeVar
+
+import msgspec
+import zenoh
+
+log = logging.getLogger(__name__)
+T = TypeVar("T")
+
+
+class BusError(Exception):
+    """The Zenoh session could not be configured or opened."""
+
+
+class BusConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """How a process joins the Zenoh network.
+
+    ``listen``/``connect`` are Zenoh endpoints such as ``tcp/127.0.0.1:7447``.
+    Multicast scouting is off unless asked for: explicit endpoints open a
+    session in ~1 ms instead of ~0.5 s and keep test runs isolated.
+    ``config_file`` (or the ``ZENOH_CONFIG`` environment variable) names a Zenoh
+    JSON5 config that is loaded first; the fields here are applied on top.
+    """
+
+    mode: Literal["peer", "client", "router"] = "peer"
+    listen: tuple[str, ...] = ()
+    connect: tuple[str, ...] = ()
+    multicast_scouting: bool = False
+    config_file: str | None = None
+
+
+def zenoh_config(cfg: BusConfig) -> zenoh.Config:
+    """Build the ``zenoh.Config`` for ``cfg``; raises :class:`BusError`."""
+    path = cfg.config_file or os.environ.get("ZENOH_CONFIG")
+    try:
+        conf = zenoh.Config.from_file(path) if path else zenoh.Config()
+        conf.insert_json5("mode", json.dumps(cfg.mode))
+        if cfg.listen:
+            conf.insert_json5("listen/endpoints", json.dumps(list(cfg.listen)))
+        if cfg.connect:
+            conf.insert_json5("connect/endpoints", json.dumps(list(cfg.connect)))
+        conf.insert_json5("scouting/multicast/enabled", json.dumps(cfg.multicast_scouting))
+    except Exception as exc:  # zenoh raises ZError with a readable message
+        raise BusError(f"bad Zenoh configuration: {exc}") from None
+    return conf
+
+
+@dataclass
+class Received(Generic[T]):
+    """One item delivered to an :class:`Inbox`: the key it came on and its value."""
+
+    key: str
+    value: T
+
+
+class Inbox(Generic[T]):
+    """A bounded queue filled by Zenoh callbacks and drained by the node's loop.
+
+    ``newest_only`` keeps just the latest item (a ring of one): use it for
+    camera frames so that a slow consumer skips frames instead of queueing them.
+    Otherwise it is a FIFO of ``capacity`` items; items beyond that are dropped
+    and counted in ``overflow`` (a safety net, not a flow-control mechanism).
+    """
+
+    def __init__(self, wake: threading.Condition, *, newest_only: bool, capacity: int) -> None:
+        self._items: deque[Received[T]] = deque(maxlen=1 if newest_only else capacity)
+        self._wake = wake
+        self.received = 0
+        self.overflow = 0
+        self._newest_only = newest_only
+
+    def put(self, key: str, value: T) -> None:
+        """Called from Zenoh threads: enqueue and wake the loop, nothing else."""
+        with self._wake:
+            if len(self._items) == self._items.maxlen and not self._newest_only:
+                self.overflow += 1
+            self._items.append(Received(key, value))
+            self.received += 1
+            self._wake.notify_all()
+
+    def drain(self) -> list[Received[T]]:
+        """Everything queued so far, oldest first."""
+        with self._wake:
+            items = list(self._items)
+            self._items.clear()
+        return items
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+
+class Publisher:
+    """Publishes raw payloads on one key."""
+
+    def __init__(self, pub: Any) -> None:
+        self._pub = pub
+
+    def put(self, payload: bytes) -> None:
+        self._pub.put(payload)
+
+
+class Bus:
+    """A thin façade over one open Zenoh session (use :func:`open_bus`)."""
+
+    def __init__(self, session: zenoh.Session) -> None:
+        self._session = session
+        self._wake = threading.Condition()
+        self._publishers: dict[tuple[str, bool], Publisher] = {}
+        self._keep: list[Any] = []  # declared entities live as long as the bus
+
+    @property
+    def zid(self) -> str:
+        return str(self._session.info.zid())
+
+    def publisher(self, key: str, *, drop: bool = False) -> Publisher:
+        """Publisher for ``key``; ``drop=True`` for large frames (DROP congestion
+        control), otherwise BLOCK so small messages are not lost under load."""
+        cached = self._publishers.get((key, drop))
+        if cached is None:
+            cc = zenoh.CongestionControl.DROP if drop else zenoh.CongestionControl.BLOCK
+            pub = self._session.declare_publisher(key, congestion_control=cc, express=not drop)
+            cached = self._publishers[(key, drop)] = Publisher(pub)
+        return cached
+
+    def put(self, key: str, payload: bytes, *, drop: bool = False) -> None:
+        """Publish ``payload`` on ``key`` through a cached publisher."""
+        self.publisher(key, drop=drop).put(payload)
+
+    def subscribe(self, key: str, *, newest_only: bool = False, capacity: int = 65536) -> Inbox[bytes]:
+        """Subscribe to ``key`` (may contain wildcards); payloads arrive as bytes."""
+        inbox: Inbox[bytes] = Inbox(self._wake, newest_only=newest_only, capacity=capacity)
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            inbox.put(str(sample.key_expr), sample.payload.to_bytes())
+
+        self._keep.append(self._session.declare_subscriber(key, on_sample))
+        return inbox
+
+    def declare_token(self, key: str) -> None:
+        """Declare a liveliness token that lives as long as the session."""
+        self._keep.append(self._session.liveliness().declare_token(key))
+
+    def watch_liveliness(self, key: str) -> Inbox[bool]:
+        """Liveliness changes under ``key``: ``True`` when a token appears
+        (including tokens already present), ``False`` when it goes away."""
+        inbox: Inbox[bool] = Inbox(self._wake, newest_only=False, capacity=65536)
+
+        def on_change(sample: zenoh.Sample) -> None:
+            inbox.put(str(sample.key_expr), sample.kind == zenoh.SampleKind.PUT)
+
+        self._keep.append(self._session.liveliness().declare_subscriber(key, on_change, history=True))
+        return inbox
+
+    def alive_now(self, key: str, timeout_s: float = 1.0) -> list[str]:
+        """Keys of the liveliness tokens currently matching ``key`` (blocking query)."""
+        replies = self._session.liveliness().get(key, timeout=timeout_s)
+        return [str(r.ok.key_expr) for r in replies if r.ok is not None]
+
+    def queryable(self, key: str) -> Inbox[Any]:
+        """Queries on ``key``; answer them from the loop with :meth:`reply`."""
+        inbox: Inbox[Any] = Inbox(self._wake, newest_only=False, capacity=1024)
+
+        def on_query(query: zenoh.Query) -> None:
+            inbox.put(str(query.selector.key_expr), query)
+
+        self._keep.append(self._session.declare_queryable(key, on_query))
+        return inbox
+
+    @staticmethod
+    def reply(query: Any, key: str, payload: bytes) -> None:
+        """Answer a query taken from a :meth:`queryable` inbox, then finish it."""
+        with query:  # leaving the block finalises the query
+            query.reply(key, payload)
+
+    def get(self, key: str, timeout_s: float = 2.0) -> list[Received[bytes]]:
+        """Query ``key`` and collect the answers (blocking, never from a callback)."""
+        out: list[Received[bytes]] = []
+        for reply in self._session.get(key, timeout=timeout_s):
+            if reply.ok is not None:
+                out.append(Received(str(reply.ok.key_expr), reply.ok.payload.to_bytes()))
+        return out
+
+    def wait(self, timeout_s: float) -> None:
+        """Block until any inbox of this bus receives something, or the timeout."""
+        with self._wake:
+            self._wake.wait(timeout_s)
+
+    def wait_for(self, predicate: Any, timeout_s: float) -> bool:
+        """Block until ``predicate()`` is true (re-checked on every arrival)."""
+        deadline = time.monotonic() + timeout_s
+        with self._wake:
+            while not predicate():
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    return False
+                self._wake.wait(min(left, 0.05))
+        return True
+
+
+@contextmanager
+def open_bus(cfg: BusConfig) -> Iterator[Bus]:
+    """Open a Zenoh session for ``cfg`` and close it on exit, whatever happens."""
+    conf = zenoh_config(cfg)
+    try:
+        session = zenoh.open(conf)
+    except Exception as exc:
+        raise BusError(f"cannot open Zenoh session ({cfg.mode}, listen={list(cfg.listen)}, "
+                       f"connect={list(cfg.connect)}): {exc}") from None
+    with session:
+        yield Bus(session)

@@ -1,0 +1,149 @@
+"""Config helpers shared by every process's ``main``.
+
+Precedence, lowest first: the scenario TOML, ``TAGSWARM_*`` environment
+variables, command-line flags.  Everything funnels into dotted scenario
+overrides (``clock.mode=lockstep``) plus a :class:`~protocol.bus.BusConfig`, so
+each process builds one frozen config object up front.  Errors become
+:class:`ConfigError` (one line, naming the field); :func:`run_main` turns them
+into exit code 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import sys
+from collections.abc import Callable, Mapping, Sequence
+from typing import Any, NoReturn
+
+from protocol.bus import BusConfig, BusError
+from protocol.keys import KeyError_
+from protocol.scenario import Scenario, ScenarioError, convert, load_scenario
+
+ENV_PREFIX = "TAGSWARM_"
+
+
+class ConfigError(ValueError):
+    """Bad configuration or command line; the message is one line."""
+
+
+class OneLineParser(argparse.ArgumentParser):
+    """argparse that reports errors as a single line and exits with code 2."""
+
+    def error(self, message: str) -> NoReturn:
+        sys.stderr.write(f"{self.prog}: error: {message} (see --help)\n")
+        raise SystemExit(2)
+
+
+def add_common_args(p: argparse.ArgumentParser) -> None:
+    """Flags every process understands (scenario, overrides, network, logging)."""
+    g = p.add_argument_group("scenario (TOML < TAGSWARM_* environment < these flags)")
+    g.add_argument("--scenario", help="built-in scenario name or .toml path (default: paper; env TAGSWARM_SCENARIO)")
+    g.add_argument("--set", dest="overrides", action="append", default=[], metavar="FIELD=VALUE",
+                   help="override any scenario field, e.g. --set clock.mode=lockstep (repeatable; "
+                        "env TAGSWARM_SET='a.b=1;c.d=2')")
+    g.add_argument("--seed", type=int, help="random seed (env TAGSWARM_SEED)")
+    g.add_argument("--robots", type=int, help="number of robots (env TAGSWARM_ROBOTS)")
+    g.add_argument("--clock", choices=("realtime", "lockstep"), help="clock mode (env TAGSWARM_CLOCK)")
+    g.add_argument("--duration", type=float, metavar="SECONDS", help="simulated seconds to run (env TAGSWARM_DURATION)")
+    n = p.add_argument_group("network (Zenoh)")
+    n.add_argument("--run", help="run id: namespaces every key so runs can share a network (env TAGSWARM_RUN; "
+                                 "default: default)")
+    n.add_argument("--zenoh-mode", choices=("peer", "client", "router"), help="Zenoh mode (env TAGSWARM_ZENOH_MODE)")
+    n.add_argument("--listen", action="append", metavar="ENDPOINT", help="endpoint to listen on, e.g. "
+                   "tcp/127.0.0.1:7447 (repeatable; env TAGSWARM_LISTEN, comma-separated)")
+    n.add_argument("--connect", action="append", metavar="ENDPOINT",
+                   help="endpoint to connect to (repeatable; env TAGSWARM_CONNECT, comma-separated)")
+    n.add_argument("--multicast-scouting", action="store_true", default=None,
+                   help="enable Zenoh multicast scouting (off by default)")
+    n.add_argument("--zenoh-config", metavar="FILE", help="Zenoh JSON5 config file (also ZENOH_CONFIG)")
+    p.add_argument("--log-level", default=None, help="DEBUG, INFO, WARNING... (env TAGSWARM_LOG_LEVEL; default INFO)")
+
+
+def _env_list(env: Mapping[str, str], name: str) -> tuple[str, ...]:
+    raw = env.get(ENV_PREFIX + name, "")
+    return tuple(x.strip() for x in raw.split(",") if x.strip())
+
+
+def pick(args: argparse.Namespace, env: Mapping[str, str], attr: str, default: Any = None) -> Any:
+    """Flag value if given, else ``TAGSWARM_<ATTR>``, else ``default``."""
+    value = getattr(args, attr, None)
+    if value is not None:
+        return value
+    return env.get(ENV_PREFIX + attr.upper(), default)
+
+
+def scenario_from(args: argparse.Namespace, env: Mapping[str, str]) -> Scenario:
+    """Load the scenario and apply environment then CLI overrides."""
+    name = pick(args, env, "scenario", "paper")
+    overrides: list[str] = [o for o in env.get(ENV_PREFIX + "SET", "").split(";") if o.strip()]
+    for attr, field in (("seed", "seed"), ("robots", "robots.count"), ("clock", "clock.mode"),
+                        ("duration", "duration_s")):
+        env_value = env.get(ENV_PREFIX + attr.upper())
+        if env_value is not None:
+            overrides.append(f"{field}={_quote(field, env_value)}")
+    overrides += list(args.overrides or [])
+    for attr, field in (("seed", "seed"), ("robots", "robots.count"), ("clock", "clock.mode"),
+                        ("duration", "duration_s")):
+        value = getattr(args, attr, None)
+        if value is not None:
+            overrides.append(f"{field}={_quote(field, str(value))}")
+    return load_scenario(name, overrides)
+
+
+def _quote(field: str, value: str) -> str:
+    return f'"{value}"' if field == "clock.mode" else value
+
+
+def bus_from(args: argparse.Namespace, env: Mapping[str, str]) -> BusConfig:
+    """The Zenoh settings from flags and environment."""
+    table: dict[str, Any] = {
+        "mode": pick(args, env, "zenoh_mode", "peer"),
+        "listen": list(args.listen or _env_list(env, "LISTEN")),
+        "connect": list(args.connect or _env_list(env, "CONNECT")),
+        "multicast_scouting": bool(args.multicast_scouting
+                                   or env.get(ENV_PREFIX + "MULTICAST_SCOUTING", "") in ("1", "true")),
+    }
+    cfg_file = args.zenoh_config or None
+    if cfg_file:
+        if not os.path.exists(cfg_file):
+            raise ConfigError(f"--zenoh-config: no such file {cfg_file!r}")
+        table["config_file"] = cfg_file
+    try:
+        bus: BusConfig = convert(table, BusConfig, "network")
+    except ScenarioError as exc:
+        raise ConfigError(str(exc)) from None
+    return bus
+
+
+def setup_logging(level: str | None, role: str) -> None:
+    """Log to stderr as ``time role level message``."""
+    name = (level or "INFO").upper()
+    if name not in logging.getLevelNamesMapping():
+        raise ConfigError(f"--log-level: unknown level {level!r}")
+    logging.basicConfig(level=name, stream=sys.stderr,
+                        format=f"%(asctime)s {role} %(levelname)s %(name)s: %(message)s", force=True)
+
+
+def run_main(prog: str, body: Callable[[], int]) -> int:
+    """The one boundary that turns errors into exit codes: config errors -> 2 with a
+    one-line message, Ctrl-C -> 130, anything else -> 1 with the traceback logged."""
+    try:
+        return body()
+    except (ConfigError, ScenarioError, KeyError_, BusError) as exc:
+        sys.stderr.write(f"{prog}: error: {exc}\n")
+        return 2
+    except KeyboardInterrupt:
+        return 130
+
+
+def env_of(environ: Mapping[str, str] | None = None) -> dict[str, str]:
+    """The ``TAGSWARM_*`` part of the environment."""
+    src = os.environ if environ is None else environ
+    return {k: v for k, v in src.items() if k.startswith(ENV_PREFIX)}
+
+
+def parse(parser: argparse.ArgumentParser, argv: Sequence[str] | None) -> argparse.Namespace:
+    """Parse ``argv`` (``None`` means ``sys.argv[1:]``)."""
+    return parser.parse_args(list(argv) if argv is not None else None)

@@ -1,0 +1,153 @@
+"""Every Zenoh key expression of tagswarm; no other module spells a key.
+
+Layout (``<run>`` isolates runs sharing one network)::
+
+    tagswarm/<run>/world/tick                       Tick
+    tagswarm/<run>/world/ack/<role>/<id>            TickAck
+    tagswarm/<run>/world/render/<worker>            RenderPoses (world -> worker)
+    tagswarm/<run>/world/status                     AgentStatus of the world
+    tagswarm/<run>/robot/<id>/camera/<name>         CameraImage
+    tagswarm/<run>/robot/<id>/encoders              EncoderTicks
+    tagswarm/<run>/robot/<id>/cmd                   WheelCommand
+    tagswarm/<run>/robot/<id>/truth                 GroundTruthPose (evaluation only)
+    tagswarm/<run>/robot/<id>/observation           RelativeObservation
+    tagswarm/<run>/robot/<id>/odometry              OdometryEstimate
+    tagswarm/<run>/robot/<id>/correction            Correction
+    tagswarm/<run>/robot/<id>/status                AgentStatus
+    tagswarm/<run>/server/map                       GlobalMap (also a queryable)
+    tagswarm/<run>/server/status                    AgentStatus of the server
+    tagswarm/<run>/alive/<role>/<id>                liveliness tokens
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+from typing import Final
+
+_RUN_RE: Final = re.compile(r"^[A-Za-z0-9_.-]{1,64}$")
+_NAME_RE: Final = re.compile(r"^[A-Za-z0-9_.-]{1,64}$")
+ROOT: Final = "tagswarm"
+
+
+class KeyError_(ValueError):
+    """A run id, role or camera name that cannot be part of a key."""
+
+
+def check_name(value: str, what: str) -> str:
+    """Return ``value`` if it is a safe single key chunk, else raise :class:`KeyError_`."""
+    if not _NAME_RE.match(value):
+        raise KeyError_(f"{what} {value!r} must be 1-64 characters of letters, digits, '_', '.', '-'")
+    return value
+
+
+@dataclass(frozen=True)
+class Keys:
+    """Key expressions of one run."""
+
+    run: str
+
+    def __post_init__(self) -> None:
+        if not _RUN_RE.match(self.run):
+            raise KeyError_(f"run id {self.run!r} must be 1-64 characters of letters, digits, '_', '.', '-'")
+
+    @property
+    def prefix(self) -> str:
+        return f"{ROOT}/{self.run}"
+
+    # -- world ---------------------------------------------------------------
+    def tick(self) -> str:
+        return f"{self.prefix}/world/tick"
+
+    def ack(self, participant: str) -> str:
+        role, ident = split_participant(participant)
+        return f"{self.prefix}/world/ack/{role}/{ident}"
+
+    def acks(self) -> str:
+        return f"{self.prefix}/world/ack/*/*"
+
+    def render(self, worker: int) -> str:
+        return f"{self.prefix}/world/render/{worker}"
+
+    def world_status(self) -> str:
+        return f"{self.prefix}/world/status"
+
+    # -- robots --------------------------------------------------------------
+    def robot(self, robot_id: int) -> str:
+        return f"{self.prefix}/robot/{int(robot_id)}"
+
+    def image(self, robot_id: int, camera: str) -> str:
+        return f"{self.robot(robot_id)}/camera/{check_name(camera, 'camera name')}"
+
+    def images(self, robot_id: int | None = None) -> str:
+        """All cameras of one robot, or of every robot."""
+        rid = "*" if robot_id is None else str(int(robot_id))
+        return f"{self.prefix}/robot/{rid}/camera/*"
+
+    def encoders(self, robot_id: int | None = None) -> str:
+        return self._robot_leaf(robot_id, "encoders")
+
+    def cmd(self, robot_id: int | None = None) -> str:
+        return self._robot_leaf(robot_id, "cmd")
+
+    def truth(self, robot_id: int | None = None) -> str:
+        return self._robot_leaf(robot_id, "truth")
+
+    def observation(self, robot_id: int | None = None) -> str:
+        return self._robot_leaf(robot_id, "observation")
+
+    def odometry(self, robot_id: int | None = None) -> str:
+        return self._robot_leaf(robot_id, "odometry")
+
+    def correction(self, robot_id: int | None = None) -> str:
+        return self._robot_leaf(robot_id, "correction")
+
+    def robot_status(self, robot_id: int | None = None) -> str:
+        return self._robot_leaf(robot_id, "status")
+
+    def _robot_leaf(self, robot_id: int | None, leaf: str) -> str:
+        rid = "*" if robot_id is None else str(int(robot_id))
+        return f"{self.prefix}/robot/{rid}/{leaf}"
+
+    # -- server --------------------------------------------------------------
+    def map(self) -> str:
+        return f"{self.prefix}/server/map"
+
+    def server_status(self) -> str:
+        return f"{self.prefix}/server/status"
+
+    # -- presence ------------------------------------------------------------
+    def alive(self, participant: str) -> str:
+        role, ident = split_participant(participant)
+        return f"{self.prefix}/alive/{role}/{ident}"
+
+    def alive_all(self) -> str:
+        return f"{self.prefix}/alive/**"
+
+    # -- parsing -------------------------------------------------------------
+    def robot_id_of(self, key: str) -> int | None:
+        """Robot id in a ``.../robot/<id>/...`` key of this run, else ``None``."""
+        head = f"{self.prefix}/robot/"
+        if not key.startswith(head):
+            return None
+        chunk = key[len(head) :].split("/", 1)[0]
+        if not chunk.isdigit() or len(chunk) > 6:
+            return None
+        return int(chunk)
+
+    def participant_of(self, key: str) -> str | None:
+        """``"role/id"`` of an ack or liveliness key of this run, else ``None``."""
+        for head in (f"{self.prefix}/world/ack/", f"{self.prefix}/alive/"):
+            if key.startswith(head):
+                rest = key[len(head) :].split("/")
+                if len(rest) == 2 and all(_NAME_RE.match(p) for p in rest):
+                    return f"{rest[0]}/{rest[1]}"
+        return None
+
+
+def split_participant(participant: str) -> tuple[str, str]:
+    """Split ``"role/id"`` into its two chunks, validating both."""
+    parts = participant.split("/")
+    if len(parts) != 2:
+        raise KeyError_(f"participant {participant!r} must look like 'role/id', e.g. 'agent/0'")
+    return check_name(parts[0], "role"), check_name(parts[1], "participant id")

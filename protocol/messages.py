@@ -1,0 +1,222 @@
+"""Every payload that crosses a process boundary.
+
+Conventions (see DESIGN.md section 3): SI units with the unit in the field name,
+radians, right-handed frames, REP-103 body axes (x forward, y left, z up) and the
+OpenCV optical frame for cameras (z out of the lens, x right, y down).  Every
+message carries ``seq`` (per-publisher sequence number) and ``stamp_ns``
+(simulation time in nanoseconds, the only clock), and ``robot_id`` where a robot
+is involved.  Quaternions are (x, y, z, w).  Covariances are row-major flattened
+matrices.
+
+The structs are tagged (field ``type``) so that a recording or journal can hold a
+mix of them and be decoded with one union decoder.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Literal
+
+import msgspec
+
+# Bounds chosen so that a hostile payload cannot ask us for absurd allocations or
+# ids; robots and tag ids are small, sequence numbers and stamps are non-negative.
+RobotId = Annotated[int, msgspec.Meta(ge=0, le=100_000)]
+Seq = Annotated[int, msgspec.Meta(ge=0)]
+StampNs = Annotated[int, msgspec.Meta(ge=0)]
+Count = Annotated[int, msgspec.Meta(ge=0)]
+Pixels = Annotated[int, msgspec.Meta(ge=1, le=8192)]
+
+
+class Msg(msgspec.Struct, frozen=True, kw_only=True, tag_field="type"):
+    """Base of every wire message."""
+
+    seq: Seq
+    stamp_ns: StampNs
+
+
+class Pose3(msgspec.Struct, frozen=True, kw_only=True):
+    """A rigid transform: translation in metres, unit quaternion (x, y, z, w)."""
+
+    x_m: float
+    y_m: float
+    z_m: float
+    qx: float = 0.0
+    qy: float = 0.0
+    qz: float = 0.0
+    qw: float = 1.0
+
+
+class Tick(Msg, frozen=True, kw_only=True, tag="tick"):
+    """World clock: the world has finished step ``step`` and published every sensor
+    message of that step before this one.  ``cameras_rendered`` lists the
+    ``"robot_id/camera"`` pairs that have an image stamped with this tick, so a
+    lockstep participant knows what to wait for."""
+
+    run_id: str
+    step: Count
+    dt_ns: Annotated[int, msgspec.Meta(gt=0)]
+    mode: Literal["realtime", "lockstep"]
+    cameras_rendered: tuple[str, ...] = ()
+
+
+class TickAck(Msg, frozen=True, kw_only=True, tag="tick_ack"):
+    """A lockstep participant (``"agent/3"``, ``"server/0"``, ``"render/1"``) has
+    fully processed world step ``step``."""
+
+    participant: str
+    step: Count
+
+
+class CameraImage(Msg, frozen=True, kw_only=True, tag="camera_image"):
+    """One camera frame.  ``data`` is (height, width) uint8 row-major for
+    ``encoding == "mono8"``.  Intrinsics are for the pinhole model in OpenCV's
+    pixel convention (pixel centres at integer coordinates), no distortion.
+    ``mount`` is the pose of the camera optical frame in the robot base frame
+    (T_base_camera), so a point p_cam maps to p_base = R p_cam + t."""
+
+    robot_id: RobotId
+    camera: str
+    step: Count
+    width: Pixels
+    height: Pixels
+    encoding: Literal["mono8"] = "mono8"
+    fx_px: float
+    fy_px: float
+    cx_px: float
+    cy_px: float
+    mount: Pose3
+    data: bytes
+
+
+class EncoderTicks(Msg, frozen=True, kw_only=True, tag="encoder_ticks"):
+    """Cumulative wheel encoder counts since the world started (they wrap never;
+    int64 on the wire).  Positive counts drive the robot forward."""
+
+    robot_id: RobotId
+    left_ticks: int
+    right_ticks: int
+    ticks_per_rev: Annotated[int, msgspec.Meta(ge=1)]
+
+
+class WheelCommand(Msg, frozen=True, kw_only=True, tag="wheel_command"):
+    """Commanded wheel angular speeds in rad/s (positive drives forward)."""
+
+    robot_id: RobotId
+    left_rad_s: float
+    right_rad_s: float
+
+
+class GroundTruthPose(Msg, frozen=True, kw_only=True, tag="ground_truth"):
+    """True pose of a robot's base in the arena (world) frame.  Evaluation only:
+    agents and the server never subscribe to it."""
+
+    robot_id: RobotId
+    step: Count
+    x_m: float
+    y_m: float
+    yaw_rad: float
+    pose: Pose3
+    v_m_s: float = 0.0
+    omega_rad_s: float = 0.0
+
+
+class RelativeObservation(Msg, frozen=True, kw_only=True, tag="observation"):
+    """Pose of the observed robot's base (or of a landmark tag) in the observer's
+    base frame, measured from one camera frame (or one synchronised rig).
+    ``cov`` is the 3x3 covariance of (x_m, y_m, yaw_rad)."""
+
+    robot_id: RobotId  # observer
+    target_kind: Literal["robot", "landmark"]
+    target_id: int
+    x_m: float
+    y_m: float
+    yaw_rad: float
+    cov: tuple[float, ...]
+    pose: Pose3
+    reprojection_rms_px: float
+    tag_ids: tuple[int, ...]
+    camera: str
+
+
+class OdometryEstimate(Msg, frozen=True, kw_only=True, tag="odometry"):
+    """Dead-reckoned pose of ``base_link`` in the robot's ``odom`` frame, with the
+    3x3 covariance of (x_m, y_m, yaw_rad) and the distance travelled so far."""
+
+    robot_id: RobotId
+    x_m: float
+    y_m: float
+    yaw_rad: float
+    cov: tuple[float, ...]
+    distance_m: float
+
+
+class Correction(Msg, frozen=True, kw_only=True, tag="correction"):
+    """The server's ``map -> odom_k`` transform for one robot plus its fused pose in
+    the map frame and that pose's 3x3 covariance.  ``stamp_ns`` is the simulation
+    time of the newest data the estimate includes."""
+
+    robot_id: RobotId
+    map_odom_x_m: float
+    map_odom_y_m: float
+    map_odom_yaw_rad: float
+    x_m: float
+    y_m: float
+    yaw_rad: float
+    cov: tuple[float, ...]
+
+
+class MapEntry(msgspec.Struct, frozen=True, kw_only=True):
+    """One robot in the global map (map frame)."""
+
+    robot_id: RobotId
+    x_m: float
+    y_m: float
+    yaw_rad: float
+    cov: tuple[float, ...]
+    last_seen_ns: StampNs
+    alive: bool
+
+
+class GlobalMap(Msg, frozen=True, kw_only=True, tag="global_map"):
+    """Every robot's fused pose; ``edges`` lists (observer, observed) pairs seen
+    recently."""
+
+    origin_id: RobotId
+    robots: tuple[MapEntry, ...]
+    edges: tuple[tuple[int, int], ...] = ()
+
+
+class AgentStatus(Msg, frozen=True, kw_only=True, tag="status"):
+    """Periodic health of one process: its mode and its counters (frames
+    processed/skipped, rejected payloads per kind, ...)."""
+
+    robot_id: RobotId | None = None
+    role: str
+    mode: str
+    counters: dict[str, int] = {}
+
+
+class RenderPoses(Msg, frozen=True, kw_only=True, tag="render_poses"):
+    """World -> render workers: the robot poses to render for step ``step`` and the
+    cameras each worker must render (``"robot_id/camera"``)."""
+
+    step: Count
+    robot_ids: tuple[int, ...]
+    poses: tuple[Pose3, ...]
+    cameras: tuple[str, ...]
+
+
+AnyMessage = (
+    Tick
+    | TickAck
+    | CameraImage
+    | EncoderTicks
+    | WheelCommand
+    | GroundTruthPose
+    | RelativeObservation
+    | OdometryEstimate
+    | Correction
+    | GlobalMap
+    | AgentStatus
+    | RenderPoses
+)

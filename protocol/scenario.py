@@ -1,0 +1,383 @@
+"""The scenario: everything every process must agree on about one simulated world.
+
+A scenario is a TOML file (built-ins live in ``protocol/scenarios/``).  Process
+configs embed it and layer environment variables and CLI flags on top through
+dotted overrides such as ``clock.mode=lockstep`` (see :func:`apply_override`).
+Types and ranges are checked by msgspec; cross-field rules by :func:`validate`.
+Every problem is reported as a :class:`ScenarioError` with a one-line message
+naming the field.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from importlib import resources
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+import msgspec
+import numpy as np
+
+from protocol import tags
+
+Pos = Annotated[float, msgspec.Meta(gt=0)]
+NonNeg = Annotated[float, msgspec.Meta(ge=0)]
+
+
+class ScenarioError(ValueError):
+    """The scenario (or an override of it) is invalid; the message names the field."""
+
+
+class Spec(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """Base of scenario sections: frozen, keyword-only, typos are errors."""
+
+
+class Obstacle(Spec, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """A fixed box; pose of its centre in the arena frame (z from the floor)."""
+
+    x_m: float
+    y_m: float
+    yaw_rad: float = 0.0
+    size_x_m: Pos
+    size_y_m: Pos
+    size_z_m: Pos = 0.5
+
+
+class Arena(Spec, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """Square-cornered arena centred on the origin, surrounded by walls."""
+
+    size_x_m: Pos = 7.0
+    size_y_m: Pos = 7.0
+    wall_height_m: Pos = 0.5
+    wall_thickness_m: Pos = 0.1
+    obstacles: tuple[Obstacle, ...] = ()
+
+
+class TagScheme(Spec, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """Tag family and ID scheme: robot k carries ``id_base + id_stride*k + face``
+    for the faces front, back, left, right, top, bottom (paper: 10k+1..10k+6).
+    ``size_m`` is the edge of the tag's black square."""
+
+    family: Literal["tag36h11", "tag16h5"] = "tag36h11"
+    size_m: Pos = 0.16
+    id_base: Annotated[int, msgspec.Meta(ge=0)] = 1
+    id_stride: Annotated[int, msgspec.Meta(ge=1)] = 10
+
+
+class Landmark(Spec, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """A fixed tag on a wall or post.  (x, y, z) is the tag centre in the arena
+    frame; the tag faces the direction ``yaw_rad`` (its outward normal), upright."""
+
+    id: Annotated[int, msgspec.Meta(ge=0)]
+    x_m: float
+    y_m: float
+    z_m: Pos = 0.25
+    yaw_rad: float = 0.0
+    size_m: Pos = 0.16
+
+
+class Camera(Spec, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """An onboard pinhole camera.  Mount: optical centre at (x, y, z) in the base
+    frame, looking along body yaw ``yaw_deg`` (left positive) tilted up by
+    ``pitch_deg``; the image is upright."""
+
+    name: str = "front"
+    width: Annotated[int, msgspec.Meta(ge=16, le=4096)] = 320
+    height: Annotated[int, msgspec.Meta(ge=16, le=4096)] = 240
+    hfov_deg: Annotated[float, msgspec.Meta(gt=1, lt=170)] = 60.0
+    rate_hz: Pos = 10.0
+    x_m: float = 0.15
+    y_m: float = 0.0
+    z_m: float = 0.22
+    yaw_deg: float = 0.0
+    pitch_deg: float = 0.0
+    near_m: Pos = 0.05
+    far_m: Pos = 15.0
+
+
+class Robot(Spec, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """Geometry and limits shared by every robot of the scenario."""
+
+    chassis_length_m: Pos = 0.30
+    chassis_width_m: Pos = 0.24
+    chassis_height_m: Pos = 0.10
+    ground_clearance_m: NonNeg = 0.02
+    cube_edge_m: Pos = 0.20
+    wheel_radius_m: Pos = 0.05
+    wheel_base_m: Pos = 0.22
+    max_wheel_speed_rad_s: Pos = 10.0
+    cameras: tuple[Camera, ...] = (Camera(),)
+
+    @property
+    def cube_center_z_m(self) -> float:
+        """Height of the tag cube's centre above the floor (the cube sits on the chassis)."""
+        return self.ground_clearance_m + self.chassis_height_m + self.cube_edge_m / 2.0
+
+
+class StartPose(Spec, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    x_m: float
+    y_m: float
+    yaw_rad: float = 0.0
+
+
+class Robots(Spec, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """How many robots and where they start.  ``placement``: ``ring`` (evenly on a
+    circle of ``ring_radius_m`` facing its centre), ``grid`` (evenly spread with
+    seeded random headings), ``random`` (seeded, non-overlapping) or
+    ``explicit`` (``start`` lists one pose per robot)."""
+
+    count: Annotated[int, msgspec.Meta(ge=1, le=200)] = 4
+    placement: Literal["ring", "grid", "random", "explicit"] = "ring"
+    ring_radius_m: Pos = 1.5
+    start: tuple[StartPose, ...] = ()
+
+
+class Encoders(Spec, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """Wheel encoders and their error model.  ``radius_bias_sigma`` and
+    ``wheel_base_bias_sigma`` are the standard deviations (fractions) of the
+    per-robot systematic miscalibration drawn once from the seed;
+    ``slip_sigma`` (sqrt of metres) scales random slip: each wheel's travel d
+    gets noise N(0, slip_sigma^2 |d|)."""
+
+    rate_hz: Pos = 30.0
+    ticks_per_rev: Annotated[int, msgspec.Meta(ge=1)] = 4096
+    error_model: bool = True
+    radius_bias_sigma: NonNeg = 0.01
+    wheel_base_bias_sigma: NonNeg = 0.02
+    slip_sigma: NonNeg = 0.01
+
+
+class Clock(Spec, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """``realtime``: the world paces itself to ``speed`` x wall time.
+    ``lockstep``: after each tick it waits for an ack from every live participant
+    in ``participants`` (``"agent/0"``, ``"server/0"``...); one that has not acked
+    after ``ack_timeout_s`` is skipped for that tick and logged; one whose
+    liveliness token vanishes is dropped until it comes back.  The world waits up
+    to ``join_timeout_s`` for participants to appear before the first tick."""
+
+    mode: Literal["realtime", "lockstep"] = "realtime"
+    tick_hz: Pos = 30.0
+    physics_substeps: Annotated[int, msgspec.Meta(ge=1, le=100)] = 4
+    speed: Pos = 1.0
+    participants: tuple[str, ...] = ()
+    ack_timeout_s: Pos = 5.0
+    join_timeout_s: Pos = 30.0
+    command_timeout_s: Pos = 0.5
+
+
+class Render(Spec, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """Rendering: ``workers`` = 0 renders in the world process; K > 0 spawns K
+    render worker processes (each a visual-only replica of the scene)."""
+
+    workers: Annotated[int, msgspec.Meta(ge=0, le=32)] = 0
+    floor: bool = False
+    shadows: bool = False
+
+
+class Scenario(Spec, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    name: str = "custom"
+    seed: Annotated[int, msgspec.Meta(ge=0)] = 0
+    duration_s: Pos = 60.0
+    arena: Arena = Arena()
+    tags: TagScheme = TagScheme()
+    robot: Robot = Robot()
+    robots: Robots = Robots()
+    landmarks: tuple[Landmark, ...] = ()
+    encoders: Encoders = Encoders()
+    clock: Clock = Clock()
+    render: Render = Render()
+
+    @property
+    def robot_ids(self) -> tuple[int, ...]:
+        return tuple(range(self.robots.count))
+
+    def tag_ids(self, robot_id: int) -> tuple[int, ...]:
+        """The six tag IDs of ``robot_id`` in :class:`protocol.tags.Face` order."""
+        return tags.robot_tag_ids(robot_id, self.tags.id_base, self.tags.id_stride)
+
+
+# --------------------------------------------------------------------------- loading
+
+
+def builtin_names() -> list[str]:
+    """Names of the scenarios shipped in the package."""
+    folder = resources.files("protocol") / "scenarios"
+    return sorted(p.name[:-5] for p in folder.iterdir() if p.name.endswith(".toml"))
+
+
+def read_scenario_dict(name_or_path: str) -> dict[str, Any]:
+    """The raw TOML table of a built-in scenario name or a ``.toml`` path."""
+    path = Path(name_or_path)
+    try:
+        if path.suffix == ".toml" or path.exists():
+            text = path.read_text()
+        elif name_or_path in builtin_names():
+            text = (resources.files("protocol") / "scenarios" / f"{name_or_path}.toml").read_text()
+        else:
+            raise ScenarioError(
+                f"unknown scenario {name_or_path!r} (built-ins: {', '.join(builtin_names())}; or a .toml path)"
+            )
+        return tomllib.loads(text)
+    except OSError as exc:
+        raise ScenarioError(f"cannot read scenario {name_or_path!r}: {exc.strerror}") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ScenarioError(f"scenario {name_or_path!r} is not valid TOML: {exc}") from None
+
+
+def parse_value(text: str) -> Any:
+    """A TOML value (``3``, ``true``, ``[1, 2]``, ``"x"``); bare words become strings."""
+    try:
+        return tomllib.loads(f"v = {text}")["v"]
+    except tomllib.TOMLDecodeError:
+        return text
+
+
+def apply_override(table: dict[str, Any], assignment: str) -> None:
+    """Apply ``dotted.key=value`` to a nested dict in place."""
+    if "=" not in assignment:
+        raise ScenarioError(f"override {assignment!r} must look like 'section.field=value'")
+    dotted, value = assignment.split("=", 1)
+    parts = [p.strip() for p in dotted.strip().split(".")]
+    if not all(parts):
+        raise ScenarioError(f"override {assignment!r} has an empty field name")
+    node = table
+    for p in parts[:-1]:
+        nxt = node.setdefault(p, {})
+        if not isinstance(nxt, dict):
+            raise ScenarioError(f"override {assignment!r}: {p!r} is not a section")
+        node = nxt
+    node[parts[-1]] = parse_value(value.strip())
+
+
+def convert(table: dict[str, Any], cls: type[Any], what: str) -> Any:
+    """msgspec-convert a TOML table, turning errors into one-line messages."""
+    try:
+        return msgspec.convert(table, cls)
+    except msgspec.ValidationError as exc:
+        # msgspec says "... - at `$.clock.mode`"; rephrase with the field first
+        text = str(exc)
+        if " - at `$." in text:
+            msg, path = text.rsplit(" - at `$.", 1)
+            raise ScenarioError(f"{what}: field '{path.rstrip('`')}': {msg}") from None
+        raise ScenarioError(f"{what}: {text}") from None
+
+
+def load_scenario(name_or_path: str = "paper", overrides: tuple[str, ...] | list[str] = ()) -> Scenario:
+    """Load, override and validate a scenario."""
+    table = read_scenario_dict(name_or_path)
+    for o in overrides:
+        apply_override(table, o)
+    scenario: Scenario = convert(table, Scenario, f"scenario {name_or_path!r}")
+    validate(scenario)
+    return scenario
+
+
+# --------------------------------------------------------------------------- rules
+
+
+def validate(s: Scenario) -> None:
+    """Cross-field rules; raises :class:`ScenarioError` naming the field."""
+    fam_n = tags.family_size(s.tags.family)
+    need = tags.min_face_for_tag(s.tags.family, s.tags.size_m)
+    if need > s.robot.cube_edge_m + 1e-9:
+        raise ScenarioError(
+            f"tags.size_m={s.tags.size_m} leaves no white quiet zone on a {s.robot.cube_edge_m} m cube "
+            f"(robot.cube_edge_m must be >= {need:.3f})"
+        )
+    owner: dict[int, str] = {}
+    for rid in s.robot_ids:
+        for face, tid in zip(tags.Face, s.tag_ids(rid), strict=True):
+            _claim(owner, tid, f"robot {rid} {face.name.lower()}", fam_n, s.tags.family, "tags")
+    for i, lm in enumerate(s.landmarks):
+        _claim(owner, lm.id, f"landmark {i}", fam_n, s.tags.family, f"landmarks[{i}].id")
+        if math.hypot(lm.x_m, lm.y_m) > math.hypot(s.arena.size_x_m, s.arena.size_y_m):
+            raise ScenarioError(f"landmarks[{i}]: ({lm.x_m}, {lm.y_m}) is far outside the arena")
+    names = [c.name for c in s.robot.cameras]
+    if not names:
+        raise ScenarioError("robot.cameras: a robot needs at least one camera")
+    if len(set(names)) != len(names):
+        raise ScenarioError(f"robot.cameras: camera names must be unique, got {names}")
+    for i, c in enumerate(s.robot.cameras):
+        if not c.name.replace("_", "").replace("-", "").isalnum():
+            raise ScenarioError(f"robot.cameras[{i}].name {c.name!r} must be letters, digits, '_' or '-'")
+        if c.far_m <= c.near_m:
+            raise ScenarioError(f"robot.cameras[{i}]: far_m must exceed near_m")
+        if c.rate_hz > s.clock.tick_hz:
+            raise ScenarioError(f"robot.cameras[{i}].rate_hz={c.rate_hz} exceeds clock.tick_hz={s.clock.tick_hz}")
+    if s.encoders.rate_hz > s.clock.tick_hz:
+        raise ScenarioError(f"encoders.rate_hz={s.encoders.rate_hz} exceeds clock.tick_hz={s.clock.tick_hz}")
+    if s.robot.wheel_base_m < s.robot.wheel_radius_m:
+        raise ScenarioError("robot.wheel_base_m must be at least robot.wheel_radius_m")
+    for p in s.clock.participants:
+        if len(p.split("/")) != 2:
+            raise ScenarioError(f"clock.participants: {p!r} must look like 'role/id', e.g. 'agent/0'")
+    if s.robots.placement == "explicit" and len(s.robots.start) != s.robots.count:
+        raise ScenarioError(
+            f"robots.start has {len(s.robots.start)} poses but robots.count={s.robots.count} (placement=explicit)"
+        )
+    poses = start_poses(s)
+    half_x = s.arena.size_x_m / 2 - s.arena.wall_thickness_m / 2
+    half_y = s.arena.size_y_m / 2 - s.arena.wall_thickness_m / 2
+    r = footprint_radius(s.robot)
+    for rid, (x, y, _) in zip(s.robot_ids, poses, strict=True):
+        if abs(x) + r > half_x or abs(y) + r > half_y:
+            raise ScenarioError(f"robot {rid} starts at ({x:.2f}, {y:.2f}), outside the arena")
+    for i in range(len(poses)):
+        for j in range(i):
+            if math.dist(poses[i][:2], poses[j][:2]) < 2 * r:
+                raise ScenarioError(f"robots {j} and {i} start overlapping (robots.placement/start)")
+
+
+def _claim(owner: dict[int, str], tid: int, who: str, fam_n: int, family: str, field: str) -> None:
+    if not 0 <= tid < fam_n:
+        raise ScenarioError(f"{field}: {who} would carry tag ID {tid}, but {family} has IDs 0..{fam_n - 1}")
+    if tid in owner:
+        raise ScenarioError(f"{field}: tag ID {tid} is used twice ({owner[tid]} and {who})")
+    owner[tid] = who
+
+
+def footprint_radius(robot: Robot) -> float:
+    """Radius (m) of the circle that holds a robot's chassis and cube."""
+    half = max(robot.chassis_length_m, robot.cube_edge_m) / 2.0
+    return math.hypot(half, max(robot.chassis_width_m, robot.cube_edge_m) / 2.0)
+
+
+def start_poses(s: Scenario) -> list[tuple[float, float, float]]:
+    """Initial (x_m, y_m, yaw_rad) of every robot in the arena frame; deterministic."""
+    n = s.robots.count
+    rng = np.random.default_rng(s.seed + 7919)
+    pl = s.robots.placement
+    if pl == "explicit":
+        return [(p.x_m, p.y_m, p.yaw_rad) for p in s.robots.start]
+    if pl == "ring":
+        out = []
+        for k in range(n):
+            a = 2 * math.pi * k / n
+            rr = s.robots.ring_radius_m
+            out.append((rr * math.cos(a), rr * math.sin(a), _wrap(a + math.pi)))
+        return out
+    margin = footprint_radius(s.robot) + s.arena.wall_thickness_m + 0.3
+    wx, wy = s.arena.size_x_m / 2 - margin, s.arena.size_y_m / 2 - margin
+    if pl == "grid":
+        cols = math.ceil(math.sqrt(n))
+        rows = math.ceil(n / cols)
+        out = []
+        for k in range(n):
+            cx = -wx + 2 * wx * ((k % cols) + 0.5) / cols
+            cy = -wy + 2 * wy * ((k // cols) + 0.5) / rows
+            out.append((cx, cy, float(rng.uniform(-math.pi, math.pi))))
+        return out
+    out = []
+    min_gap = 2 * footprint_radius(s.robot) + 0.1
+    for _ in range(n):
+        for _attempt in range(10_000):
+            x, y = float(rng.uniform(-wx, wx)), float(rng.uniform(-wy, wy))
+            if all(math.dist((x, y), p[:2]) >= min_gap for p in out):
+                break
+        out.append((x, y, float(rng.uniform(-math.pi, math.pi))))
+    return out
+
+
+def _wrap(a: float) -> float:
+    return (a + math.pi) % (2 * math.pi) - math.pi

@@ -1,0 +1,145 @@
+"""Camera rendering on a visual-only replica of the scene.
+
+A :class:`Renderer` owns its own pybullet client (DIRECT, TinyRenderer) holding
+only visual shapes: no physics is ever stepped on it, robots are moved with
+``resetBasePositionAndOrientation`` (cheap for massless, collision-free bodies).
+The world process holds one when it renders in-process; each render worker
+holds one and renders a subset of the cameras.  Cheap choices are the default
+(DESIGN.md section 4): no floor, no shadows, no segmentation mask, one body per
+robot.
+"""
+
+from __future__ import annotations
+
+import math
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import pybullet as pb
+from numpy.typing import NDArray
+
+from protocol.geometry import Mat, quat_to_rot, transform
+from protocol.scenario import Camera, Scenario
+from world import assets
+from world.camera import mount_transform, vfov_deg
+
+WALL_RGBA = (0.55, 0.55, 0.6, 1.0)
+OBSTACLE_RGBA = (0.45, 0.35, 0.3, 1.0)
+CHASSIS_RGBA = (0.15, 0.3, 0.6, 1.0)
+FLOOR_RGBA = (0.7, 0.7, 0.7, 1.0)
+
+
+class Renderer:
+    """Visual replica of a scenario's scene and the cameras of its robots."""
+
+    def __init__(self, scenario: Scenario, asset_dir: Path | None = None) -> None:
+        self.scenario = scenario
+        self._tmp = None if asset_dir is not None else tempfile.TemporaryDirectory(prefix="tagswarm-assets-")
+        self.asset_dir = asset_dir if asset_dir is not None else Path(self._tmp.name)  # type: ignore[union-attr]
+        self.cid = pb.connect(pb.DIRECT)
+        self.bodies: dict[int, int] = {}
+        self._proj: dict[str, list[float]] = {}
+        self._mount: dict[str, Mat] = {c.name: mount_transform(c) for c in scenario.robot.cameras}
+        self.frames_rendered = 0
+        self._build()
+
+    # ------------------------------------------------------------------ scene
+    def _box(self, half: tuple[float, float, float], pos: tuple[float, float, float], yaw: float,
+             rgba: tuple[float, ...]) -> int:
+        vis = pb.createVisualShape(pb.GEOM_BOX, halfExtents=half, rgbaColor=rgba, physicsClientId=self.cid)
+        return pb.createMultiBody(baseMass=0, baseVisualShapeIndex=vis, basePosition=pos,
+                                  baseOrientation=pb.getQuaternionFromEuler((0, 0, yaw)), physicsClientId=self.cid)
+
+    def _build(self) -> None:
+        s = self.scenario
+        a = s.arena
+        if s.render.floor:
+            self._box((a.size_x_m / 2, a.size_y_m / 2, 0.005), (0, 0, -0.005), 0.0, FLOOR_RGBA)
+        t, h = a.wall_thickness_m, a.wall_height_m
+        hx, hy = a.size_x_m / 2, a.size_y_m / 2
+        for pos, half in (
+            ((hx, 0, h / 2), (t / 2, hy + t / 2, h / 2)),
+            ((-hx, 0, h / 2), (t / 2, hy + t / 2, h / 2)),
+            ((0, hy, h / 2), (hx + t / 2, t / 2, h / 2)),
+            ((0, -hy, h / 2), (hx + t / 2, t / 2, h / 2)),
+        ):
+            self._box(half, pos, 0.0, WALL_RGBA)  # type: ignore[arg-type]
+        for ob in a.obstacles:
+            self._box((ob.size_x_m / 2, ob.size_y_m / 2, ob.size_z_m / 2), (ob.x_m, ob.y_m, ob.size_z_m / 2),
+                      ob.yaw_rad, OBSTACLE_RGBA)
+        for lm in s.landmarks:
+            obj = assets.landmark_mesh(self.asset_dir, s.tags.family, lm.id, lm.size_m)
+            vis = pb.createVisualShape(pb.GEOM_MESH, fileName=str(obj), physicsClientId=self.cid)
+            pb.createMultiBody(baseMass=0, baseVisualShapeIndex=vis, basePosition=(lm.x_m, lm.y_m, lm.z_m),
+                               baseOrientation=pb.getQuaternionFromEuler((0, 0, lm.yaw_rad)),
+                               physicsClientId=self.cid)
+        r = s.robot
+        for rid in s.robot_ids:
+            obj = assets.cube_mesh(self.asset_dir, s.tags.family, s.tag_ids(rid), r.cube_edge_m, s.tags.size_m)
+            # one body per robot (every body costs ~0.2 ms per image): chassis box + cube mesh
+            vis = pb.createVisualShapeArray(
+                shapeTypes=[pb.GEOM_BOX, pb.GEOM_MESH],
+                halfExtents=[[r.chassis_length_m / 2, r.chassis_width_m / 2, r.chassis_height_m / 2], [0, 0, 0]],
+                fileNames=["", str(obj)],
+                meshScales=[[1, 1, 1], [1, 1, 1]],
+                rgbaColors=[list(CHASSIS_RGBA), [1, 1, 1, 1]],
+                visualFramePositions=[[0, 0, r.ground_clearance_m + r.chassis_height_m / 2],
+                                      [0, 0, r.cube_center_z_m]],
+                physicsClientId=self.cid,
+            )
+            self.bodies[rid] = pb.createMultiBody(baseMass=0, baseVisualShapeIndex=vis, basePosition=(0, 0, -10),
+                                                  physicsClientId=self.cid)
+
+    # ------------------------------------------------------------------ poses
+    def set_pose(self, robot_id: int, position: tuple[float, float, float],
+                 orientation: tuple[float, float, float, float]) -> None:
+        """Place robot ``robot_id``'s base frame (floor level, body axes) in the arena."""
+        pb.resetBasePositionAndOrientation(self.bodies[robot_id], position, orientation, physicsClientId=self.cid)
+
+    # ------------------------------------------------------------------ cameras
+    def _projection(self, cam: Camera) -> list[float]:
+        proj = self._proj.get(cam.name)
+        if proj is None:
+            proj = self._proj[cam.name] = list(pb.computeProjectionMatrixFOV(
+                fov=vfov_deg(cam), aspect=cam.width / cam.height, nearVal=cam.near_m, farVal=cam.far_m,
+                physicsClientId=self.cid))
+        return proj
+
+    def render(self, robot_id: int, cam: Camera, base_pose: Mat) -> NDArray[np.uint8]:
+        """Grayscale image (H, W) uint8 of camera ``cam`` on robot ``robot_id`` whose
+        base is at ``base_pose`` (T_world_base, (4, 4))."""
+        t_wc = base_pose @ self._mount[cam.name]
+        eye = t_wc[:3, 3]
+        fwd, down = t_wc[:3, 2], t_wc[:3, 1]
+        view = pb.computeViewMatrix(eye.tolist(), (eye + fwd).tolist(), (-down).tolist(), physicsClientId=self.cid)
+        _, _, rgba, _, _ = pb.getCameraImage(
+            cam.width, cam.height, viewMatrix=view, projectionMatrix=self._projection(cam),
+            shadow=int(self.scenario.render.shadows), renderer=pb.ER_TINY_RENDERER,
+            flags=pb.ER_NO_SEGMENTATION_MASK, physicsClientId=self.cid)
+        img = np.asarray(rgba, dtype=np.uint8).reshape(cam.height, cam.width, 4)
+        self.frames_rendered += 1
+        # ITU-R 601 luma, integer maths: 0.299 R + 0.587 G + 0.114 B
+        gray = (img[..., 0].astype(np.uint16) * 77 + img[..., 1].astype(np.uint16) * 150
+                + img[..., 2].astype(np.uint16) * 29) >> 8
+        return gray.astype(np.uint8)
+
+    def close(self) -> None:
+        """Disconnect the pybullet client and remove temporary assets."""
+        if self.cid >= 0:
+            pb.disconnect(physicsClientId=self.cid)
+            self.cid = -1
+        if self._tmp is not None:
+            self._tmp.cleanup()
+            self._tmp = None
+
+    def __enter__(self) -> Renderer:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def pose_matrix(position: tuple[float, float, float], orientation: tuple[float, float, float, float]) -> Mat:
+    """T_world_base (4, 4) from a position and an (x, y, z, w) quaternion."""
+    return transform(quat_to_rot(orientation), position)

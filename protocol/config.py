@@ -13,7 +13,9 @@ from __future__ import annotations
 import argparse
 import logging
 import os
+import signal
 import sys
+import threading
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any, NoReturn
 
@@ -147,3 +149,12 @@ def env_of(environ: Mapping[str, str] | None = None) -> dict[str, str]:
 def parse(parser: argparse.ArgumentParser, argv: Sequence[str] | None) -> argparse.Namespace:
     """Parse ``argv`` (``None`` means ``sys.argv[1:]``)."""
     return parser.parse_args(list(argv) if argv is not None else None)
+
+
+def install_stop_signals(stop: threading.Event) -> None:
+    """SIGTERM and SIGINT set ``stop`` so a node's loop ends and its Zenoh session
+    closes cleanly (a no-op outside the main thread, e.g. nodes run in tests)."""
+    if threading.current_thread() is not threading.main_thread():
+        return
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(sig, lambda *_: stop.set())

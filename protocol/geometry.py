@@ -54,7 +54,7 @@ def rot_to_quat(r: Mat) -> tuple[float, float, float, float]:
         w, x, y, z = (m[1, 0] - m[0, 1]) / s, (m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s
     if w < 0:
         x, y, z, w = -x, -y, -z, -w
-    return (x, y, z, w)
+    return (float(x), float(y), float(z), float(w))
 
 
 def yaw_quat(yaw: float) -> tuple[float, float, float, float]:

@@ -207,9 +207,13 @@ def builtin_names() -> list[str]:
 
 
 def read_scenario_dict(name_or_path: str) -> dict[str, Any]:
-    """The raw TOML table of a built-in scenario name or a ``.toml`` path."""
+    """The raw table of a built-in scenario name, a ``.toml`` path, or a ``.json``
+    path (a resolved scenario handed from one process to another)."""
     path = Path(name_or_path)
     try:
+        if path.suffix == ".json":
+            table: dict[str, Any] = msgspec.json.decode(path.read_bytes())
+            return table
         if path.suffix == ".toml" or path.exists():
             text = path.read_text()
         elif name_or_path in builtin_names():
@@ -221,8 +225,8 @@ def read_scenario_dict(name_or_path: str) -> dict[str, Any]:
         return tomllib.loads(text)
     except OSError as exc:
         raise ScenarioError(f"cannot read scenario {name_or_path!r}: {exc.strerror}") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise ScenarioError(f"scenario {name_or_path!r} is not valid TOML: {exc}") from None
+    except (tomllib.TOMLDecodeError, msgspec.DecodeError) as exc:
+        raise ScenarioError(f"scenario {name_or_path!r} cannot be parsed: {exc}") from None
 
 
 def parse_value(text: str) -> Any:
@@ -381,3 +385,15 @@ def start_poses(s: Scenario) -> list[tuple[float, float, float]]:
 
 def _wrap(a: float) -> float:
     return (a + math.pi) % (2 * math.pi) - math.pi
+
+
+def wall_boxes(a: Arena) -> list[tuple[tuple[float, float, float], tuple[float, float, float]]]:
+    """The four walls as (centre, half extents) boxes in the arena frame, metres."""
+    t, h = a.wall_thickness_m, a.wall_height_m
+    hx, hy = a.size_x_m / 2, a.size_y_m / 2
+    return [
+        ((hx, 0.0, h / 2), (t / 2, hy + t / 2, h / 2)),
+        ((-hx, 0.0, h / 2), (t / 2, hy + t / 2, h / 2)),
+        ((0.0, hy, h / 2), (hx + t / 2, t / 2, h / 2)),
+        ((0.0, -hy, h / 2), (hx + t / 2, t / 2, h / 2)),
+    ]

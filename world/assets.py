@@ -30,8 +30,7 @@ def tag_image(family: str, tag_id: int, black_px: int) -> NDArray[np.uint8]:
     """The tag's black square (data bits + black border), (black_px, black_px) uint8,
     upright as the AprilTag library expects it."""
     dictionary = cv2.aruco.getPredefinedDictionary(_ARUCO_DICT[family])
-    img: NDArray[np.uint8] = cv2.aruco.generateImageMarker(dictionary, tag_id, black_px, borderBits=1)
-    return img
+    return np.asarray(cv2.aruco.generateImageMarker(dictionary, tag_id, black_px, borderBits=1), np.uint8)
 
 
 def face_image(family: str, tag_id: int | None, face_m: float, tag_m: float) -> NDArray[np.uint8]:
@@ -39,7 +38,7 @@ def face_image(family: str, tag_id: int | None, face_m: float, tag_m: float) -> 
     ``tag_m / face_m`` of the face width.  ``tag_id=None`` gives a blank face."""
     n = tags.black_cells(family)
     black_px = n * CELL_PX
-    face_px = int(round(black_px * face_m / tag_m))
+    face_px = round(black_px * face_m / tag_m)
     img = np.full((face_px, face_px), 255, np.uint8)
     if tag_id is not None:
         off = (face_px - black_px) // 2
@@ -82,7 +81,7 @@ def _write_obj(
         b = 4 * i + 1
         # TR, TL, BL, BR is counter-clockwise seen from outside: two triangles
         fs += [f"f {b}/{b} {b + 1}/{b + 1} {b + 2}/{b + 2}", f"f {b}/{b} {b + 2}/{b + 2} {b + 3}/{b + 3}"]
-    lines += vts + ["usemtl tag", "s off"] + fs
+    lines += [*vts, "usemtl tag", "s off", *fs]
     obj.write_text("\n".join(lines) + "\n")
     return obj
 

@@ -11,7 +11,6 @@ robot.
 
 from __future__ import annotations
 
-import math
 import tempfile
 from pathlib import Path
 
@@ -19,10 +18,11 @@ import numpy as np
 import pybullet as pb
 from numpy.typing import NDArray
 
-from protocol.geometry import Mat, quat_to_rot, transform
-from protocol.scenario import Camera, Scenario
+from protocol.geometry import Mat, matrix_to_pose3, quat_to_rot, transform
+from protocol.messages import CameraImage
+from protocol.scenario import Camera, Scenario, wall_boxes
 from world import assets
-from world.camera import mount_transform, vfov_deg
+from world.camera import intrinsics, mount_transform, vfov_deg
 
 WALL_RGBA = (0.55, 0.55, 0.6, 1.0)
 OBSTACLE_RGBA = (0.45, 0.35, 0.3, 1.0)
@@ -56,15 +56,8 @@ class Renderer:
         a = s.arena
         if s.render.floor:
             self._box((a.size_x_m / 2, a.size_y_m / 2, 0.005), (0, 0, -0.005), 0.0, FLOOR_RGBA)
-        t, h = a.wall_thickness_m, a.wall_height_m
-        hx, hy = a.size_x_m / 2, a.size_y_m / 2
-        for pos, half in (
-            ((hx, 0, h / 2), (t / 2, hy + t / 2, h / 2)),
-            ((-hx, 0, h / 2), (t / 2, hy + t / 2, h / 2)),
-            ((0, hy, h / 2), (hx + t / 2, t / 2, h / 2)),
-            ((0, -hy, h / 2), (hx + t / 2, t / 2, h / 2)),
-        ):
-            self._box(half, pos, 0.0, WALL_RGBA)  # type: ignore[arg-type]
+        for pos, half in wall_boxes(a):
+            self._box(half, pos, 0.0, WALL_RGBA)
         for ob in a.obstacles:
             self._box((ob.size_x_m / 2, ob.size_y_m / 2, ob.size_z_m / 2), (ob.x_m, ob.y_m, ob.size_z_m / 2),
                       ob.yaw_rad, OBSTACLE_RGBA)
@@ -143,3 +136,12 @@ class Renderer:
 def pose_matrix(position: tuple[float, float, float], orientation: tuple[float, float, float, float]) -> Mat:
     """T_world_base (4, 4) from a position and an (x, y, z, w) quaternion."""
     return transform(quat_to_rot(orientation), position)
+
+
+def image_message(scenario: Scenario, robot_id: int, cam: Camera, img: NDArray[np.uint8], *, seq: int, step: int,
+                  stamp_ns: int) -> CameraImage:
+    """Wrap a rendered (H, W) uint8 frame with its intrinsics and mount pose."""
+    fx, fy, cx, cy = intrinsics(cam)
+    return CameraImage(seq=seq, stamp_ns=stamp_ns, robot_id=robot_id, camera=cam.name, step=step,
+                       width=cam.width, height=cam.height, fx_px=fx, fy_px=fy, cx_px=cx, cy_px=cy,
+                       mount=matrix_to_pose3(mount_transform(cam)), data=img.tobytes())

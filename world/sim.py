@@ -26,7 +26,7 @@ import numpy as np
 import pybullet as pb
 
 from protocol.geometry import wrap_angle
-from protocol.scenario import Scenario, start_poses
+from protocol.scenario import Scenario, start_poses, wall_boxes
 
 
 @dataclass
@@ -60,7 +60,7 @@ class Sim:
     def __init__(self, scenario: Scenario) -> None:
         self.s = scenario
         self.cid = pb.connect(pb.DIRECT)
-        self.dt_ns = int(round(1e9 / scenario.clock.tick_hz))
+        self.dt_ns = round(1e9 / scenario.clock.tick_hz)
         self.substeps = scenario.clock.physics_substeps
         self.sub_dt_s = self.dt_ns / 1e9 / self.substeps
         self.step_index = 0
@@ -94,10 +94,7 @@ class Sim:
     def _build_static(self) -> None:
         a = self.s.arena
         self._static_box((a.size_x_m, a.size_y_m, 0.05), (0, 0, -0.05))
-        t, h = a.wall_thickness_m, a.wall_height_m
-        hx, hy = a.size_x_m / 2, a.size_y_m / 2
-        for pos, half in (((hx, 0.0, h / 2), (t / 2, hy + t / 2, h / 2)), ((-hx, 0.0, h / 2), (t / 2, hy + t / 2, h / 2)),
-                          ((0.0, hy, h / 2), (hx + t / 2, t / 2, h / 2)), ((0.0, -hy, h / 2), (hx + t / 2, t / 2, h / 2))):
+        for pos, half in wall_boxes(a):
             self._static_box(half, pos)
         for ob in a.obstacles:
             self._static_box((ob.size_x_m / 2, ob.size_y_m / 2, ob.size_z_m / 2), (ob.x_m, ob.y_m, ob.size_z_m / 2),

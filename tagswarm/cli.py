@@ -1,0 +1,55 @@
+"""``tagswarm``: one entry point for every role and tool.
+
+``tagswarm world ...`` runs exactly what ``tagswarm-world ...`` runs (compose uses
+the console scripts; people use the subcommands).
+"""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Callable, Sequence
+
+from protocol.scenario import builtin_names
+
+
+def _commands() -> dict[str, tuple[str, Callable[[Sequence[str] | None], int]]]:
+    from world import node as world_node
+    from world import render_worker
+
+    return {
+        "world": ("run the world process (physics, cameras, encoders, clock)", world_node.main),
+        "render": ("run one render worker for a world started with --no-spawn-workers", render_worker.main),
+    }
+
+
+USAGE = """usage: tagswarm COMMAND [ARGS...]
+
+tagswarm simulates a swarm of ground robots that localise each other by reading
+AprilTag cubes, over Zenoh.  Each command has its own --help.
+
+commands:
+{commands}
+  scenarios  list the built-in scenarios
+"""
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Console script ``tagswarm``."""
+    args = list(sys.argv[1:] if argv is None else argv)
+    commands = _commands()
+    listing = "\n".join(f"  {name:<10} {text}" for name, (text, _) in commands.items())
+    if not args or args[0] in ("-h", "--help"):
+        print(USAGE.format(commands=listing))
+        return 0
+    name, rest = args[0], args[1:]
+    if name == "scenarios":
+        print("\n".join(builtin_names()))
+        return 0
+    if name not in commands:
+        sys.stderr.write(f"tagswarm: error: unknown command {name!r} (commands: {', '.join(commands)}, scenarios)\n")
+        return 2
+    return commands[name][1](rest)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

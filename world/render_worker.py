@@ -1,0 +1,160 @@
+"""A render worker process: a visual-only replica of the scene that renders a
+subset of the robots' cameras and publishes them under the robots' image keys.
+
+The world sends :class:`~protocol.messages.RenderPoses` (all robot poses plus
+the cameras this worker must render) on ``world/render/<i>``; the worker renders,
+publishes each :class:`~protocol.messages.CameraImage`, then acknowledges the
+step as participant ``render/<i>``.  In realtime mode the request inbox is
+newest-only, so a slow worker skips frames instead of queueing them.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import threading
+from collections import Counter
+from collections.abc import Mapping, Sequence
+
+import msgspec
+
+from protocol import codec
+from protocol import messages as m
+from protocol.bus import Bus, BusConfig, open_bus
+from protocol.config import (
+    ConfigError,
+    OneLineParser,
+    add_common_args,
+    bus_from,
+    env_of,
+    install_stop_signals,
+    parse,
+    pick,
+    run_main,
+    scenario_from,
+    setup_logging,
+)
+from protocol.keys import Keys
+from protocol.scenario import Scenario
+from world.render import Renderer, image_message, pose_matrix
+
+log = logging.getLogger("tagswarm.render")
+
+
+class RenderConfig(msgspec.Struct, frozen=True, kw_only=True):
+    scenario: Scenario
+    bus: BusConfig
+    worker_index: int
+    run: str = "default"
+    log_level: str = "INFO"
+
+
+def build_config(argv: Sequence[str] | None = None, environ: Mapping[str, str] | None = None) -> RenderConfig:
+    p: argparse.ArgumentParser = OneLineParser(
+        prog="tagswarm-render",
+        description="A tagswarm render worker: renders a share of the robots' cameras for the world process.")
+    add_common_args(p)
+    p.add_argument("--worker-index", type=int, required=True, metavar="I", help="this worker's index, 0..K-1")
+    args = parse(p, argv)
+    env = env_of(environ)
+    scenario = scenario_from(args, env)
+    if not 0 <= args.worker_index < max(scenario.render.workers, 1):
+        raise ConfigError(f"--worker-index {args.worker_index} is outside 0..{scenario.render.workers - 1} "
+                          "(render.workers)")
+    run = pick(args, env, "run", "default")
+    Keys(run)
+    return RenderConfig(scenario=scenario, bus=bus_from(args, env), worker_index=args.worker_index, run=run,
+                        log_level=pick(args, env, "log_level", "INFO"))
+
+
+class RenderWorkerNode:
+    """Renders the cameras the world assigns to this worker."""
+
+    def __init__(self, config: RenderConfig, bus: Bus) -> None:
+        self.cfg = config
+        self.s = config.scenario
+        self.bus = bus
+        self.keys = Keys(config.run)
+        self.name = f"render/{config.worker_index}"
+        self.renderer = Renderer(self.s)
+        self.cams = {c.name: c for c in self.s.robot.cameras}
+        self.rejects = codec.RejectCounter(log)
+        self.counters: Counter[str] = Counter()
+        self._seq: Counter[str] = Counter()
+        lockstep = self.s.clock.mode == "lockstep"
+        self.req_in = bus.subscribe(self.keys.render(config.worker_index), newest_only=not lockstep)
+        bus.declare_token(self.keys.alive(self.name))
+
+    def step(self) -> int:
+        """Render every pending request; returns the number of frames published."""
+        frames = 0
+        for item in self.req_in.drain():
+            try:
+                req = codec.decode(m.RenderPoses, item.value)
+            except codec.DecodeError as exc:
+                self.rejects.reject(exc.kind, exc.detail)
+                continue
+            frames += self._render(req)
+            key = self.keys.ack(self.name)
+            self.bus.put(key, codec.encode(m.TickAck(seq=self._next(key), stamp_ns=req.stamp_ns,
+                                                     participant=self.name, step=req.step)))
+        return frames
+
+    def _next(self, key: str) -> int:
+        seq = self._seq[key]
+        self._seq[key] += 1
+        return seq
+
+    def _render(self, req: m.RenderPoses) -> int:
+        bases = {}
+        for rid, p in zip(req.robot_ids, req.poses, strict=False):
+            if rid in self.renderer.bodies:
+                pos, quat = (p.x_m, p.y_m, p.z_m), (p.qx, p.qy, p.qz, p.qw)
+                self.renderer.set_pose(rid, pos, quat)
+                bases[rid] = pose_matrix(pos, quat)
+        n = 0
+        for pair in req.cameras:
+            rid_s, _, cam_name = pair.partition("/")
+            cam = self.cams.get(cam_name)
+            if not rid_s.isdigit() or int(rid_s) not in bases or cam is None:
+                self.rejects.reject("unknown_camera", f"render request for {pair!r}")
+                continue
+            rid = int(rid_s)
+            img = self.renderer.render(rid, cam, bases[rid])
+            key = self.keys.image(rid, cam.name)
+            self.bus.put(key, codec.encode(image_message(self.s, rid, cam, img, seq=self._next(key), step=req.step,
+                                                         stamp_ns=req.stamp_ns)), drop=True)
+            n += 1
+        self.counters["frames_rendered"] += n
+        return n
+
+    def run(self, stop_event: threading.Event) -> int:
+        while not stop_event.is_set():
+            if not self.step():
+                self.bus.wait(0.2)
+        return 0
+
+    def close(self) -> None:
+        self.renderer.close()
+
+
+def main(argv: Sequence[str] | None = None, environ: Mapping[str, str] | None = None) -> int:
+    """Console script ``tagswarm-render``."""
+
+    def body() -> int:
+        config = build_config(argv, environ)
+        setup_logging(config.log_level, f"render{config.worker_index}")
+        stop = threading.Event()
+        with open_bus(config.bus) as bus:
+            node = RenderWorkerNode(config, bus)
+            try:
+                install_stop_signals(stop)
+                return node.run(stop)
+            finally:
+                node.close()
+
+    return run_main("tagswarm-render", body)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -79,9 +79,10 @@ def _check(msg: m.Msg) -> None:
             "inconsistent",
             f"image {msg.width}x{msg.height} carries {len(msg.data)} bytes",
         )
-    cov = getattr(msg, "cov", None)
-    if cov is not None and len(cov) != 9:
-        raise DecodeError("inconsistent", f"covariance has {len(cov)} entries, expected 9")
+    covs = [e.cov for e in msg.robots] if isinstance(msg, m.GlobalMap) else [getattr(msg, "cov", None)]
+    for cov in covs:
+        if cov is not None and len(cov) != 9:
+            raise DecodeError("inconsistent", f"covariance has {len(cov)} entries, expected 9")
 
 
 def decode(cls: type[T], payload: bytes | bytearray | memoryview) -> T:

@@ -25,8 +25,9 @@ import re
 from dataclasses import dataclass
 from typing import Final
 
-_RUN_RE: Final = re.compile(r"^[A-Za-z0-9_.-]{1,64}$")
-_NAME_RE: Final = re.compile(r"^[A-Za-z0-9_.-]{1,64}$")
+_RUN_RE: Final = re.compile(r"[A-Za-z0-9_.-]{1,64}")
+_NAME_RE: Final = re.compile(r"[A-Za-z0-9_.-]{1,64}")
+_ID_RE: Final = re.compile(r"0|[1-9][0-9]{0,5}")
 ROOT: Final = "tagswarm"
 
 
@@ -36,7 +37,7 @@ class KeyError_(ValueError):
 
 def check_name(value: str, what: str) -> str:
     """Return ``value`` if it is a safe single key chunk, else raise :class:`KeyError_`."""
-    if not _NAME_RE.match(value):
+    if not _NAME_RE.fullmatch(value):
         raise KeyError_(f"{what} {value!r} must be 1-64 characters of letters, digits, '_', '.', '-'")
     return value
 
@@ -48,7 +49,7 @@ class Keys:
     run: str
 
     def __post_init__(self) -> None:
-        if not _RUN_RE.match(self.run):
+        if not _RUN_RE.fullmatch(self.run):
             raise KeyError_(f"run id {self.run!r} must be 1-64 characters of letters, digits, '_', '.', '-'")
 
     @property
@@ -131,7 +132,7 @@ class Keys:
         if not key.startswith(head):
             return None
         chunk = key[len(head) :].split("/", 1)[0]
-        if not chunk.isdigit() or len(chunk) > 6:
+        if not _ID_RE.fullmatch(chunk):
             return None
         return int(chunk)
 
@@ -140,7 +141,7 @@ class Keys:
         for head in (f"{self.prefix}/world/ack/", f"{self.prefix}/alive/"):
             if key.startswith(head):
                 rest = key[len(head) :].split("/")
-                if len(rest) == 2 and all(_NAME_RE.match(p) for p in rest):
+                if len(rest) == 2 and all(_NAME_RE.fullmatch(p) for p in rest):
                     return f"{rest[0]}/{rest[1]}"
         return None
 

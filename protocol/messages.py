@@ -24,6 +24,7 @@ RobotId = Annotated[int, msgspec.Meta(ge=0, le=100_000)]
 Seq = Annotated[int, msgspec.Meta(ge=0)]
 StampNs = Annotated[int, msgspec.Meta(ge=0)]
 Count = Annotated[int, msgspec.Meta(ge=0)]
+Int64 = Annotated[int, msgspec.Meta(ge=-(2**63), le=2**63 - 1)]
 Pixels = Annotated[int, msgspec.Meta(ge=1, le=8192)]
 
 
@@ -93,8 +94,8 @@ class EncoderTicks(Msg, frozen=True, kw_only=True, tag="encoder_ticks"):
     int64 on the wire).  Positive counts drive the robot forward."""
 
     robot_id: RobotId
-    left_ticks: int
-    right_ticks: int
+    left_ticks: Int64
+    right_ticks: Int64
     ticks_per_rev: Annotated[int, msgspec.Meta(ge=1)]
 
 

@@ -20,6 +20,7 @@ import msgspec
 import numpy as np
 
 from protocol import tags
+from protocol.keys import KeyError_, check_name, split_participant
 
 Pos = Annotated[float, msgspec.Meta(gt=0)]
 NonNeg = Annotated[float, msgspec.Meta(ge=0)]
@@ -157,7 +158,7 @@ class Clock(Spec, frozen=True, kw_only=True, forbid_unknown_fields=True):
     to ``join_timeout_s`` for participants to appear before the first tick."""
 
     mode: Literal["realtime", "lockstep"] = "realtime"
-    tick_hz: Pos = 30.0
+    tick_hz: Annotated[float, msgspec.Meta(gt=0, le=10_000)] = 30.0
     physics_substeps: Annotated[int, msgspec.Meta(ge=1, le=100)] = 4
     speed: Pos = 1.0
     participants: tuple[str, ...] = ()
@@ -282,6 +283,9 @@ def load_scenario(name_or_path: str = "paper", overrides: tuple[str, ...] | list
 
 def validate(s: Scenario) -> None:
     """Cross-field rules; raises :class:`ScenarioError` naming the field."""
+    bad = _non_finite(s, "")
+    if bad:
+        raise ScenarioError(f"field '{bad}' must be a finite number")
     fam_n = tags.family_size(s.tags.family)
     need = tags.min_face_for_tag(s.tags.family, s.tags.size_m)
     if need > s.robot.cube_edge_m + 1e-9:
@@ -303,8 +307,10 @@ def validate(s: Scenario) -> None:
     if len(set(names)) != len(names):
         raise ScenarioError(f"robot.cameras: camera names must be unique, got {names}")
     for i, c in enumerate(s.robot.cameras):
-        if not c.name.replace("_", "").replace("-", "").isalnum():
-            raise ScenarioError(f"robot.cameras[{i}].name {c.name!r} must be letters, digits, '_' or '-'")
+        try:
+            check_name(c.name, f"robot.cameras[{i}].name")
+        except KeyError_ as exc:
+            raise ScenarioError(str(exc)) from None
         if c.far_m <= c.near_m:
             raise ScenarioError(f"robot.cameras[{i}]: far_m must exceed near_m")
         if c.rate_hz > s.clock.tick_hz:
@@ -314,8 +320,10 @@ def validate(s: Scenario) -> None:
     if s.robot.wheel_base_m < s.robot.wheel_radius_m:
         raise ScenarioError("robot.wheel_base_m must be at least robot.wheel_radius_m")
     for p in s.clock.participants:
-        if len(p.split("/")) != 2:
-            raise ScenarioError(f"clock.participants: {p!r} must look like 'role/id', e.g. 'agent/0'")
+        try:
+            split_participant(p)
+        except KeyError_ as exc:
+            raise ScenarioError(f"clock.participants: {exc}") from None
     if s.robots.placement == "explicit" and len(s.robots.start) != s.robots.count:
         raise ScenarioError(
             f"robots.start has {len(s.robots.start)} poses but robots.count={s.robots.count} (placement=explicit)"
@@ -331,6 +339,23 @@ def validate(s: Scenario) -> None:
         for j in range(i):
             if math.dist(poses[i][:2], poses[j][:2]) < 2 * r:
                 raise ScenarioError(f"robots {j} and {i} start overlapping (robots.placement/start)")
+
+
+def _non_finite(value: Any, path: str) -> str | None:
+    """Dotted path of the first NaN/inf float in a scenario, else None."""
+    if isinstance(value, float):
+        return None if math.isfinite(value) else path
+    if isinstance(value, msgspec.Struct):
+        for f in value.__struct_fields__:
+            hit = _non_finite(getattr(value, f), f"{path}.{f}" if path else f)
+            if hit:
+                return hit
+    if isinstance(value, tuple):
+        for i, v in enumerate(value):
+            hit = _non_finite(v, f"{path}[{i}]")
+            if hit:
+                return hit
+    return None
 
 
 def _claim(owner: dict[int, str], tid: int, who: str, fam_n: int, family: str, field: str) -> None:

@@ -1,0 +1,496 @@
+"""protocol.codec: round trips, typed rejects and fuzzing (no network)."""
+
+from __future__ import annotations
+
+import logging
+import math
+import typing
+from typing import Any
+
+import msgspec
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from protocol import codec
+from protocol import messages as m
+
+KINDS = {"oversized", "malformed", "non_finite", "inconsistent"}
+FUZZ = settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+
+MOUNT = m.Pose3(x_m=0.15, y_m=0.0, z_m=0.22, qx=-0.5, qy=0.5, qz=-0.5, qw=0.5)
+COV = (0.01, 0.001, 0.0, 0.001, 0.02, 0.0, 0.0, 0.0, 0.005)
+
+
+def _entry(rid: int, x: float, alive: bool = True) -> m.MapEntry:
+    return m.MapEntry(robot_id=rid, x_m=x, y_m=-0.5 * x, yaw_rad=0.3 * rid, cov=COV, last_seen_ns=1_500_000_000,
+                      alive=alive)
+
+
+SAMPLES: list[m.Msg] = [
+    m.Tick(seq=41, stamp_ns=1_366_666_666, run_id="default-1a2b3c4d", step=41, dt_ns=33_333_333, mode="lockstep",
+           cameras_rendered=("0/front", "3/front")),
+    m.TickAck(seq=7, stamp_ns=233_333_331, participant="agent/3", step=7),
+    m.CameraImage(seq=4, stamp_ns=400_000_000, robot_id=2, camera="front", step=12, width=32, height=24,
+                  fx_px=277.1, fy_px=277.1, cx_px=15.5, cy_px=11.5, mount=MOUNT, data=bytes(range(256)) * 3),
+    m.EncoderTicks(seq=90, stamp_ns=3_000_000_000, robot_id=1, left_ticks=123_456, right_ticks=-9_876,
+                   ticks_per_rev=4096),
+    m.WheelCommand(seq=3, stamp_ns=100_000_000, robot_id=0, left_rad_s=4.5, right_rad_s=-2.25),
+    m.GroundTruthPose(seq=5, stamp_ns=166_666_665, robot_id=3, step=5, x_m=1.5, y_m=-0.25, yaw_rad=3.1,
+                      pose=m.Pose3(x_m=1.5, y_m=-0.25, z_m=0.07, qz=0.9995, qw=0.0292), v_m_s=0.4, omega_rad_s=-0.1),
+    m.RelativeObservation(seq=11, stamp_ns=900_000_000, robot_id=0, target_kind="robot", target_id=2, x_m=2.1,
+                          y_m=0.3, yaw_rad=-1.2, cov=COV, pose=m.Pose3(x_m=2.1, y_m=0.3, z_m=0.0, qz=-0.56, qw=0.83),
+                          reprojection_rms_px=0.42, tag_ids=(21, 23), camera="front"),
+    m.OdometryEstimate(seq=60, stamp_ns=2_000_000_000, robot_id=1, x_m=0.8, y_m=0.05, yaw_rad=0.02, cov=COV,
+                       distance_m=0.81),
+    m.Correction(seq=2, stamp_ns=2_000_000_000, robot_id=1, map_odom_x_m=0.0, map_odom_y_m=1.5,
+                 map_odom_yaw_rad=-1.5707963, x_m=0.05, y_m=2.3, yaw_rad=-1.55, cov=COV),
+    m.GlobalMap(seq=9, stamp_ns=3_000_000_000, origin_id=0, robots=(_entry(0, 0.0), _entry(1, 1.25, alive=False)),
+                edges=((0, 1), (1, 0))),
+    m.AgentStatus(seq=1, stamp_ns=1_000_000_000, robot_id=2, role="agent", mode="lockstep",
+                  counters={"frames_processed": 10, "rejected_malformed": 1}),
+    m.AgentStatus(seq=0, stamp_ns=0, role="world", mode="realtime"),
+    m.RenderPoses(seq=8, stamp_ns=266_666_664, step=8, robot_ids=(0, 1),
+                  poses=(MOUNT, m.Pose3(x_m=-1.0, y_m=2.0, z_m=0.07)), cameras=("1/front",)),
+]
+BY_TYPE: dict[type[m.Msg], m.Msg] = {type(s): s for s in SAMPLES}
+
+
+def _ids(msg: Any) -> str:
+    return type(msg).__name__
+
+
+def _fields(msg: m.Msg) -> dict[str, Any]:
+    """The message as a msgpack-encodable dict (struct values stay structs)."""
+    out: dict[str, Any] = {"type": type(msg).__struct_config__.tag}
+    out.update({f: getattr(msg, f) for f in msg.__struct_fields__})
+    return out
+
+
+# --------------------------------------------------------------------------- coverage of the sample set
+
+
+def test_samples_cover_every_wire_type() -> None:
+    union = set(typing.get_args(m.AnyMessage))
+    assert set(codec.MAX_BYTES) == union
+    assert set(BY_TYPE) == union
+
+
+# --------------------------------------------------------------------------- round trips
+
+
+@pytest.mark.parametrize("msg", SAMPLES, ids=_ids)
+def test_round_trip_typed(msg: m.Msg) -> None:
+    payload = codec.encode(msg)
+    assert isinstance(payload, bytes)
+    out = codec.decode(type(msg), payload)
+    assert type(out) is type(msg)
+    assert out == msg
+
+
+@pytest.mark.parametrize("msg", SAMPLES, ids=_ids)
+def test_round_trip_any(msg: m.Msg) -> None:
+    out = codec.decode_any(codec.encode(msg))
+    assert type(out) is type(msg)
+    assert out == msg
+
+
+@pytest.mark.parametrize("wrap", [bytes, bytearray, memoryview], ids=lambda w: w.__name__)
+def test_decode_accepts_buffers(wrap: Any) -> None:
+    msg = BY_TYPE[m.CameraImage]
+    payload = wrap(codec.encode(msg))
+    assert codec.decode(m.CameraImage, payload) == msg
+    assert codec.decode_any(payload) == msg
+
+
+def test_round_trip_keeps_values_exactly() -> None:
+    img = codec.decode(m.CameraImage, codec.encode(BY_TYPE[m.CameraImage]))
+    assert img.data == bytes(range(256)) * 3
+    assert len(img.data) == img.width * img.height == 768
+    assert img.mount.qx == -0.5 and img.mount.qw == 0.5
+    status = codec.decode(m.AgentStatus, codec.encode(SAMPLES[-2]))
+    assert status.robot_id is None and status.counters == {}
+    gm = codec.decode(m.GlobalMap, codec.encode(BY_TYPE[m.GlobalMap]))
+    assert gm.edges == ((0, 1), (1, 0))
+    assert [e.alive for e in gm.robots] == [True, False]
+
+
+def test_payload_is_tagged() -> None:
+    raw = msgspec.msgpack.decode(codec.encode(BY_TYPE[m.WheelCommand]))
+    assert raw["type"] == "wheel_command"
+    assert raw["left_rad_s"] == 4.5
+
+
+def test_ints_are_accepted_for_float_fields() -> None:
+    payload = msgspec.msgpack.encode({"type": "wheel_command", "seq": 0, "stamp_ns": 0, "robot_id": 0,
+                                      "left_rad_s": 2, "right_rad_s": -1})
+    cmd = codec.decode(m.WheelCommand, payload)
+    assert cmd.left_rad_s == 2.0 and isinstance(cmd.left_rad_s, float)
+
+
+# --------------------------------------------------------------------------- oversized
+
+
+@pytest.mark.parametrize("cls", list(codec.MAX_BYTES), ids=lambda c: c.__name__)
+def test_oversized_is_checked_before_decoding(cls: type[m.Msg]) -> None:
+    limit = codec.MAX_BYTES[cls]
+    # not msgpack at all: if it were decoded first this would be "malformed"
+    with pytest.raises(codec.DecodeError) as exc:
+        codec.decode(cls, b"\xc1" * (limit + 1))
+    assert exc.value.kind == "oversized"
+    assert cls.__name__ in exc.value.detail
+
+
+@pytest.mark.parametrize("cls", [c for c in codec.MAX_BYTES if c is not m.CameraImage], ids=lambda c: c.__name__)
+def test_at_limit_is_decoded_not_oversized(cls: type[m.Msg]) -> None:
+    with pytest.raises(codec.DecodeError) as exc:
+        codec.decode(cls, b"\xc1" * codec.MAX_BYTES[cls])
+    assert exc.value.kind == "malformed"
+
+
+def test_valid_but_oversized_message_is_rejected() -> None:
+    tick = msgspec.structs.replace(BY_TYPE[m.Tick], cameras_rendered=tuple(f"{i}/front" for i in range(20_000)))
+    payload = codec.encode(tick)
+    assert len(payload) > codec.MAX_BYTES[m.Tick]
+    with pytest.raises(codec.DecodeError) as exc:
+        codec.decode(m.Tick, payload)
+    assert exc.value.kind == "oversized"
+    assert codec.decode_any(payload) == tick  # the union limit is the largest one
+
+
+def test_decode_any_oversized() -> None:
+    with pytest.raises(codec.DecodeError) as exc:
+        codec.decode_any(b"\x00" * (max(codec.MAX_BYTES.values()) + 1))
+    assert exc.value.kind == "oversized"
+
+
+# --------------------------------------------------------------------------- malformed
+
+
+GARBAGE = [b"", b"\xc1", b"not msgpack at all", b"\xff" * 64, b"\x92\x01", bytes(range(256))]
+
+
+@pytest.mark.parametrize("payload", GARBAGE)
+@pytest.mark.parametrize("cls", list(codec.MAX_BYTES), ids=lambda c: c.__name__)
+def test_garbage_is_malformed(cls: type[m.Msg], payload: bytes) -> None:
+    with pytest.raises(codec.DecodeError) as exc:
+        codec.decode(cls, payload)
+    assert exc.value.kind == "malformed"
+    assert str(exc.value).startswith("malformed: ")
+
+
+@pytest.mark.parametrize("payload", GARBAGE)
+def test_garbage_is_malformed_any(payload: bytes) -> None:
+    with pytest.raises(codec.DecodeError) as exc:
+        codec.decode_any(payload)
+    assert exc.value.kind == "malformed"
+
+
+def test_wrong_message_type_is_malformed() -> None:
+    with pytest.raises(codec.DecodeError) as exc:
+        codec.decode(m.CameraImage, codec.encode(BY_TYPE[m.EncoderTicks]))
+    assert exc.value.kind == "malformed"
+    assert "CameraImage" in exc.value.detail
+
+
+@pytest.mark.parametrize("msg", SAMPLES, ids=_ids)
+def test_every_other_type_rejects_the_payload(msg: m.Msg) -> None:
+    payload = codec.encode(msg)
+    for cls in codec.MAX_BYTES:
+        if cls is type(msg):
+            continue
+        with pytest.raises(codec.DecodeError) as exc:
+            codec.decode(cls, payload)
+        assert exc.value.kind == "malformed", cls
+
+
+@pytest.mark.parametrize("obj", [42, -1, 1.5, "tick", None, True, [1, 2, 3], {}, {"type": "tick"},
+                                 {"type": "no_such_type", "seq": 0, "stamp_ns": 0}])
+def test_valid_msgpack_of_wrong_shape_is_malformed(obj: Any) -> None:
+    payload = msgspec.msgpack.encode(obj)
+    for cls in codec.MAX_BYTES:
+        with pytest.raises(codec.DecodeError) as exc:
+            codec.decode(cls, payload)
+        assert exc.value.kind == "malformed", cls
+    with pytest.raises(codec.DecodeError) as exc:
+        codec.decode_any(payload)
+    assert exc.value.kind == "malformed"
+
+
+@pytest.mark.parametrize("msg", SAMPLES, ids=_ids)
+@pytest.mark.parametrize("field", ["seq", "stamp_ns"])
+def test_negative_seq_or_stamp_is_malformed(msg: m.Msg, field: str) -> None:
+    payload = codec.encode(msgspec.structs.replace(msg, **{field: -1}))
+    with pytest.raises(codec.DecodeError) as exc:
+        codec.decode(type(msg), payload)
+    assert exc.value.kind == "malformed"
+    assert field in exc.value.detail
+    with pytest.raises(codec.DecodeError) as exc:
+        codec.decode_any(payload)
+    assert exc.value.kind == "malformed"
+
+
+@pytest.mark.parametrize(
+    ("cls", "changes"),
+    [
+        (m.WheelCommand, {"robot_id": 100_001}),
+        (m.WheelCommand, {"robot_id": -1}),
+        (m.CameraImage, {"width": 0, "data": b""}),
+        (m.CameraImage, {"width": 8193}),
+        (m.CameraImage, {"encoding": "rgb8"}),
+        (m.Tick, {"dt_ns": 0}),
+        (m.Tick, {"mode": "fast"}),
+        (m.EncoderTicks, {"ticks_per_rev": 0}),
+        (m.RelativeObservation, {"target_kind": "wall"}),
+        (m.TickAck, {"step": -3}),
+        (m.GlobalMap, {"robots": (msgspec.structs.replace(_entry(0, 0.0), last_seen_ns=-5),)}),
+    ],
+)
+def test_out_of_range_fields_are_malformed(cls: type[m.Msg], changes: dict[str, Any]) -> None:
+    payload = codec.encode(msgspec.structs.replace(BY_TYPE[cls], **changes))
+    with pytest.raises(codec.DecodeError) as exc:
+        codec.decode(cls, payload)
+    assert exc.value.kind == "malformed"
+
+
+def test_missing_required_field_is_malformed() -> None:
+    fields = _fields(BY_TYPE[m.OdometryEstimate])
+    del fields["cov"]
+    with pytest.raises(codec.DecodeError) as exc:
+        codec.decode(m.OdometryEstimate, msgspec.msgpack.encode(fields))
+    assert exc.value.kind == "malformed"
+    assert "cov" in exc.value.detail
+
+
+# --------------------------------------------------------------------------- non-finite
+
+
+def _nan_cases() -> list[tuple[str, m.Msg]]:
+    r = msgspec.structs.replace
+    nan, inf = math.nan, math.inf
+    cmd, gt = BY_TYPE[m.WheelCommand], BY_TYPE[m.GroundTruthPose]
+    obs, odo, cor = BY_TYPE[m.RelativeObservation], BY_TYPE[m.OdometryEstimate], BY_TYPE[m.Correction]
+    img, gm, rp = BY_TYPE[m.CameraImage], BY_TYPE[m.GlobalMap], BY_TYPE[m.RenderPoses]
+    bad_cov = (*COV[:4], inf, *COV[5:])
+    return [
+        ("wheel_nan", r(cmd, left_rad_s=nan)),
+        ("wheel_inf", r(cmd, right_rad_s=inf)),
+        ("wheel_minus_inf", r(cmd, right_rad_s=-inf)),
+        ("truth_x_nan", r(gt, x_m=nan)),
+        ("truth_pose_qw_nan", r(gt, pose=r(gt.pose, qw=nan))),
+        ("truth_pose_z_inf", r(gt, pose=r(gt.pose, z_m=inf))),
+        ("truth_omega_inf", r(gt, omega_rad_s=-inf)),
+        ("obs_rms_nan", r(obs, reprojection_rms_px=nan)),
+        ("obs_pose_inf", r(obs, pose=r(obs.pose, y_m=inf))),
+        ("obs_cov_nan", r(obs, cov=(nan,) * 9)),
+        ("odom_cov_inf", r(odo, cov=bad_cov)),
+        ("odom_distance_nan", r(odo, distance_m=nan)),
+        ("correction_yaw_inf", r(cor, map_odom_yaw_rad=-inf)),
+        ("correction_cov_inf", r(cor, cov=bad_cov)),
+        ("image_fx_inf", r(img, fx_px=inf)),
+        ("image_mount_nan", r(img, mount=r(img.mount, qx=nan))),
+        ("map_entry_x_nan", r(gm, robots=(gm.robots[0], r(gm.robots[1], x_m=nan)))),
+        ("map_entry_cov_inf", r(gm, robots=(r(gm.robots[0], cov=bad_cov),))),
+        ("render_pose_inf", r(rp, poses=(rp.poses[0], r(rp.poses[1], qx=inf)))),
+    ]
+
+
+@pytest.mark.parametrize(("name", "msg"), _nan_cases(), ids=[c[0] for c in _nan_cases()])
+def test_non_finite_is_rejected(name: str, msg: m.Msg) -> None:
+    payload = codec.encode(msg)
+    with pytest.raises(codec.DecodeError) as exc:
+        codec.decode(type(msg), payload)
+    assert exc.value.kind == "non_finite", name
+    assert type(msg).__name__ in exc.value.detail
+    with pytest.raises(codec.DecodeError) as exc:
+        codec.decode_any(payload)
+    assert exc.value.kind == "non_finite", name
+
+
+def test_huge_but_finite_floats_are_fine() -> None:
+    cmd = msgspec.structs.replace(BY_TYPE[m.WheelCommand], left_rad_s=1e308, right_rad_s=-5e-324)
+    assert codec.decode(m.WheelCommand, codec.encode(cmd)) == cmd
+
+
+# --------------------------------------------------------------------------- inconsistent
+
+
+@pytest.mark.parametrize("n_bytes", [0, 767, 769, 32 * 32])
+def test_image_size_mismatch_is_inconsistent(n_bytes: int) -> None:
+    img = msgspec.structs.replace(BY_TYPE[m.CameraImage], data=b"\x80" * n_bytes)
+    payload = codec.encode(img)
+    with pytest.raises(codec.DecodeError) as exc:
+        codec.decode(m.CameraImage, payload)
+    assert exc.value.kind == "inconsistent"
+    assert f"{n_bytes} bytes" in exc.value.detail and "32x24" in exc.value.detail
+    with pytest.raises(codec.DecodeError) as exc:
+        codec.decode_any(payload)
+    assert exc.value.kind == "inconsistent"
+
+
+@pytest.mark.parametrize("cls", [m.RelativeObservation, m.OdometryEstimate, m.Correction], ids=lambda c: c.__name__)
+@pytest.mark.parametrize("n", [0, 3, 8, 10, 36])
+def test_cov_of_wrong_length_is_inconsistent(cls: type[m.Msg], n: int) -> None:
+    payload = codec.encode(msgspec.structs.replace(BY_TYPE[cls], cov=(0.1,) * n))
+    with pytest.raises(codec.DecodeError) as exc:
+        codec.decode(cls, payload)
+    assert exc.value.kind == "inconsistent"
+    assert f"{n} entries" in exc.value.detail
+    with pytest.raises(codec.DecodeError) as exc:
+        codec.decode_any(payload)
+    assert exc.value.kind == "inconsistent"
+
+
+def test_global_map_entry_cov_of_wrong_length_is_inconsistent() -> None:
+    gm = BY_TYPE[m.GlobalMap]
+    bad = msgspec.structs.replace(gm, robots=(msgspec.structs.replace(gm.robots[0], cov=(1.0,)),))
+    with pytest.raises(codec.DecodeError) as exc:
+        codec.decode(m.GlobalMap, codec.encode(bad))
+    assert exc.value.kind == "inconsistent"
+
+
+def test_decode_error_carries_kind_and_detail() -> None:
+    err = codec.DecodeError("oversized", "too big")
+    assert err.kind == "oversized"
+    assert err.detail == "too big"
+    assert str(err) == "oversized: too big"
+    assert isinstance(err, Exception)
+
+
+# --------------------------------------------------------------------------- fuzzing
+
+
+def _decode_everything(payload: bytes) -> None:
+    """decode() for every type and decode_any(): an instance of the type or a DecodeError, nothing else."""
+    for cls in codec.MAX_BYTES:
+        try:
+            out = codec.decode(cls, payload)
+        except codec.DecodeError as exc:
+            assert exc.kind in KINDS
+        else:
+            assert type(out) is cls
+            assert codec.decode(cls, codec.encode(out)) == out
+    try:
+        out_any = codec.decode_any(payload)
+    except codec.DecodeError as exc:
+        assert exc.kind in KINDS
+    else:
+        assert type(out_any) in codec.MAX_BYTES
+
+
+json_like = st.recursive(
+    st.none()
+    | st.booleans()
+    | st.integers(min_value=-(2**63), max_value=2**64 - 1)
+    | st.floats(allow_nan=True, allow_infinity=True)
+    | st.text(max_size=20)
+    | st.binary(max_size=40),
+    lambda children: st.lists(children, max_size=6) | st.dictionaries(st.text(max_size=12), children, max_size=6),
+    max_leaves=25,
+)
+
+
+@FUZZ
+@given(st.binary(max_size=512))
+def test_fuzz_random_bytes(payload: bytes) -> None:
+    _decode_everything(payload)
+
+
+@FUZZ
+@given(st.sampled_from(SAMPLES), st.data())
+def test_fuzz_truncated_prefixes(msg: m.Msg, data: st.DataObject) -> None:
+    payload = codec.encode(msg)
+    cut = data.draw(st.integers(min_value=0, max_value=len(payload) - 1))
+    prefix = payload[:cut]
+    with pytest.raises(codec.DecodeError) as exc:
+        codec.decode(type(msg), prefix)
+    assert exc.value.kind == "malformed"
+    _decode_everything(prefix)
+
+
+@FUZZ
+@given(st.sampled_from(SAMPLES), st.data())
+def test_fuzz_byte_flips(msg: m.Msg, data: st.DataObject) -> None:
+    payload = bytearray(codec.encode(msg))
+    pos = data.draw(st.integers(min_value=0, max_value=len(payload) - 1))
+    payload[pos] = data.draw(st.integers(min_value=0, max_value=255))
+    _decode_everything(bytes(payload))
+
+
+@FUZZ
+@given(json_like)
+def test_fuzz_random_msgpack_objects(obj: Any) -> None:
+    _decode_everything(msgspec.msgpack.encode(obj))
+
+
+@FUZZ
+@given(st.sampled_from(SAMPLES), st.data())
+def test_fuzz_one_field_replaced(msg: m.Msg, data: st.DataObject) -> None:
+    """A well-formed message with one field swapped for an arbitrary value."""
+    fields = _fields(msg)
+    name = data.draw(st.sampled_from(sorted(fields)))
+    fields[name] = data.draw(json_like)
+    _decode_everything(msgspec.msgpack.encode(fields))
+
+
+@FUZZ
+@given(st.sampled_from(SAMPLES), st.data())
+def test_fuzz_struct_shaped_dicts(msg: m.Msg, data: st.DataObject) -> None:
+    """Dicts with the right tag and field names but random values."""
+    names = sorted(_fields(msg))
+    obj = {"type": type(msg).__struct_config__.tag}
+    obj.update(data.draw(st.dictionaries(st.sampled_from(names), json_like, max_size=len(names))))
+    _decode_everything(msgspec.msgpack.encode(obj))
+
+
+# --------------------------------------------------------------------------- RejectCounter
+
+
+def test_reject_counter_counts_per_kind_and_logs_once_per_kind(caplog: pytest.LogCaptureFixture) -> None:
+    logger = logging.getLogger("tests.unit.codec.rejects")
+    counter = codec.RejectCounter(logger)
+    with caplog.at_level(logging.WARNING, logger=logger.name):
+        for i in range(3):
+            counter.reject("malformed", f"garbage #{i}")
+        counter.reject("non_finite", "nan in x_m")
+        counter.reject("malformed", "garbage #3")
+        counter.reject("spoofed", "robot 2 on robot 1's key")
+    records = [r for r in caplog.records if r.name == logger.name]
+    assert len(records) == 3
+    assert all(r.levelno == logging.WARNING for r in records)
+    messages = [r.getMessage() for r in records]
+    assert "malformed" in messages[0] and "garbage #0" in messages[0]
+    assert "non_finite" in messages[1] and "nan in x_m" in messages[1]
+    assert "spoofed" in messages[2]
+    assert not any("garbage #1" in msg or "garbage #3" in msg for msg in messages)
+    assert counter.counts == {"malformed": 4, "non_finite": 1, "spoofed": 1}
+    assert counter.total() == 6
+    assert counter.as_counters() == {"rejected_malformed": 4, "rejected_non_finite": 1, "rejected_spoofed": 1}
+    assert list(counter.as_counters("bad.")) == ["bad.malformed", "bad.non_finite", "bad.spoofed"]
+
+
+def test_reject_counter_defaults_to_codec_logger(caplog: pytest.LogCaptureFixture) -> None:
+    counter = codec.RejectCounter()
+    assert counter.total() == 0
+    assert counter.as_counters() == {}
+    with caplog.at_level(logging.WARNING, logger="protocol.codec"):
+        counter.reject("oversized", "9 MB")
+        counter.reject("oversized", "10 MB")
+    records = [r for r in caplog.records if r.name == "protocol.codec"]
+    assert [r.getMessage().count("oversized") for r in records] == [1]
+    assert counter.counts["oversized"] == 2
+
+
+def test_reject_counter_with_real_decode_errors() -> None:
+    counter = codec.RejectCounter(logging.getLogger("tests.unit.codec.real"))
+    payloads = [b"\xc1", codec.encode(msgspec.structs.replace(BY_TYPE[m.WheelCommand], left_rad_s=math.nan)),
+                codec.encode(BY_TYPE[m.WheelCommand]), b"\x00" * (codec.MAX_BYTES[m.WheelCommand] + 1)]
+    ok = 0
+    for p in payloads:
+        try:
+            codec.decode(m.WheelCommand, p)
+            ok += 1
+        except codec.DecodeError as exc:
+            counter.reject(exc.kind, exc.detail)
+    assert ok == 1
+    assert counter.counts == {"malformed": 1, "non_finite": 1, "oversized": 1}

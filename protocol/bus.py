@@ -2,7 +2,8 @@
 
 This is the only module that imports ``zenoh``.  Rules it enforces (DESIGN.md
 section 4): callbacks only enqueue into an :class:`Inbox` and wake the owner's
-loop; sessions are opened in a ``with`` block (:func:`open_bus`) and always
+loop (on Zenoh's own receive thread, so arrival order across keys is kept);
+sessions are opened in a ``with`` block (:func:`open_bus`) and always
 closed; large frames go out with DROP congestion control into newest-only
 inboxes, small must-arrive messages with BLOCK into FIFO inboxes.
 """
@@ -152,7 +153,7 @@ class Bus:
         def on_sample(sample: zenoh.Sample) -> None:
             inbox.put(str(sample.key_expr), sample.payload.to_bytes())
 
-        self._keep.append(self._session.declare_subscriber(key, on_sample))
+        self._keep.append(self._session.declare_subscriber(key, _direct(on_sample)))
         return inbox
 
     def declare_token(self, key: str) -> None:
@@ -167,7 +168,7 @@ class Bus:
         def on_change(sample: zenoh.Sample) -> None:
             inbox.put(str(sample.key_expr), sample.kind == zenoh.SampleKind.PUT)
 
-        self._keep.append(self._session.liveliness().declare_subscriber(key, on_change, history=True))
+        self._keep.append(self._session.liveliness().declare_subscriber(key, _direct(on_change), history=True))
         return inbox
 
     def alive_now(self, key: str, timeout_s: float = 1.0) -> list[str]:
@@ -182,7 +183,7 @@ class Bus:
         def on_query(query: zenoh.Query) -> None:
             inbox.put(str(query.selector.key_expr), query)
 
-        self._keep.append(self._session.declare_queryable(key, on_query))
+        self._keep.append(self._session.declare_queryable(key, _direct(on_query)))
         return inbox
 
     @staticmethod
@@ -214,6 +215,15 @@ class Bus:
                     return False
                 self._wake.wait(min(left, 0.05))
         return True
+
+
+def _direct(fn: Any) -> Any:
+    """Run ``fn`` on Zenoh's receiving thread.  zenoh-python's default runs each
+    callback on its own Python thread, which loses the order between keys (a
+    command published before a tick ack could be enqueued after it, breaking
+    lockstep determinism).  Our callbacks only enqueue, so running them
+    directly is cheap."""
+    return zenoh.handlers.Callback(fn, indirect=False)
 
 
 @contextmanager

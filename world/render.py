@@ -15,13 +15,13 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
-import pybullet as pb
 from numpy.typing import NDArray
 
 from protocol.geometry import Mat, matrix_to_pose3, quat_to_rot, transform
 from protocol.messages import CameraImage
 from protocol.scenario import Camera, Scenario, wall_boxes
 from world import assets
+from world._pybullet import pb
 from world.camera import intrinsics, mount_transform, vfov_deg
 
 WALL_RGBA = (0.55, 0.55, 0.6, 1.0)

@@ -23,10 +23,10 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-import pybullet as pb
 
 from protocol.geometry import wrap_angle
 from protocol.scenario import Scenario, start_poses, wall_boxes
+from world._pybullet import pb
 
 
 @dataclass

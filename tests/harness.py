@@ -1,0 +1,101 @@
+"""Helpers for tests that start real processes on a private loopback Zenoh network."""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+from protocol import codec
+from protocol import messages as m
+from protocol.bus import Bus, BusConfig, open_bus
+from protocol.keys import Keys
+
+BIN = Path(sys.executable).parent
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def endpoint() -> str:
+    return f"tcp/127.0.0.1:{free_port()}"
+
+
+def script(name: str) -> str:
+    """Path of an installed console script (what compose runs)."""
+    path = BIN / name
+    assert path.exists(), f"{name} is not installed in {BIN}; run pip install -e ."
+    return str(path)
+
+
+@contextmanager
+def process(argv: list[str], log: Path | None = None) -> Iterator[subprocess.Popen[bytes]]:
+    """Run a child process; SIGTERM then SIGKILL it on exit."""
+    out = open(log, "wb") if log else subprocess.DEVNULL
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    proc = subprocess.Popen(argv, stdout=out, stderr=subprocess.STDOUT, env=env)
+    try:
+        yield proc
+    finally:
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGTERM)
+            try:
+                proc.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+        if log:
+            out.close()  # type: ignore[union-attr]
+
+
+def world_argv(ep: str, run: str, *overrides: str, extra: tuple[str, ...] = ()) -> list[str]:
+    argv = [script("tagswarm-world"), "--listen", ep, "--run", run, "--log-level", "INFO", *extra]
+    for o in overrides:
+        argv += ["--set", o]
+    return argv
+
+
+@contextmanager
+def client(ep: str) -> Iterator[Bus]:
+    with open_bus(BusConfig(connect=(ep,))) as bus:
+        yield bus
+
+
+class Participant:
+    """A lockstep participant run inside the test: acks every tick after calling
+    ``on_tick(tick)`` (which may publish commands)."""
+
+    def __init__(self, bus: Bus, keys: Keys, name: str) -> None:
+        self.bus, self.keys, self.name = bus, keys, name
+        self.ticks = bus.subscribe(keys.tick())
+        self.seq = 0
+        bus.declare_token(keys.alive(name))
+
+    def ack(self, tick: m.Tick) -> None:
+        self.bus.put(self.keys.ack(self.name), codec.encode(
+            m.TickAck(seq=self.seq, stamp_ns=tick.stamp_ns, participant=self.name, step=tick.step)))
+        self.seq += 1
+
+    def serve(self, on_tick: Callable[[m.Tick], bool], timeout_s: float = 120.0) -> None:
+        """Handle ticks until ``on_tick`` returns False."""
+        done = False
+
+        def step() -> bool:
+            nonlocal done
+            for item in self.ticks.drain():
+                tick = codec.decode(m.Tick, item.value)
+                if not on_tick(tick):
+                    done = True
+                    return True
+                self.ack(tick)
+            return done
+
+        assert self.bus.wait_for(step, timeout_s), "world stopped ticking"

@@ -14,6 +14,7 @@ from __future__ import annotations
 import tempfile
 from pathlib import Path
 
+import cv2
 import numpy as np
 from numpy.typing import NDArray
 
@@ -112,10 +113,7 @@ class Renderer:
             flags=pb.ER_NO_SEGMENTATION_MASK, physicsClientId=self.cid)
         img = np.asarray(rgba, dtype=np.uint8).reshape(cam.height, cam.width, 4)
         self.frames_rendered += 1
-        # ITU-R 601 luma, integer maths: 0.299 R + 0.587 G + 0.114 B
-        gray = (img[..., 0].astype(np.uint16) * 77 + img[..., 1].astype(np.uint16) * 150
-                + img[..., 2].astype(np.uint16) * 29) >> 8
-        return gray.astype(np.uint8)
+        return np.asarray(cv2.cvtColor(img, cv2.COLOR_RGBA2GRAY), np.uint8)  # ITU-R 601 luma
 
     def close(self) -> None:
         """Disconnect the pybullet client and remove temporary assets."""

@@ -9,6 +9,9 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
+import numpy as np
+from numpy.typing import NDArray
+
 from protocol.geometry import wrap_angle
 
 
@@ -19,6 +22,7 @@ class DiffDriveParams:
     wheel_radius_m: float
     wheel_base_m: float
     ticks_per_rev: int
+    wheel_sigma: float = 0.0  # sqrt(m): each wheel's travel d has variance wheel_sigma^2 |d|
 
 
 @dataclass
@@ -27,6 +31,9 @@ class DiffDriveOdometry:
 
     The first :meth:`update` only latches the counts (no motion), so the
     odometry can start from any counter value, e.g. after an agent restart.
+    ``cov`` (3, 3) is the covariance of (x_m, y_m, yaw_rad), propagated with the
+    wheel-travel noise model of :class:`DiffDriveParams` (first order), so it
+    grows with the distance travelled and the angle turned.
     """
 
     params: DiffDriveParams
@@ -34,6 +41,7 @@ class DiffDriveOdometry:
     y_m: float = 0.0
     yaw_rad: float = 0.0
     distance_m: float = 0.0
+    cov: NDArray[np.float64] = field(default_factory=lambda: np.zeros((3, 3)))
     _last: tuple[int, int] | None = field(default=None, repr=False)
 
     def update(self, left_ticks: int, right_ticks: int) -> tuple[float, float]:
@@ -48,6 +56,7 @@ class DiffDriveOdometry:
         self._last = (left_ticks, right_ticks)
         ds = (dl + dr) / 2.0
         dth = (dr - dl) / p.wheel_base_m
+        self._propagate(ds, dth, dl, dr)
         # exact integration along a circular arc; the chord formula for small dth
         if abs(dth) > 1e-9:
             r = ds / dth
@@ -59,3 +68,23 @@ class DiffDriveOdometry:
         self.yaw_rad = wrap_angle(self.yaw_rad + dth)
         self.distance_m += abs(ds)
         return ds, dth
+
+    def _propagate(self, ds: float, dth: float, dl: float, dr: float) -> None:
+        """First-order covariance update for the midpoint motion model."""
+        b = self.params.wheel_base_m
+        a = self.yaw_rad + dth / 2.0
+        c, s = math.cos(a), math.sin(a)
+        f = np.array([[1.0, 0.0, -ds * s], [0.0, 1.0, ds * c], [0.0, 0.0, 1.0]])
+        # d(x, y, yaw) / d(dl, dr)
+        g = np.array([
+            [0.5 * c + ds * s / (2 * b), 0.5 * c - ds * s / (2 * b)],
+            [0.5 * s - ds * c / (2 * b), 0.5 * s + ds * c / (2 * b)],
+            [-1.0 / b, 1.0 / b],
+        ])
+        k2 = self.params.wheel_sigma ** 2
+        q = np.diag([k2 * abs(dl) + 1e-12, k2 * abs(dr) + 1e-12])
+        self.cov = f @ self.cov @ f.T + g @ q @ g.T
+
+    def pose(self) -> tuple[float, float, float]:
+        """(x_m, y_m, yaw_rad) of base_link in odom."""
+        return self.x_m, self.y_m, self.yaw_rad

@@ -36,6 +36,7 @@ MAX_BYTES: Final[dict[type[m.Msg], int]] = {
     m.GlobalMap: 4 * _KB * _KB,
     m.AgentStatus: 64 * _KB,
     m.RenderPoses: 1 * _KB * _KB,
+    m.Goal: 4 * _KB,
 }
 
 _ENCODER: Final = msgspec.msgpack.Encoder()

@@ -91,3 +91,23 @@ def se2_matrix(x: float, y: float, yaw: float, z: float = 0.0) -> Mat:
     """(4, 4) transform of a planar pose (rotation about +z), optional height."""
     c, s = math.cos(yaw), math.sin(yaw)
     return transform(np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]]), (x, y, z))
+
+
+Pose2 = tuple[float, float, float]
+
+
+def se2_compose(a: Pose2, b: Pose2) -> Pose2:
+    """a ⊕ b for planar poses (x_m, y_m, yaw_rad): b given in frame a, result in a's parent."""
+    c, s = math.cos(a[2]), math.sin(a[2])
+    return (a[0] + c * b[0] - s * b[1], a[1] + s * b[0] + c * b[1], wrap_angle(a[2] + b[2]))
+
+
+def se2_inverse(a: Pose2) -> Pose2:
+    """⊖a for a planar pose."""
+    c, s = math.cos(a[2]), math.sin(a[2])
+    return (-c * a[0] - s * a[1], s * a[0] - c * a[1], wrap_angle(-a[2]))
+
+
+def se2_between(a: Pose2, b: Pose2) -> Pose2:
+    """⊖a ⊕ b: pose b relative to pose a."""
+    return se2_compose(se2_inverse(a), b)

@@ -13,6 +13,7 @@ Layout (``<run>`` isolates runs sharing one network)::
     tagswarm/<run>/robot/<id>/observation           RelativeObservation
     tagswarm/<run>/robot/<id>/odometry              OdometryEstimate
     tagswarm/<run>/robot/<id>/correction            Correction
+    tagswarm/<run>/robot/<id>/goal                  Goal
     tagswarm/<run>/robot/<id>/status                AgentStatus
     tagswarm/<run>/server/map                       GlobalMap (also a queryable)
     tagswarm/<run>/server/status                    AgentStatus of the server
@@ -102,6 +103,9 @@ class Keys:
 
     def correction(self, robot_id: int | None = None) -> str:
         return self._robot_leaf(robot_id, "correction")
+
+    def goal(self, robot_id: int | None = None) -> str:
+        return self._robot_leaf(robot_id, "goal")
 
     def robot_status(self, robot_id: int | None = None) -> str:
         return self._robot_leaf(robot_id, "status")

@@ -154,7 +154,8 @@ class OdometryEstimate(Msg, frozen=True, kw_only=True, tag="odometry"):
 class Correction(Msg, frozen=True, kw_only=True, tag="correction"):
     """The server's ``map -> odom_k`` transform for one robot plus its fused pose in
     the map frame and that pose's 3x3 covariance.  ``stamp_ns`` is the simulation
-    time of the newest data the estimate includes."""
+    time of the newest data the estimate includes; ``last_fix_ns`` the time of the
+    newest accepted observation involving this robot (as observer or observed)."""
 
     robot_id: RobotId
     map_odom_x_m: float
@@ -164,6 +165,16 @@ class Correction(Msg, frozen=True, kw_only=True, tag="correction"):
     y_m: float
     yaw_rad: float
     cov: tuple[float, ...]
+    last_fix_ns: StampNs = 0
+
+
+class Goal(Msg, frozen=True, kw_only=True, tag="goal"):
+    """Send a robot to (x_m, y_m) in the map frame; it stops within ``tolerance_m``."""
+
+    robot_id: RobotId
+    x_m: float
+    y_m: float
+    tolerance_m: Annotated[float, msgspec.Meta(gt=0)] = 0.1
 
 
 class MapEntry(msgspec.Struct, frozen=True, kw_only=True):
@@ -220,4 +231,5 @@ AnyMessage = (
     | GlobalMap
     | AgentStatus
     | RenderPoses
+    | Goal
 )

@@ -20,6 +20,7 @@ import msgspec
 import numpy as np
 
 from protocol import tags
+from protocol.geometry import se2_inverse
 from protocol.keys import KeyError_, check_name, split_participant
 
 Pos = Annotated[float, msgspec.Meta(gt=0)]
@@ -176,6 +177,55 @@ class Render(Spec, frozen=True, kw_only=True, forbid_unknown_fields=True):
     shadows: bool = False
 
 
+class Agent(Spec, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """Agent behaviour and estimation settings shared by every robot.
+
+    Odometry noise (per wheel): the travel d of each wheel gets variance
+    ``odom_wheel_sigma^2 * |d|`` (sqrt-metre model), so the covariance grows with
+    distance.  ``fix_threshold`` is the number of consecutive odometry-only
+    control cycles (encoder updates) after which the robot stops and searches
+    by rotating in place (the paper's active re-localisation)."""
+
+    detector: Literal["apriltag", "aruco"] = "apriltag"
+    max_hamming: Annotated[int, msgspec.Meta(ge=0, le=3)] = 0
+    min_margin: NonNeg = 20.0
+    pixel_sigma_px: Pos = 0.5
+    max_reprojection_px: Pos = 2.0
+    max_range_m: Pos = 6.0
+    odom_wheel_sigma: NonNeg = 0.02
+    fix_threshold: Annotated[int, msgspec.Meta(ge=1)] = 150
+    search_speed_rad_s: Pos = 0.6
+    search_max_sweep_rad: Pos = 6.3
+    lost_speed_factor: Annotated[float, msgspec.Meta(gt=0, le=1)] = 0.3
+    max_speed_m_s: Pos = 0.3
+    max_turn_rad_s: Pos = 1.2
+    goal_tolerance_m: Pos = 0.1
+    status_period_s: Pos = 1.0
+    frame_wait_s: Pos = 2.0
+
+
+class Mission(Spec, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """What one robot does.  ``hold``: stay put (the origin robot holding station as
+    the reference).  ``waypoints``: visit ``waypoints`` ([x, y] in the arena frame)
+    once, or forever with ``loop``.  ``patrol``: back and forth along them.
+    ``leapfrog``: move to the next waypoint only during this robot's turn (turns
+    of ``leapfrog_period_s`` rotate over the robots with a leapfrog mission, so
+    the others stand still as references)."""
+
+    robot: Annotated[int, msgspec.Meta(ge=0)]
+    kind: Literal["hold", "waypoints", "patrol", "leapfrog"] = "hold"
+    waypoints: tuple[tuple[float, float], ...] = ()
+    loop: bool = False
+    leapfrog_period_s: Pos = 10.0
+
+
+class MapFrame(Spec, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """The map frame is the origin robot's first pose (or the arena frame when
+    landmarks are used, see issue notes)."""
+
+    origin_id: Annotated[int, msgspec.Meta(ge=0)] = 0
+
+
 class Scenario(Spec, frozen=True, kw_only=True, forbid_unknown_fields=True):
     name: str = "custom"
     seed: Annotated[int, msgspec.Meta(ge=0)] = 0
@@ -188,10 +238,20 @@ class Scenario(Spec, frozen=True, kw_only=True, forbid_unknown_fields=True):
     encoders: Encoders = Encoders()
     clock: Clock = Clock()
     render: Render = Render()
+    agent: Agent = Agent()
+    missions: tuple[Mission, ...] = ()
+    map: MapFrame = MapFrame()
 
     @property
     def robot_ids(self) -> tuple[int, ...]:
         return tuple(range(self.robots.count))
+
+    def mission(self, robot_id: int) -> Mission:
+        """The mission of ``robot_id`` (``hold`` if the scenario gives none)."""
+        for mission in self.missions:
+            if mission.robot == robot_id:
+                return mission
+        return Mission(robot=robot_id)
 
     def tag_ids(self, robot_id: int) -> tuple[int, ...]:
         """The six tag IDs of ``robot_id`` in :class:`protocol.tags.Face` order."""
@@ -328,6 +388,17 @@ def validate(s: Scenario) -> None:
         raise ScenarioError(
             f"robots.start has {len(s.robots.start)} poses but robots.count={s.robots.count} (placement=explicit)"
         )
+    seen_missions = [mi.robot for mi in s.missions]
+    for i, mi in enumerate(s.missions):
+        if mi.robot not in s.robot_ids:
+            raise ScenarioError(f"missions[{i}].robot={mi.robot} is not a robot of this scenario "
+                                f"(0..{s.robots.count - 1})")
+        if seen_missions.count(mi.robot) > 1:
+            raise ScenarioError(f"missions[{i}]: robot {mi.robot} has more than one mission")
+        if mi.kind != "hold" and not mi.waypoints:
+            raise ScenarioError(f"missions[{i}]: a {mi.kind} mission needs waypoints")
+    if s.map.origin_id not in s.robot_ids:
+        raise ScenarioError(f"map.origin_id={s.map.origin_id} is not a robot of this scenario")
     poses = start_poses(s)
     half_x = s.arena.size_x_m / 2 - s.arena.wall_thickness_m / 2
     half_y = s.arena.size_y_m / 2 - s.arena.wall_thickness_m / 2
@@ -422,3 +493,11 @@ def wall_boxes(a: Arena) -> list[tuple[tuple[float, float, float], tuple[float, 
         ((0.0, hy, h / 2), (hx + t / 2, t / 2, h / 2)),
         ((0.0, -hy, h / 2), (hx + t / 2, t / 2, h / 2)),
     ]
+
+
+def arena_to_map(s: Scenario) -> tuple[float, float, float]:
+    """T_map_arena as (x_m, y_m, yaw_rad): the map frame is the origin robot's first
+    pose, unless the scenario has landmark tags, which tie the map to the arena."""
+    if s.landmarks:
+        return (0.0, 0.0, 0.0)
+    return se2_inverse(start_poses(s)[s.map.origin_id])

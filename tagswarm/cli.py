@@ -13,6 +13,7 @@ from protocol.scenario import builtin_names
 
 
 def _commands() -> dict[str, tuple[str, Callable[[Sequence[str] | None], int]]]:
+    from agents import node as agent_node
     from tagswarm import snapshot
     from world import node as world_node
     from world import render_worker
@@ -21,6 +22,7 @@ def _commands() -> dict[str, tuple[str, Callable[[Sequence[str] | None], int]]]:
         "snapshot": ("start a world, grab one frame per camera, decode tags, write PNGs + JSON", snapshot.main),
         "world": ("run the world process (physics, cameras, encoders, clock)", world_node.main),
         "render": ("run one render worker for a world started with --no-spawn-workers", render_worker.main),
+        "agent": ("run one robot's agent (detection, cube pose, odometry, behaviour)", agent_node.main),
     }
 
 

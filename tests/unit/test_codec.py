@@ -52,6 +52,7 @@ SAMPLES: list[m.Msg] = [
     m.AgentStatus(seq=0, stamp_ns=0, role="world", mode="realtime"),
     m.RenderPoses(seq=8, stamp_ns=266_666_664, step=8, robot_ids=(0, 1),
                   poses=(MOUNT, m.Pose3(x_m=-1.0, y_m=2.0, z_m=0.07)), cameras=("1/front",)),
+    m.Goal(seq=9, stamp_ns=5, robot_id=2, x_m=1.5, y_m=-0.5, tolerance_m=0.2),
 ]
 BY_TYPE: dict[type[m.Msg], m.Msg] = {type(s): s for s in SAMPLES}
 
@@ -108,7 +109,7 @@ def test_round_trip_keeps_values_exactly() -> None:
     assert img.data == bytes(range(256)) * 3
     assert len(img.data) == img.width * img.height == 768
     assert img.mount.qx == -0.5 and img.mount.qw == 0.5
-    status = codec.decode(m.AgentStatus, codec.encode(SAMPLES[-2]))
+    status = codec.decode(m.AgentStatus, codec.encode(BY_TYPE[m.AgentStatus]))
     assert status.robot_id is None and status.counters == {}
     gm = codec.decode(m.GlobalMap, codec.encode(BY_TYPE[m.GlobalMap]))
     assert gm.edges == ((0, 1), (1, 0))

@@ -1,0 +1,168 @@
+"""What a robot does: its mission, go-to-goal control and the paper's Fig. 3
+self-calibrating loop (pure code, no I/O).
+
+Modes:
+- ``visual``: a visual fix this cycle (an accepted observation of another robot,
+  or a server correction built on a new observation involving this robot).
+- ``odometry``: no fix for fewer than ``fix_threshold`` moving cycles.
+- ``searching``: too long on odometry alone (or never localised): stop the
+  mission and rotate in place until a fix, at most ``search_max_sweep_rad``.
+- ``lost``: a full sweep found nobody: resume the mission slowly (or stand
+  still if the robot has never been localised) until the next fix.
+
+Only cycles in which the robot moves count towards the threshold: dead
+reckoning does not drift while the robot stands still.
+
+Frames: poses are (x_m, y_m, yaw_rad) of base_link in the map frame; waypoints
+are given in the arena frame and converted with ``arena_to_map``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from enum import StrEnum
+
+from protocol.geometry import Pose2, wrap_angle
+from protocol.geometry import se2_compose as compose
+from protocol.scenario import Agent, Mission, Robot
+
+
+class Mode(StrEnum):
+    VISUAL = "visual"
+    ODOMETRY = "odometry"
+    SEARCHING = "searching"
+    LOST = "lost"
+
+
+def wheel_speeds(v_m_s: float, w_rad_s: float, robot: Robot) -> tuple[float, float]:
+    """(left, right) wheel speeds in rad/s for a body twist, scaled down together
+    so that neither exceeds the wheel limit (keeps the path's curvature)."""
+    r, b = robot.wheel_radius_m, robot.wheel_base_m
+    left, right = (v_m_s - w_rad_s * b / 2) / r, (v_m_s + w_rad_s * b / 2) / r
+    worst = max(abs(left), abs(right))
+    if worst > robot.max_wheel_speed_rad_s:
+        k = robot.max_wheel_speed_rad_s / worst
+        left, right = left * k, right * k
+    return left, right
+
+
+def go_to(pose: Pose2, goal: tuple[float, float], cfg: Agent, speed_factor: float = 1.0) -> tuple[float, float]:
+    """Unicycle go-to-goal twist (v_m_s, w_rad_s): turn on the spot when the goal
+    is far off the heading, otherwise drive and steer proportionally."""
+    dx, dy = goal[0] - pose[0], goal[1] - pose[1]
+    dist = math.hypot(dx, dy)
+    err = wrap_angle(math.atan2(dy, dx) - pose[2])
+    w = max(-cfg.max_turn_rad_s, min(cfg.max_turn_rad_s, 2.0 * err)) * speed_factor
+    if abs(err) > 0.6:
+        return 0.0, w
+    v = min(cfg.max_speed_m_s, 0.8 * dist) * speed_factor * math.cos(err)
+    return v, w
+
+
+@dataclass
+class Behaviour:
+    """One robot's decision state; call :meth:`cycle` once per control step."""
+
+    robot_id: int
+    mission: Mission
+    cfg: Agent
+    robot: Robot
+    arena_to_map: Pose2 = (0.0, 0.0, 0.0)
+    leapfrog_team: tuple[int, ...] = ()
+    mode: Mode = Mode.SEARCHING
+    counter: int = 0
+    fixes: int = 0
+    searches: int = 0
+    lost_events: int = 0
+    swept_rad: float = 0.0
+    goal: tuple[float, float] | None = None
+    goal_tolerance_m: float = 0.1
+    waypoint_index: int = 0
+    direction: int = 1
+    done: bool = False
+    _last_yaw: float | None = field(default=None, repr=False)
+
+    def set_goal(self, x_m: float, y_m: float, tolerance_m: float) -> None:
+        """A run-time goal (map frame) replaces the mission until reached."""
+        self.goal, self.goal_tolerance_m, self.done = (x_m, y_m), tolerance_m, False
+
+    def _waypoints(self) -> list[tuple[float, float]]:
+        return [compose(self.arena_to_map, (x, y, 0.0))[:2] for x, y in self.mission.waypoints]
+
+    def _my_turn(self, t_s: float) -> bool:
+        if self.mission.kind != "leapfrog" or not self.leapfrog_team:
+            return True
+        turn = int(t_s // self.mission.leapfrog_period_s) % len(self.leapfrog_team)
+        return self.leapfrog_team[turn] == self.robot_id
+
+    def _target(self, pose: Pose2, t_s: float) -> tuple[float, float] | None:
+        """Current goal (map frame) or None to stand still; advances waypoints."""
+        if self.goal is not None:
+            if math.dist(pose[:2], self.goal) < self.goal_tolerance_m:
+                self.goal = None
+                self.done = True
+                return None
+            return self.goal
+        if self.mission.kind == "hold" or self.done or not self._my_turn(t_s):
+            return None
+        wps = self._waypoints()
+        target = wps[self.waypoint_index]
+        if math.dist(pose[:2], target) < self.cfg.goal_tolerance_m:
+            nxt = self.waypoint_index + self.direction
+            if self.mission.kind == "patrol":
+                if not 0 <= nxt < len(wps):
+                    self.direction = -self.direction
+                    nxt = self.waypoint_index + self.direction
+                self.waypoint_index = max(0, min(len(wps) - 1, nxt))
+            elif nxt >= len(wps):
+                if self.mission.loop or self.mission.kind == "leapfrog":
+                    self.waypoint_index = 0
+                else:
+                    self.done = True
+                    return None
+            else:
+                self.waypoint_index = nxt
+            if self.mission.kind == "leapfrog":
+                return None  # one leg per turn
+            target = wps[self.waypoint_index]
+        return target
+
+    def cycle(self, *, t_s: float, map_pose: Pose2 | None, odom_yaw: float, moved: bool,
+              fix: bool) -> tuple[float, float]:
+        """One control step.  ``map_pose`` is the corrected pose (None if never
+        localised), ``odom_yaw`` the smooth odometry heading (to measure the sweep),
+        ``moved`` whether the encoders moved since the last cycle, ``fix`` whether
+        a visual fix arrived.  Returns (v_m_s, w_rad_s)."""
+        swept = 0.0 if self._last_yaw is None else abs(wrap_angle(odom_yaw - self._last_yaw))
+        self._last_yaw = odom_yaw
+        if fix:
+            self.fixes += 1
+            self.counter = 0
+            self.mode = Mode.VISUAL
+        elif moved or map_pose is None:
+            self.counter += 1
+        if not fix and self.mode == Mode.VISUAL:
+            self.mode = Mode.ODOMETRY
+        stationary = self.mission.kind == "hold" and self.goal is None
+        needs_search = map_pose is None or self.counter > self.cfg.fix_threshold
+        if self.mode == Mode.ODOMETRY and needs_search and not stationary:
+            self.mode = Mode.SEARCHING
+            self.searches += 1
+            self.swept_rad = 0.0
+        if self.mode == Mode.SEARCHING:
+            if stationary and map_pose is not None:
+                self.mode = Mode.ODOMETRY
+            else:
+                self.swept_rad += swept
+                if self.swept_rad >= self.cfg.search_max_sweep_rad:
+                    self.mode = Mode.LOST
+                    self.lost_events += 1
+                else:
+                    return 0.0, self.cfg.search_speed_rad_s
+        if map_pose is None:
+            return 0.0, 0.0
+        target = self._target(map_pose, t_s)
+        if target is None:
+            return 0.0, 0.0
+        return go_to(map_pose, target, self.cfg, self.cfg.lost_speed_factor if self.mode == Mode.LOST else 1.0)

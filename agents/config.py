@@ -1,0 +1,63 @@
+"""The agent process's one frozen config."""
+
+from __future__ import annotations
+
+import argparse
+from collections.abc import Mapping, Sequence
+
+import msgspec
+
+from protocol.bus import BusConfig
+from protocol.config import ConfigError, OneLineParser, add_common_args, bus_from, env_of, parse, pick, scenario_from
+from protocol.keys import Keys
+from protocol.scenario import Scenario
+
+
+class AgentConfig(msgspec.Struct, frozen=True, kw_only=True):
+    """Everything one agent needs; built once in ``main``."""
+
+    scenario: Scenario
+    bus: BusConfig
+    robot_id: int
+    run: str = "default"
+    log_level: str = "INFO"
+    fetch_map_timeout_s: float = 1.0
+
+    @property
+    def participant(self) -> str:
+        return f"agent/{self.robot_id}"
+
+
+def parser(prog: str = "tagswarm-agent") -> argparse.ArgumentParser:
+    p = OneLineParser(
+        prog=prog,
+        description="A tagswarm robot agent: detects the tag cubes of other robots in its camera images, estimates "
+        "their relative poses, dead-reckons from its wheel encoders, follows its mission and re-localises "
+        "actively (rotates in place) when it has been on odometry alone for too long.")
+    add_common_args(p)
+    p.add_argument("--robot-id", type=int, help="which robot this agent drives (env TAGSWARM_ROBOT_ID); required")
+    p.add_argument("--fetch-map-timeout", type=float, default=1.0, metavar="SECONDS",
+                   help="how long to ask the server for this robot's last pose at start (default 1; 0 = skip)")
+    return p
+
+
+def build_config(argv: Sequence[str] | None = None, environ: Mapping[str, str] | None = None) -> AgentConfig:
+    args = parse(parser(), argv)
+    env = env_of(environ)
+    scenario = scenario_from(args, env)
+    raw = pick(args, env, "robot_id")
+    if raw is None:
+        raise ConfigError("--robot-id is required (or TAGSWARM_ROBOT_ID)")
+    try:
+        robot_id = int(raw)
+    except ValueError:
+        raise ConfigError(f"--robot-id must be an integer, got {raw!r}") from None
+    if robot_id not in scenario.robot_ids:
+        raise ConfigError(f"--robot-id {robot_id} is not a robot of scenario {scenario.name!r} "
+                          f"(0..{scenario.robots.count - 1})")
+    run = pick(args, env, "run", "default")
+    Keys(run)
+    if args.fetch_map_timeout < 0:
+        raise ConfigError("--fetch-map-timeout must be >= 0")
+    return AgentConfig(scenario=scenario, bus=bus_from(args, env), robot_id=robot_id, run=run,
+                       log_level=pick(args, env, "log_level", "INFO"), fetch_map_timeout_s=args.fetch_map_timeout)

@@ -1,0 +1,319 @@
+"""The agent process of one robot (the only I/O of ``agents``).
+
+Subscribes to its own robot's camera images (newest-only per camera: a slow
+detector skips frames, it never queues them), encoder ticks, the world clock,
+the server's corrections and run-time goals.  Publishes relative observations,
+odometry, wheel commands and status.  It never reads ground truth.
+
+Realtime: each :meth:`AgentNode.step` handles what has arrived.  Lockstep:
+for each world tick it waits (bounded) for that tick's frames, processes them,
+publishes, then acknowledges the tick.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from collections import Counter
+from collections.abc import Mapping, Sequence
+
+import numpy as np
+
+from agents.behaviour import Behaviour, Mode, wheel_speeds
+from agents.config import AgentConfig, build_config
+from agents.cubepose import CameraModel, CubePoseEstimator, PoseEstimate
+from agents.detect import TagMap, make_detector
+from agents.odometry import DiffDriveOdometry, DiffDriveParams
+from protocol import codec
+from protocol import messages as m
+from protocol.bus import Bus, Inbox, open_bus
+from protocol.config import install_stop_signals, run_main, setup_logging
+from protocol.geometry import Pose2, matrix_to_pose3, se2_compose
+from protocol.keys import Keys
+from protocol.scenario import arena_to_map
+
+log = logging.getLogger("tagswarm.agent")
+
+
+class AgentNode:
+    """One robot's agent; see the module docstring."""
+
+    def __init__(self, config: AgentConfig, bus: Bus) -> None:
+        self.cfg = config
+        self.s = s = config.scenario
+        self.rid = rid = config.robot_id
+        self.bus = bus
+        self.keys = Keys(config.run)
+        a = s.agent
+        self.detector = make_detector(s.tags.family, a.detector, max_hamming=a.max_hamming, min_margin=a.min_margin)
+        self.tagmap = TagMap.from_scenario(s)
+        self.estimator = CubePoseEstimator(s, pixel_sigma_px=a.pixel_sigma_px, max_rms_px=a.max_reprojection_px)
+        self.odom = DiffDriveOdometry(DiffDriveParams(s.robot.wheel_radius_m, s.robot.wheel_base_m,
+                                                      s.encoders.ticks_per_rev, a.odom_wheel_sigma))
+        # map -> odom; the origin robot's first pose *is* the map frame (unless landmarks pin it)
+        self.map_odom: Pose2 | None = (0.0, 0.0, 0.0) if rid == s.map.origin_id and not s.landmarks else None
+        team = tuple(sorted(mi.robot for mi in s.missions if mi.kind == "leapfrog"))
+        self.behaviour = Behaviour(rid, s.mission(rid), a, s.robot, arena_to_map(s), team)
+        self.rejects = codec.RejectCounter(log)
+        self.counters: Counter[str] = Counter()
+        self._seq: Counter[str] = Counter()
+        self.time_ns = 0
+        self.last_fix_ns = 0
+        self._moved = False
+        self._fix = False
+        self._next_status_ns = 0
+        self._priors: dict[tuple[str, int], tuple[float, float, float]] = {}
+        self.lockstep = s.clock.mode == "lockstep"
+        self.images: dict[str, Inbox[bytes]] = {
+            c.name: bus.subscribe(self.keys.image(rid, c.name), newest_only=True) for c in s.robot.cameras}
+        self.pending_frames: dict[str, m.CameraImage] = {}
+        self.enc_in = bus.subscribe(self.keys.encoders(rid))
+        self.tick_in = bus.subscribe(self.keys.tick())
+        self.corr_in = bus.subscribe(self.keys.correction(rid))
+        self.goal_in = bus.subscribe(self.keys.goal(rid))
+        if config.fetch_map_timeout_s > 0:
+            self._fetch_last_pose(config.fetch_map_timeout_s)
+        bus.declare_token(self.keys.alive(config.participant))
+        log.info("agent %d up: %d camera(s), mission %s, %s clock", rid, len(s.robot.cameras),
+                 self.behaviour.mission.kind, s.clock.mode)
+
+    # ------------------------------------------------------------------ helpers
+    def _publish(self, key: str, msg: m.Msg) -> None:
+        self.bus.put(key, codec.encode(msg))
+
+    def _next(self, key: str) -> int:
+        seq = self._seq[key]
+        self._seq[key] += 1
+        return seq
+
+    @property
+    def map_pose(self) -> Pose2 | None:
+        """Corrected pose of base_link in the map frame, None until localised."""
+        return None if self.map_odom is None else se2_compose(self.map_odom, self.odom.pose())
+
+    def _fetch_last_pose(self, timeout_s: float) -> None:
+        """Late joiner / restart: start from the server's last pose for this robot."""
+        try:
+            replies = self.bus.get(self.keys.map(), timeout_s)
+        except Exception as exc:  # noqa: BLE001 - no server yet is normal
+            log.debug("map query failed: %s", exc)
+            return
+        for reply in replies:
+            try:
+                gmap = codec.decode(m.GlobalMap, reply.value)
+            except codec.DecodeError as exc:
+                self.rejects.reject(exc.kind, f"map reply: {exc.detail}")
+                continue
+            for e in gmap.robots:
+                if e.robot_id == self.rid:
+                    # odometry restarts at zero, so map -> odom is the last known pose
+                    self.map_odom = (e.x_m, e.y_m, e.yaw_rad)
+                    log.info("resuming from the server's last pose (%.2f, %.2f, %.2f)", e.x_m, e.y_m, e.yaw_rad)
+
+    # ------------------------------------------------------------------ inputs
+    def _handle_encoders(self) -> None:
+        for item in self.enc_in.drain():
+            try:
+                enc = codec.decode(m.EncoderTicks, item.value)
+            except codec.DecodeError as exc:
+                self.rejects.reject(exc.kind, f"{item.key}: {exc.detail}")
+                continue
+            if enc.robot_id != self.rid:
+                self.rejects.reject("spoofed", f"{item.key} carries robot_id {enc.robot_id}")
+                continue
+            if enc.ticks_per_rev != self.odom.params.ticks_per_rev:
+                self.rejects.reject("inconsistent", f"ticks_per_rev {enc.ticks_per_rev} != configured")
+                continue
+            ds, dth = self.odom.update(enc.left_ticks, enc.right_ticks)
+            self._moved = self._moved or abs(ds) > 1e-4 or abs(dth) > 1e-4
+            self.time_ns = max(self.time_ns, enc.stamp_ns)
+
+    def _handle_corrections(self) -> None:
+        for item in self.corr_in.drain():
+            try:
+                c = codec.decode(m.Correction, item.value)
+            except codec.DecodeError as exc:
+                self.rejects.reject(exc.kind, f"{item.key}: {exc.detail}")
+                continue
+            if c.robot_id != self.rid:
+                self.rejects.reject("spoofed", f"correction for robot {c.robot_id} on {item.key}")
+                continue
+            self.map_odom = (c.map_odom_x_m, c.map_odom_y_m, c.map_odom_yaw_rad)
+            self.counters["corrections"] += 1
+            if c.last_fix_ns > self.last_fix_ns:
+                self.last_fix_ns = c.last_fix_ns
+                self._fix = True
+        for item in self.goal_in.drain():
+            try:
+                g = codec.decode(m.Goal, item.value)
+            except codec.DecodeError as exc:
+                self.rejects.reject(exc.kind, f"{item.key}: {exc.detail}")
+                continue
+            if g.robot_id != self.rid:
+                self.rejects.reject("spoofed", f"goal for robot {g.robot_id} on {item.key}")
+                continue
+            self.behaviour.set_goal(g.x_m, g.y_m, g.tolerance_m)
+            log.info("new goal (%.2f, %.2f)", g.x_m, g.y_m)
+
+    def _take_frames(self) -> None:
+        for name, inbox in self.images.items():
+            for item in inbox.drain():
+                try:
+                    img = codec.decode(m.CameraImage, item.value)
+                except codec.DecodeError as exc:
+                    self.rejects.reject(exc.kind, f"{item.key}: {exc.detail}")
+                    continue
+                if img.robot_id != self.rid or img.camera != name:
+                    self.rejects.reject("spoofed", f"{item.key} carries robot {img.robot_id}/{img.camera}")
+                    continue
+                if name in self.pending_frames:
+                    self.counters["frames_skipped"] += 1
+                self.pending_frames[name] = img
+
+    # ------------------------------------------------------------------ vision
+    def _process_frames(self) -> None:
+        if not self.pending_frames:
+            return
+        frames = list(self.pending_frames.values())
+        self.pending_frames.clear()
+        views = []
+        for img in frames:
+            gray = np.frombuffer(img.data, np.uint8).reshape(img.height, img.width)
+            dets = []
+            for d in self.detector.detect(gray):
+                owner = self.tagmap.lookup(d.tag_id)
+                if owner is None:
+                    self.counters["unknown_tags"] += 1
+                elif owner[0] == "robot" and owner[1] == self.rid:
+                    self.counters["own_tags"] += 1  # a reflection of ourselves cannot happen; count it
+                else:
+                    dets.append(d)
+            views.append((CameraModel.from_message(img), dets))
+            self.counters["frames_processed"] += 1
+        stamp = max(img.stamp_ns for img in frames)
+        self.time_ns = max(self.time_ns, stamp)
+        for est in self.estimator.estimate(views, self._priors):
+            if np.hypot(est.x_m, est.y_m) > self.s.agent.max_range_m:
+                self.counters["rejected_range"] += 1
+                continue
+            self._priors[(est.target_kind, est.target_id)] = (est.x_m, est.y_m, est.yaw_rad)
+            self._publish_observation(est, stamp)
+            self._fix = True
+
+    def _publish_observation(self, est: PoseEstimate, stamp_ns: int) -> None:
+        key = self.keys.observation(self.rid)
+        self._publish(key, m.RelativeObservation(
+            seq=self._next(key), stamp_ns=stamp_ns, robot_id=self.rid, target_kind=est.target_kind,  # type: ignore[arg-type]
+            target_id=est.target_id, x_m=float(est.x_m), y_m=float(est.y_m), yaw_rad=float(est.yaw_rad),
+            cov=tuple(float(v) for v in np.asarray(est.cov).ravel()), pose=matrix_to_pose3(est.T_base_target),
+            reprojection_rms_px=float(est.reprojection_rms_px), tag_ids=tuple(int(t) for t in est.tag_ids),
+            camera="+".join(est.cameras)))
+        self.counters["observations"] += 1
+
+    # ------------------------------------------------------------------ control
+    def _control(self) -> None:
+        b = self.behaviour
+        v, w = b.cycle(t_s=self.time_ns / 1e9, map_pose=self.map_pose, odom_yaw=self.odom.yaw_rad,
+                       moved=self._moved, fix=self._fix)
+        self._moved = self._fix = False
+        left, right = wheel_speeds(v, w, self.s.robot)
+        key = self.keys.cmd(self.rid)
+        self._publish(key, m.WheelCommand(seq=self._next(key), stamp_ns=self.time_ns, robot_id=self.rid,
+                                          left_rad_s=left, right_rad_s=right))
+        key = self.keys.odometry(self.rid)
+        self._publish(key, m.OdometryEstimate(
+            seq=self._next(key), stamp_ns=self.time_ns, robot_id=self.rid, x_m=self.odom.x_m, y_m=self.odom.y_m,
+            yaw_rad=self.odom.yaw_rad, cov=tuple(float(v) for v in self.odom.cov.ravel()),
+            distance_m=self.odom.distance_m))
+        if self.time_ns >= self._next_status_ns:
+            self._publish_status()
+            self._next_status_ns = self.time_ns + int(self.s.agent.status_period_s * 1e9)
+
+    def status_counters(self) -> dict[str, int]:
+        b = self.behaviour
+        out = dict(self.counters)
+        out.update(fixes=b.fixes, searches=b.searches, lost_events=b.lost_events, odometry_cycles=b.counter,
+                   localised=int(self.map_odom is not None))
+        out.update(self.rejects.as_counters())
+        out.update({f"pose_rejected_{k}": v for k, v in self.estimator.rejects.items()})
+        return out
+
+    def _publish_status(self) -> None:
+        key = self.keys.robot_status(self.rid)
+        self._publish(key, m.AgentStatus(seq=self._next(key), stamp_ns=self.time_ns, robot_id=self.rid, role="agent",
+                                         mode=str(self.behaviour.mode), counters=self.status_counters()))
+
+    @property
+    def mode(self) -> Mode:
+        return self.behaviour.mode
+
+    # ------------------------------------------------------------------ cycle
+    def step(self) -> bool:
+        """Handle what has arrived (realtime) or the next tick (lockstep).
+        Returns True if anything was processed."""
+        if self.lockstep:
+            return self._step_lockstep()
+        self._handle_corrections()
+        had_enc = len(self.enc_in) > 0
+        self._handle_encoders()
+        self._take_frames()
+        had_frames = bool(self.pending_frames)
+        self._process_frames()
+        self.tick_in.drain()
+        if had_enc:
+            self._control()
+        return had_enc or had_frames
+
+    def _step_lockstep(self) -> bool:
+        ticks = self.tick_in.drain()
+        for item in ticks:
+            try:
+                tick = codec.decode(m.Tick, item.value)
+            except codec.DecodeError as exc:
+                self.rejects.reject(exc.kind, f"{item.key}: {exc.detail}")
+                continue
+            self.time_ns = max(self.time_ns, tick.stamp_ns)
+            mine = {pair.split("/", 1)[1] for pair in tick.cameras_rendered if pair.split("/", 1)[0] == str(self.rid)}
+
+            def frames_in(tick: m.Tick = tick, mine: set[str] = mine) -> bool:
+                self._take_frames()
+                return all(n in self.pending_frames and self.pending_frames[n].step >= tick.step for n in mine)
+
+            if mine and not self.bus.wait_for(frames_in, self.s.agent.frame_wait_s):
+                self.counters["frames_missing"] += 1
+            self._handle_corrections()
+            self._handle_encoders()
+            self._process_frames()
+            self._control()
+            key = self.keys.ack(self.cfg.participant)
+            self._publish(key, m.TickAck(seq=self._next(key), stamp_ns=tick.stamp_ns, participant=self.cfg.participant,
+                                         step=tick.step))
+        return bool(ticks)
+
+    def run(self, stop_event: threading.Event) -> int:
+        end_ns = int(self.s.duration_s * 1e9)
+        while not stop_event.is_set() and self.time_ns < end_ns:
+            if not self.step():
+                self.bus.wait(0.1)
+        self._publish_status()
+        log.info("agent %d stopping at t=%.2f s: %s", self.rid, self.time_ns / 1e9, self.status_counters())
+        return 0
+
+
+def main(argv: Sequence[str] | None = None, environ: Mapping[str, str] | None = None) -> int:
+    """Console script ``tagswarm-agent``."""
+
+    def body() -> int:
+        config = build_config(argv, environ)
+        setup_logging(config.log_level, f"agent{config.robot_id}")
+        stop = threading.Event()
+        with open_bus(config.bus) as bus:
+            node = AgentNode(config, bus)
+            install_stop_signals(stop)
+            return node.run(stop)
+
+    return run_main("tagswarm-agent", body)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,348 @@
+"""Multi-robot pose-graph fusion on GTSAM (pure code, no I/O).
+
+Variables: one ``Pose2`` per robot per keyframe, in the map frame.  A keyframe
+is made when a robot has moved ``kf_dist_m``/``kf_angle_rad`` since its last
+one, when it takes part in an observation, and at least every
+``kf_max_interval_s`` (so that a robot standing still keeps a live variable).
+Factors: odometry between-factors (covariance from the wheel-noise model),
+relative-pose between-factors from observations (robust Huber noise, chi² gate
+against the current estimate), priors from landmark observations, and a prior
+on the origin robot's first keyframe (the map frame) unless landmarks pin it.
+
+Memory is bounded: an ``IncrementalFixedLagSmoother`` (iSAM2) marginalises
+keyframes older than ``lag_s`` of simulated time.
+
+Data arrive as events stamped with simulation time and are applied strictly in
+time order up to a *watermark* (the time up to which every live robot's
+odometry is known), so keyframes of each robot stay in time order no matter
+the arrival order over the network.
+"""
+
+from __future__ import annotations
+
+import heapq
+import math
+from collections import Counter, deque
+from dataclasses import dataclass, field
+from typing import Literal
+
+import gtsam
+import numpy as np
+from numpy.typing import NDArray
+
+from protocol.geometry import Pose2, se2_between, se2_compose, se2_inverse
+from server.stitch import Edge, stitch
+
+Cov = NDArray[np.float64]
+CHI2_3DOF_999 = 16.27
+
+
+@dataclass(frozen=True)
+class FusionParams:
+    """Tuning of the fusion; defaults suit the shipped scenarios."""
+
+    wheel_base_m: float = 0.22
+    odom_wheel_sigma: float = 0.02  # sqrt(m), as the agents' odometry model
+    odom_scale_sigma: float = 0.02  # extra per-metre systematic share (wheel radius/base miscalibration)
+    kf_dist_m: float = 0.2
+    kf_angle_rad: float = 0.2
+    kf_max_interval_s: float = 2.0
+    lag_s: float = 30.0
+    huber_k: float = 1.345
+    chi2_gate: float = CHI2_3DOF_999
+    gate_floor_m: float = 0.05  # gate tolerance never below this (estimates are never perfect)
+    origin_sigma: float = 1e-4
+    odom_buffer: int = 4096
+    max_pending_s: float = 3.0
+
+
+@dataclass
+class _Robot:
+    odom: deque[tuple[int, Pose2]] = field(default_factory=lambda: deque(maxlen=4096))
+    chain: int = 0  # bumped when the robot's odometry restarts
+    kf_index: int = -1
+    kf_key: int | None = None
+    kf_stamp: int = -1
+    kf_odom: Pose2 = (0.0, 0.0, 0.0)
+    estimate: Pose2 | None = None  # of the last keyframe
+    cov: Cov = field(default_factory=lambda: np.diag([1e-4, 1e-4, 1e-4]))
+    drift_cov: Cov = field(default_factory=lambda: np.zeros((3, 3)))  # odometry since the last keyframe
+    latest_odom: tuple[int, Pose2] | None = None
+    last_fix_ns: int = 0
+    last_distance: float = 0.0
+    reset_hint: Pose2 | None = None
+
+
+def _key(rid: int, chain: int, index: int) -> int:
+    return int(gtsam.symbol("x", (rid << 40) | (chain << 24) | index))
+
+
+def odom_increment_cov(delta: Pose2, p: FusionParams) -> Cov:
+    """(3, 3) covariance of an odometry increment ``delta`` (in the start frame)."""
+    ds = math.hypot(delta[0], delta[1])
+    dth = abs(delta[2])
+    b = p.wheel_base_m
+    wheel = p.odom_wheel_sigma**2 * (ds + dth * b / 2)  # variance per wheel (sum of |dl|, |dr| / 2)
+    var_s = wheel / 2 + (p.odom_scale_sigma * ds) ** 2
+    var_th = 2 * wheel / b**2 + (p.odom_scale_sigma * (dth + ds / b)) ** 2
+    var_lat = var_th * ds**2 / 4
+    return np.diag([var_s + 1e-8, var_lat + 1e-8, var_th + 1e-8])
+
+
+@dataclass(order=True)
+class _Event:
+    stamp_ns: int
+    rank: int  # odometry (0) before observations (1) of the same instant
+    order: int
+    kind: Literal["odom", "obs", "landmark"] = field(compare=False)
+    data: tuple = field(compare=False)  # type: ignore[type-arg]
+
+
+class Fusion:
+    """Incremental pose graph of the whole swarm.  Feed events, then :meth:`advance`."""
+
+    def __init__(self, params: FusionParams, origin_id: int, robot_ids: tuple[int, ...],
+                 landmarks: dict[int, Pose2] | None = None) -> None:
+        self.p = params
+        self.origin_id = origin_id
+        self.landmarks = dict(landmarks or {})
+        self.robots = {rid: _Robot(odom=deque(maxlen=params.odom_buffer)) for rid in robot_ids}
+        isam = gtsam.ISAM2Params()
+        isam.setRelinearizeThreshold(0.01)
+        self.smoother = gtsam.IncrementalFixedLagSmoother(params.lag_s, isam)
+        self._factors = gtsam.NonlinearFactorGraph()
+        self._values = gtsam.Values()
+        self._stamps = gtsam.FixedLagSmootherKeyTimestampMap()
+        self._events: list[_Event] = []
+        self._order = 0
+        self.counters: Counter[str] = Counter()
+        self.edges: dict[tuple[int, int], int] = {}  # (observer, target) -> last stamp
+        self.watermark_ns = -1
+        self.updates = 0
+
+    # ------------------------------------------------------------------ input
+    def _push(self, stamp_ns: int, kind: Literal["odom", "obs", "landmark"], data: tuple) -> None:  # type: ignore[type-arg]
+        if stamp_ns <= self.watermark_ns and kind != "odom":
+            self.counters["rejected_late"] += 1
+            return
+        heapq.heappush(self._events, _Event(stamp_ns, 0 if kind == "odom" else 1, self._order, kind, data))
+        self._order += 1
+
+    def add_odometry(self, rid: int, stamp_ns: int, pose: Pose2, distance_m: float) -> None:
+        """Cumulative odometry of ``rid`` (base_link in its odom frame) at ``stamp_ns``."""
+        self._push(stamp_ns, "odom", (rid, pose, distance_m))
+
+    def add_observation(self, observer: int, target: int, stamp_ns: int, rel: Pose2, cov: Cov) -> None:
+        """``target``'s base in ``observer``'s base frame at ``stamp_ns``."""
+        self._push(stamp_ns, "obs", (observer, target, rel, np.asarray(cov, float).reshape(3, 3)))
+
+    def add_landmark_observation(self, observer: int, landmark: int, stamp_ns: int, rel: Pose2, cov: Cov) -> None:
+        """Landmark ``landmark``'s frame in ``observer``'s base frame."""
+        if landmark not in self.landmarks:
+            self.counters["rejected_unknown_landmark"] += 1
+            return
+        self._push(stamp_ns, "landmark", (observer, landmark, rel, np.asarray(cov, float).reshape(3, 3)))
+
+    # ------------------------------------------------------------------ processing
+    def latest_odom_ns(self, rid: int) -> int:
+        lo = self.robots[rid].latest_odom
+        return -1 if lo is None else lo[0]
+
+    def advance(self, watermark_ns: int) -> int:
+        """Apply every queued event stamped at or before ``watermark_ns`` in time
+        order (odometry before observations of the same instant) and update the
+        smoother.  Returns the number of events applied."""
+        n = 0
+        while self._events and self._events[0].stamp_ns <= watermark_ns:
+            ev = heapq.heappop(self._events)
+            if ev.kind == "odom":
+                self._apply_odom(ev.stamp_ns, *ev.data)
+            elif ev.kind == "obs":
+                self._apply_obs(ev.stamp_ns, *ev.data)
+            else:
+                self._apply_landmark(ev.stamp_ns, *ev.data)
+            n += 1
+        self.watermark_ns = max(self.watermark_ns, watermark_ns)
+        self._flush()
+        return n
+
+    def _odom_at(self, rid: int, stamp_ns: int) -> Pose2 | None:
+        """Odometry pose of ``rid`` at ``stamp_ns`` (nearest sample within 0.2 s)."""
+        best = None
+        for t, pose in reversed(self.robots[rid].odom):
+            if best is None or abs(t - stamp_ns) < abs(best[0] - stamp_ns):
+                best = (t, pose)
+            if t < stamp_ns:
+                break
+        if best is None or abs(best[0] - stamp_ns) > 200_000_000:
+            return None
+        return best[1]
+
+    def _apply_odom(self, stamp_ns: int, rid: int, pose: Pose2, distance_m: float) -> None:
+        r = self.robots[rid]
+        if distance_m + 1e-6 < r.last_distance:
+            # the agent restarted: its odom frame is new, start a new chain
+            r.reset_hint = self._current(rid)
+            r.chain += 1
+            r.odom.clear()
+            r.kf_key, r.kf_index, r.estimate, r.latest_odom = None, -1, None, None
+            self.counters["odometry_restarts"] += 1
+        r.last_distance = distance_m
+        r.odom.append((stamp_ns, pose))
+        r.latest_odom = (stamp_ns, pose)
+        if r.kf_key is None:
+            if rid == self.origin_id and not self.landmarks and r.chain == 0:
+                self._new_keyframe(rid, stamp_ns, pose, initial=(0.0, 0.0, 0.0), prior=self.p.origin_sigma)
+            elif r.reset_hint is not None:
+                self._new_keyframe(rid, stamp_ns, pose, initial=r.reset_hint, prior=0.3)
+                r.reset_hint = None
+            return
+        delta = se2_between(r.kf_odom, pose)
+        moved = math.hypot(delta[0], delta[1]) > self.p.kf_dist_m or abs(delta[2]) > self.p.kf_angle_rad
+        if moved or stamp_ns - r.kf_stamp > self.p.kf_max_interval_s * 1e9:
+            self._new_keyframe(rid, stamp_ns, pose)
+
+    def _new_keyframe(self, rid: int, stamp_ns: int, odom_pose: Pose2, initial: Pose2 | None = None,
+                      prior: float | None = None) -> int:
+        """Add a keyframe variable for ``rid`` at ``stamp_ns`` (odometry ``odom_pose``)."""
+        r = self.robots[rid]
+        if r.kf_key is not None and r.kf_stamp == stamp_ns:
+            return r.kf_key
+        r.kf_index += 1
+        key = _key(rid, r.chain, r.kf_index)
+        if r.kf_key is not None and r.estimate is not None:
+            delta = se2_between(r.kf_odom, odom_pose)
+            cov = odom_increment_cov(delta, self.p)
+            self._factors.add(gtsam.BetweenFactorPose2(r.kf_key, key, gtsam.Pose2(*delta),
+                                                       gtsam.noiseModel.Gaussian.Covariance(cov)))
+            guess = se2_compose(r.estimate, delta)
+            r.cov = r.cov + cov
+        else:
+            assert initial is not None
+            guess = initial
+        if prior is not None:
+            self._factors.add(gtsam.PriorFactorPose2(key, gtsam.Pose2(*guess),
+                                                     gtsam.noiseModel.Isotropic.Sigma(3, prior)))
+            r.cov = np.eye(3) * prior**2
+        self._values.insert(key, gtsam.Pose2(*guess))
+        self._stamps.insert((key, stamp_ns / 1e9))
+        r.kf_key, r.kf_stamp, r.kf_odom, r.estimate = key, stamp_ns, odom_pose, guess
+        self.counters["keyframes"] += 1
+        return key
+
+    def _current(self, rid: int) -> Pose2 | None:
+        """Best current map pose of ``rid``: last keyframe ⊕ odometry since."""
+        r = self.robots[rid]
+        if r.estimate is None or r.latest_odom is None:
+            return None
+        return se2_compose(r.estimate, se2_between(r.kf_odom, r.latest_odom[1]))
+
+    def _robust(self, cov: Cov) -> gtsam.noiseModel.Base:
+        base = gtsam.noiseModel.Gaussian.Covariance(cov)
+        return gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(self.p.huber_k), base)
+
+    def _gate(self, pred: Pose2, meas: Pose2, cov: Cov) -> float:
+        e = np.array(se2_between(pred, meas))
+        s = cov + np.diag([self.p.gate_floor_m**2, self.p.gate_floor_m**2, (self.p.gate_floor_m / 2) ** 2])
+        return float(e @ np.linalg.solve(s, e))
+
+    def _apply_obs(self, stamp_ns: int, observer: int, target: int, rel: Pose2, cov: Cov) -> None:
+        if observer not in self.robots or target not in self.robots or observer == target:
+            self.counters["rejected_unknown_robot"] += 1
+            return
+        o, g = self.robots[observer], self.robots[target]
+        oo, go = self._odom_at(observer, stamp_ns), self._odom_at(target, stamp_ns)
+        if oo is None or go is None:
+            self.counters["rejected_no_odometry"] += 1
+            return
+        if o.estimate is None and g.estimate is None:
+            self.counters["deferred_unanchored"] += 1
+            return
+        po = None if o.estimate is None else se2_compose(o.estimate, se2_between(o.kf_odom, oo))
+        pg = None if g.estimate is None else se2_compose(g.estimate, se2_between(g.kf_odom, go))
+        if po is not None and pg is not None:
+            d2 = self._gate(se2_between(po, pg), rel, cov + self._rel_cov(o, g))
+            if d2 > self.p.chi2_gate:
+                self.counters["rejected_gate"] += 1
+                return
+        # the paper's stitching places a robot seen for the first time
+        if po is None:
+            po = stitch([Edge(observer, target, rel, cov)], target, {target: pg})[observer]  # type: ignore[dict-item]
+        if pg is None:
+            pg = stitch([Edge(observer, target, rel, cov)], observer, {observer: po})[target]
+        ko = self._new_keyframe(observer, stamp_ns, oo, initial=po)
+        kg = self._new_keyframe(target, stamp_ns, go, initial=pg)
+        self._factors.add(gtsam.BetweenFactorPose2(ko, kg, gtsam.Pose2(*rel), self._robust(cov)))
+        o.last_fix_ns = g.last_fix_ns = stamp_ns
+        self.edges[(observer, target)] = stamp_ns
+        self.counters["accepted_observations"] += 1
+
+    def _rel_cov(self, o: _Robot, g: _Robot) -> Cov:
+        return o.cov + g.cov
+
+    def _apply_landmark(self, stamp_ns: int, observer: int, landmark: int, rel: Pose2, cov: Cov) -> None:
+        if observer not in self.robots:
+            self.counters["rejected_unknown_robot"] += 1
+            return
+        r = self.robots[observer]
+        oo = self._odom_at(observer, stamp_ns)
+        if oo is None:
+            self.counters["rejected_no_odometry"] += 1
+            return
+        lm = self.landmarks[landmark]
+        pose = se2_compose(lm, se2_inverse(rel))
+        # covariance of L ⊕ rel⁻¹ (first order), rotated into the map frame
+        c, s = math.cos(lm[2]), math.sin(lm[2])
+        rot = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
+        ci, si = math.cos(rel[2]), math.sin(rel[2])
+        j_inv = -np.array([[ci, si, rel[0] * si - rel[1] * ci], [-si, ci, rel[0] * ci + rel[1] * si], [0, 0, 1.0]])
+        cov_map = rot @ j_inv @ cov @ j_inv.T @ rot.T
+        if r.estimate is not None:
+            cur = se2_compose(r.estimate, se2_between(r.kf_odom, oo))
+            if self._gate(cur, pose, cov_map + r.cov) > self.p.chi2_gate:
+                self.counters["rejected_gate"] += 1
+                return
+        key = self._new_keyframe(observer, stamp_ns, oo, initial=pose)
+        self._factors.add(gtsam.PriorFactorPose2(key, gtsam.Pose2(*pose), self._robust(cov_map + np.eye(3) * 1e-8)))
+        r.last_fix_ns = stamp_ns
+        self.counters["accepted_landmarks"] += 1
+
+    def _flush(self) -> None:
+        if self._factors.size() == 0 and self._values.size() == 0:
+            return
+        self.smoother.update(self._factors, self._values, self._stamps)
+        self._factors = gtsam.NonlinearFactorGraph()
+        self._values = gtsam.Values()
+        self._stamps = gtsam.FixedLagSmootherKeyTimestampMap()
+        est = self.smoother.calculateEstimate()
+        for r in self.robots.values():
+            if r.kf_key is not None and est.exists(r.kf_key):
+                p = est.atPose2(r.kf_key)
+                r.estimate = (p.x(), p.y(), p.theta())
+                try:
+                    r.cov = np.asarray(self.smoother.marginalCovariance(r.kf_key))
+                except RuntimeError:
+                    pass
+        self.updates += 1
+
+    # ------------------------------------------------------------------ output
+    def pose(self, rid: int) -> tuple[Pose2, Cov] | None:
+        """Fused map pose of ``rid`` now (last keyframe ⊕ odometry since) and the
+        (3, 3) covariance of its last keyframe; None if not localised."""
+        cur = self._current(rid)
+        if cur is None:
+            return None
+        return cur, self.robots[rid].cov
+
+    def map_to_odom(self, rid: int) -> Pose2 | None:
+        """The ``map -> odom_rid`` correction: fused keyframe pose ⊕ (its odometry pose)⁻¹."""
+        r = self.robots[rid]
+        if r.estimate is None:
+            return None
+        return se2_compose(r.estimate, se2_inverse(r.kf_odom))
+
+    def last_fix_ns(self, rid: int) -> int:
+        return self.robots[rid].last_fix_ns
+
+    def localised(self) -> list[int]:
+        return [rid for rid, r in self.robots.items() if r.estimate is not None]

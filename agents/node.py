@@ -95,7 +95,7 @@ class AgentNode:
         """Late joiner / restart: start from the server's last pose for this robot."""
         try:
             replies = self.bus.get(self.keys.map(), timeout_s)
-        except Exception as exc:  # noqa: BLE001 - no server yet is normal
+        except Exception as exc:
             log.debug("map query failed: %s", exc)
             return
         for reply in replies:

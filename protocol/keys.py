@@ -126,6 +126,10 @@ class Keys:
         role, ident = split_participant(participant)
         return f"{self.prefix}/alive/{role}/{ident}"
 
+    def alive_role(self, role: str) -> str:
+        """Liveliness tokens of every process of one role."""
+        return f"{self.prefix}/alive/{check_name(role, 'role')}/*"
+
     def alive_all(self) -> str:
         return f"{self.prefix}/alive/**"
 

@@ -155,7 +155,9 @@ class Correction(Msg, frozen=True, kw_only=True, tag="correction"):
     """The server's ``map -> odom_k`` transform for one robot plus its fused pose in
     the map frame and that pose's 3x3 covariance.  ``stamp_ns`` is the simulation
     time of the newest data the estimate includes; ``last_fix_ns`` the time of the
-    newest accepted observation involving this robot (as observer or observed)."""
+    newest accepted observation involving this robot (as observer or observed).
+    In lockstep the server sends one every tick; ``localised=False`` (pose fields
+    zero) means the server cannot place this robot yet."""
 
     robot_id: RobotId
     map_odom_x_m: float
@@ -166,6 +168,7 @@ class Correction(Msg, frozen=True, kw_only=True, tag="correction"):
     yaw_rad: float
     cov: tuple[float, ...]
     last_fix_ns: StampNs = 0
+    localised: bool = True
 
 
 class Goal(Msg, frozen=True, kw_only=True, tag="goal"):

@@ -14,6 +14,7 @@ from protocol.scenario import builtin_names
 
 def _commands() -> dict[str, tuple[str, Callable[[Sequence[str] | None], int]]]:
     from agents import node as agent_node
+    from server import node as server_node
     from tagswarm import snapshot
     from world import node as world_node
     from world import render_worker
@@ -23,6 +24,7 @@ def _commands() -> dict[str, tuple[str, Callable[[Sequence[str] | None], int]]]:
         "world": ("run the world process (physics, cameras, encoders, clock)", world_node.main),
         "render": ("run one render worker for a world started with --no-spawn-workers", render_worker.main),
         "agent": ("run one robot's agent (detection, cube pose, odometry, behaviour)", agent_node.main),
+        "server": ("run the map server (stitching, pose-graph fusion, corrections)", server_node.main),
     }
 
 

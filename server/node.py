@@ -1,0 +1,254 @@
+"""The map server process (the only I/O of ``server``).
+
+Takes every robot's odometry and relative observations, feeds the
+:class:`~server.fusion.Fusion`, publishes each robot's correction after every
+update and the global map at ``map_rate_hz``, and answers map queries (late
+joiners).  Accepts data only from roster robots on their own keys.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from collections import Counter
+from collections.abc import Mapping, Sequence
+
+import numpy as np
+
+from protocol import codec
+from protocol import messages as m
+from protocol.bus import Bus, open_bus
+from protocol.config import install_stop_signals, run_main, setup_logging
+from protocol.keys import Keys
+from server.config import ServerConfig, build_config
+from server.fusion import Fusion, FusionParams
+
+log = logging.getLogger("tagswarm.server")
+EDGE_MEMORY_NS = 5_000_000_000
+
+
+class ServerNode:
+    """See the module docstring."""
+
+    def __init__(self, config: ServerConfig, bus: Bus) -> None:
+        self.cfg = config
+        self.s = s = config.scenario
+        self.bus = bus
+        self.keys = Keys(config.run)
+        self.roster = set(s.robot_ids)
+        params = FusionParams(wheel_base_m=s.robot.wheel_base_m, odom_wheel_sigma=s.agent.odom_wheel_sigma,
+                              lag_s=config.lag_s)
+        landmarks = {lm.id: (lm.x_m, lm.y_m, lm.yaw_rad) for lm in s.landmarks}
+        self.fusion = Fusion(params, s.map.origin_id, s.robot_ids, landmarks)
+        self.rejects = codec.RejectCounter(log)
+        self.counters: Counter[str] = Counter()
+        self._seq: Counter[str] = Counter()
+        self.alive: set[int] = set()
+        self.latest_rx: dict[int, int] = {}
+        self.time_ns = 0
+        self._next_map_ns = 0
+        self._next_update_ns = 0
+        self.lockstep = s.clock.mode == "lockstep"
+        self.obs_in = bus.subscribe(self.keys.observation())
+        self.odom_in = bus.subscribe(self.keys.odometry())
+        self.tick_in = bus.subscribe(self.keys.tick())
+        self.alive_in = bus.watch_liveliness(self.keys.alive_role("agent"))
+        self.query_in = bus.queryable(self.keys.map())
+        bus.declare_token(self.keys.alive(config.participant))
+        log.info("server up: %d robots, origin %d, %s clock, lag %.0f s", len(self.roster), s.map.origin_id,
+                 s.clock.mode, config.lag_s)
+
+    def _next(self, key: str) -> int:
+        seq = self._seq[key]
+        self._seq[key] += 1
+        return seq
+
+    def _publish(self, key: str, msg: m.Msg) -> None:
+        self.bus.put(key, codec.encode(msg))
+
+    # ------------------------------------------------------------------ inputs
+    def _robot_from_key(self, key: str, claimed: int) -> int | None:
+        rid = self.keys.robot_id_of(key)
+        if rid is None or rid != claimed:
+            self.rejects.reject("spoofed", f"{key} carries robot_id {claimed}")
+            return None
+        if rid not in self.roster:
+            self.rejects.reject("unknown_robot", f"{key}: robot {rid} is not in the roster")
+            return None
+        return rid
+
+    def _drain(self) -> None:
+        for change in self.alive_in.drain():
+            who = self.keys.participant_of(change.key)
+            if who and who.startswith("agent/") and who[6:].isdigit():
+                rid = int(who[6:])
+                if change.value:
+                    self.alive.add(rid)
+                else:
+                    self.alive.discard(rid)
+                    log.info("robot %d's agent is gone; its last pose stays in the map", rid)
+        for item in self.odom_in.drain():
+            try:
+                od = codec.decode(m.OdometryEstimate, item.value)
+            except codec.DecodeError as exc:
+                self.rejects.reject(exc.kind, f"{item.key}: {exc.detail}")
+                continue
+            rid = self._robot_from_key(item.key, od.robot_id)
+            if rid is None:
+                continue
+            self.fusion.add_odometry(rid, od.stamp_ns, (od.x_m, od.y_m, od.yaw_rad), od.distance_m)
+            self.latest_rx[rid] = max(self.latest_rx.get(rid, -1), od.stamp_ns)
+            self.counters["odometry"] += 1
+        for item in self.obs_in.drain():
+            try:
+                ob = codec.decode(m.RelativeObservation, item.value)
+            except codec.DecodeError as exc:
+                self.rejects.reject(exc.kind, f"{item.key}: {exc.detail}")
+                continue
+            rid = self._robot_from_key(item.key, ob.robot_id)
+            if rid is None:
+                continue
+            cov = np.asarray(ob.cov, float).reshape(3, 3)
+            if ob.target_kind == "robot":
+                if ob.target_id not in self.roster or ob.target_id == rid:
+                    self.rejects.reject("unknown_robot", f"observation of robot {ob.target_id}")
+                    continue
+                self.fusion.add_observation(rid, ob.target_id, ob.stamp_ns, (ob.x_m, ob.y_m, ob.yaw_rad), cov)
+            else:
+                self.fusion.add_landmark_observation(rid, ob.target_id, ob.stamp_ns, (ob.x_m, ob.y_m, ob.yaw_rad),
+                                                     cov)
+            self.counters["observations"] += 1
+        for q in self.query_in.drain():
+            self.bus.reply(q.value, self.keys.map(), codec.encode(self.global_map()))
+            self.counters["map_queries"] += 1
+
+    # ------------------------------------------------------------------ outputs
+    def global_map(self) -> m.GlobalMap:
+        entries = []
+        for rid in sorted(self.roster):
+            est = self.fusion.pose(rid)
+            if est is None:
+                continue
+            (x, y, yaw), cov = est
+            entries.append(m.MapEntry(robot_id=rid, x_m=x, y_m=y, yaw_rad=yaw,
+                                      cov=tuple(float(v) for v in cov.ravel()),
+                                      last_seen_ns=max(self.latest_rx.get(rid, 0), 0), alive=rid in self.alive))
+        edges = tuple(sorted(e for e, t in self.fusion.edges.items() if self.time_ns - t <= EDGE_MEMORY_NS))
+        key = self.keys.map()
+        return m.GlobalMap(seq=self._seq[key], stamp_ns=self.time_ns, origin_id=self.s.map.origin_id,
+                           robots=tuple(entries), edges=edges)
+
+    def _publish_corrections(self, all_robots: bool) -> None:
+        for rid in sorted(self.roster):
+            est, mo = self.fusion.pose(rid), self.fusion.map_to_odom(rid)
+            key = self.keys.correction(rid)
+            if est is None or mo is None:
+                if all_robots:
+                    self._publish(key, m.Correction(seq=self._next(key), stamp_ns=self.time_ns, robot_id=rid,
+                                                    map_odom_x_m=0.0, map_odom_y_m=0.0, map_odom_yaw_rad=0.0,
+                                                    x_m=0.0, y_m=0.0, yaw_rad=0.0, cov=(0.0,) * 9, localised=False))
+                continue
+            (x, y, yaw), cov = est
+            self._publish(key, m.Correction(
+                seq=self._next(key), stamp_ns=self.time_ns, robot_id=rid, map_odom_x_m=mo[0], map_odom_y_m=mo[1],
+                map_odom_yaw_rad=mo[2], x_m=x, y_m=y, yaw_rad=yaw, cov=tuple(float(v) for v in cov.ravel()),
+                last_fix_ns=self.fusion.last_fix_ns(rid)))
+            self.counters["corrections"] += 1
+
+    def _maybe_publish_map(self) -> None:
+        if self.time_ns >= self._next_map_ns:
+            key = self.keys.map()
+            self._publish(key, self.global_map())
+            self._seq[key] += 1
+            self._next_map_ns = self.time_ns + int(1e9 / self.cfg.map_rate_hz)
+            self._publish_status()
+
+    def _publish_status(self) -> None:
+        counters = dict(self.counters)
+        counters.update({f"fusion_{k}": v for k, v in self.fusion.counters.items()})
+        counters.update(self.rejects.as_counters())
+        counters["localised"] = len(self.fusion.localised())
+        counters["alive"] = len(self.alive)
+        key = self.keys.server_status()
+        self._publish(key, m.AgentStatus(seq=self._next(key), stamp_ns=self.time_ns, role="server",
+                                         mode=self.s.clock.mode, counters=counters))
+
+    # ------------------------------------------------------------------ cycle
+    def _watermark(self) -> int:
+        """Time up to which every live robot's odometry has arrived."""
+        live = [self.latest_rx[r] for r in self.alive if r in self.latest_rx]
+        if not live:
+            return max(self.latest_rx.values(), default=-1)
+        newest = max(live)
+        # a robot more than a second behind the others is not waited for
+        return min(t for t in live if newest - t < 1_000_000_000)
+
+    def step(self) -> bool:
+        """Handle what has arrived; in lockstep, one fusion update per world tick."""
+        self._drain()
+        if self.lockstep:
+            return self._step_lockstep()
+        wm = self._watermark()
+        if wm < 0:
+            return False
+        self.time_ns = max(self.time_ns, wm)
+        if self.time_ns >= self._next_update_ns:
+            self.fusion.advance(wm)
+            self._publish_corrections(all_robots=False)
+            self._next_update_ns = self.time_ns + int(1e9 / self.cfg.update_rate_hz)
+        self._maybe_publish_map()
+        return True
+
+    def _step_lockstep(self) -> bool:
+        ticks = self.tick_in.drain()
+        for item in ticks:
+            try:
+                tick = codec.decode(m.Tick, item.value)
+            except codec.DecodeError as exc:
+                self.rejects.reject(exc.kind, f"{item.key}: {exc.detail}")
+                continue
+
+            def caught_up(stamp: int = tick.stamp_ns) -> bool:
+                self._drain()
+                return all(self.latest_rx.get(r, -1) >= stamp for r in self.alive)
+
+            if not self.bus.wait_for(caught_up, self.s.clock.ack_timeout_s):
+                self.counters["odometry_wait_timeouts"] += 1
+            self.time_ns = max(self.time_ns, tick.stamp_ns)
+            self.fusion.advance(tick.stamp_ns)
+            self._publish_corrections(all_robots=True)
+            self._maybe_publish_map()
+            key = self.keys.ack(self.cfg.participant)
+            self._publish(key, m.TickAck(seq=self._next(key), stamp_ns=tick.stamp_ns,
+                                         participant=self.cfg.participant, step=tick.step))
+        return bool(ticks)
+
+    def run(self, stop_event: threading.Event) -> int:
+        end_ns = int(self.s.duration_s * 1e9)
+        while not stop_event.is_set() and self.time_ns < end_ns:
+            if not self.step():
+                self.bus.wait(0.1)
+        self._publish_status()
+        log.info("server stopping at t=%.2f s: %s", self.time_ns / 1e9,
+                 {k: v for k, v in self.fusion.counters.items()})
+        return 0
+
+
+def main(argv: Sequence[str] | None = None, environ: Mapping[str, str] | None = None) -> int:
+    """Console script ``tagswarm-server``."""
+
+    def body() -> int:
+        config = build_config(argv, environ)
+        setup_logging(config.log_level, "server")
+        stop = threading.Event()
+        with open_bus(config.bus) as bus:
+            node = ServerNode(config, bus)
+            install_stop_signals(stop)
+            return node.run(stop)
+
+    return run_main("tagswarm-server", body)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
+

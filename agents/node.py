@@ -71,6 +71,10 @@ class AgentNode:
         self.tick_in = bus.subscribe(self.keys.tick())
         self.corr_in = bus.subscribe(self.keys.correction(rid))
         self.goal_in = bus.subscribe(self.keys.goal(rid))
+        self.server_alive_in = bus.watch_liveliness(self.keys.alive_role("server"))
+        self.server_alive = False
+        self.correction_stamp_ns = -1
+        self.wait_for_server = any(p.startswith("server/") for p in s.clock.participants)
         if config.fetch_map_timeout_s > 0:
             self._fetch_last_pose(config.fetch_map_timeout_s)
         bus.declare_token(self.keys.alive(config.participant))
@@ -137,6 +141,9 @@ class AgentNode:
                 continue
             if c.robot_id != self.rid:
                 self.rejects.reject("spoofed", f"correction for robot {c.robot_id} on {item.key}")
+                continue
+            self.correction_stamp_ns = max(self.correction_stamp_ns, c.stamp_ns)
+            if not c.localised:
                 continue
             self.map_odom = (c.map_odom_x_m, c.map_odom_y_m, c.map_odom_yaw_rad)
             self.counters["corrections"] += 1
@@ -281,6 +288,17 @@ class AgentNode:
 
             if mine and not self.bus.wait_for(frames_in, self.s.agent.frame_wait_s):
                 self.counters["frames_missing"] += 1
+            if self.wait_for_server and tick.step > 0:
+                # the server corrected tick k-1 before acking it; wait for that correction so that the
+                # run does not depend on which network path is faster (lockstep determinism)
+                def corrected(prev: int = tick.stamp_ns - tick.dt_ns) -> bool:
+                    for change in self.server_alive_in.drain():
+                        self.server_alive = change.value
+                    self._handle_corrections()
+                    return not self.server_alive or self.correction_stamp_ns >= prev
+
+                if not self.bus.wait_for(corrected, self.s.agent.frame_wait_s):
+                    self.counters["corrections_missing"] += 1
             self._handle_corrections()
             self._handle_encoders()
             self._process_frames()

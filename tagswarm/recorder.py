@@ -1,0 +1,139 @@
+"""Records a running system from the outside (a read-only Zenoh client) and
+writes the run folder that ``tagswarm report`` evaluates.
+
+Everything is stored in the MAP frame (the origin robot's first pose, or the
+arena frame when landmarks are used): ``truth`` is converted with the scenario's
+``arena_to_map``; ``odom`` is each agent's dead reckoning started from the
+robot's true initial pose (pure drift); ``fused`` is the server's corrected pose.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+from collections import defaultdict
+from pathlib import Path
+from typing import Any
+
+import msgspec
+
+from protocol import codec
+from protocol import messages as m
+from protocol.bus import Bus
+from protocol.geometry import Pose2, se2_compose
+from protocol.keys import Keys
+from protocol.scenario import Scenario, arena_to_map
+
+
+def _tum_line(stamp_ns: int, p: Pose2) -> str:
+    return (f"{stamp_ns / 1e9:.9f} {p[0]:.6f} {p[1]:.6f} 0.0 0.0 0.0 "
+            f"{math.sin(p[2] / 2):.9f} {math.cos(p[2] / 2):.9f}\n")
+
+
+class Recorder:
+    """Subscribes to truth, odometry, corrections, observations, statuses and ticks."""
+
+    def __init__(self, bus: Bus, keys: Keys, scenario: Scenario) -> None:
+        self.s = scenario
+        self.keys = keys
+        self.a2m = arena_to_map(scenario)
+        self.inboxes = {
+            "truth": bus.subscribe(keys.truth()),
+            "odom": bus.subscribe(keys.odometry()),
+            "corr": bus.subscribe(keys.correction()),
+            "obs": bus.subscribe(keys.observation()),
+            "status": bus.subscribe(keys.robot_status()),
+            "world": bus.subscribe(keys.world_status()),
+            "server": bus.subscribe(keys.server_status()),
+            "tick": bus.subscribe(keys.tick(), newest_only=True),
+        }
+        self.truth: dict[int, list[tuple[int, Pose2]]] = defaultdict(list)
+        self.odom: dict[int, list[tuple[int, Pose2]]] = defaultdict(list)
+        self.fused: dict[int, list[tuple[int, Pose2]]] = defaultdict(list)
+        self.observations: list[tuple[int, int, str, int, float, float, float]] = []
+        self.modes: list[tuple[int, int, str]] = []
+        self.counters: dict[str, dict[str, int]] = {}
+        self.mode_now: dict[int, str] = {}
+        self.sim_ns = 0
+        self.rejected = 0
+
+    def poll(self) -> None:
+        """Drain every inbox into the in-memory record."""
+        ib = self.inboxes
+        for it in ib["tick"].drain():
+            tick = self._decode(m.Tick, it.value)
+            if tick is not None:
+                self.sim_ns = max(self.sim_ns, tick.stamp_ns)
+        for it in ib["truth"].drain():
+            t = self._decode(m.GroundTruthPose, it.value)
+            if t is not None:
+                self.truth[t.robot_id].append((t.stamp_ns, se2_compose(self.a2m, (t.x_m, t.y_m, t.yaw_rad))))
+                self.sim_ns = max(self.sim_ns, t.stamp_ns)
+        for it in ib["odom"].drain():
+            o = self._decode(m.OdometryEstimate, it.value)
+            if o is not None:
+                self.odom[o.robot_id].append((o.stamp_ns, (o.x_m, o.y_m, o.yaw_rad)))
+        for it in ib["corr"].drain():
+            c = self._decode(m.Correction, it.value)
+            if c is not None and c.localised:
+                self.fused[c.robot_id].append((c.stamp_ns, (c.x_m, c.y_m, c.yaw_rad)))
+        for it in ib["obs"].drain():
+            ob = self._decode(m.RelativeObservation, it.value)
+            if ob is not None:
+                self.observations.append((ob.stamp_ns, ob.robot_id, ob.target_kind, ob.target_id, ob.x_m, ob.y_m,
+                                          ob.yaw_rad))
+        for name in ("status", "world", "server"):
+            for it in ib[name].drain():
+                st = self._decode(m.AgentStatus, it.value)
+                if st is None:
+                    continue
+                who = f"agent/{st.robot_id}" if st.role == "agent" else st.role
+                self.counters[who] = dict(st.counters)
+                if st.role == "agent" and st.robot_id is not None:
+                    self.modes.append((st.stamp_ns, st.robot_id, st.mode))
+                    self.mode_now[st.robot_id] = st.mode
+
+    def _decode(self, cls: Any, payload: bytes) -> Any:
+        try:
+            return codec.decode(cls, payload)
+        except codec.DecodeError:
+            self.rejected += 1
+            return None
+
+    def fused_error(self, rid: int) -> float | None:
+        """Distance (m) between the newest fused pose and the truth at that time."""
+        if not self.fused.get(rid) or not self.truth.get(rid):
+            return None
+        stamp, p = self.fused[rid][-1]
+        for t, q in reversed(self.truth[rid]):
+            if t <= stamp:
+                return math.hypot(p[0] - q[0], p[1] - q[1])
+        return None
+
+    def write(self, run_dir: Path, info: dict[str, Any]) -> None:
+        """Write trajectories, observations.csv, modes.csv and run.json."""
+        traj = run_dir / "trajectories"
+        traj.mkdir(parents=True, exist_ok=True)
+        for rid in self.s.robot_ids:
+            truth = self.truth.get(rid, [])
+            with open(traj / f"truth_{rid}.tum", "w") as f:
+                f.writelines(_tum_line(t, p) for t, p in truth)
+            start = truth[0][1] if truth else None
+            with open(traj / f"odom_{rid}.tum", "w") as f:
+                if start is not None:
+                    f.writelines(_tum_line(t, se2_compose(start, p)) for t, p in self.odom.get(rid, []))
+            with open(traj / f"fused_{rid}.tum", "w") as f:
+                f.writelines(_tum_line(t, p) for t, p in self.fused.get(rid, []))
+        with open(run_dir / "observations.csv", "w", newline="") as f:
+            w = csv.writer(f)
+            w.writerow(["stamp_ns", "observer", "target_kind", "target_id", "x_m", "y_m", "yaw_rad"])
+            w.writerows(self.observations)
+        with open(run_dir / "modes.csv", "w", newline="") as f:
+            w = csv.writer(f)
+            w.writerow(["stamp_ns", "robot", "mode"])
+            w.writerows(self.modes)
+        run = {"scenario": msgspec.to_builtins(self.s), "robots": list(self.s.robot_ids),
+               "origin_id": self.s.map.origin_id, "clock": self.s.clock.mode, "sim_time_s": self.sim_ns / 1e9,
+               "counters": self.counters, **info}
+        (run_dir / "run.json").write_text(json.dumps(run, indent=2))

@@ -1,0 +1,229 @@
+"""``tagswarm up``: run a whole swarm on one host and write a run folder.
+
+Starts the server, one agent per robot and the world as separate OS processes
+(the same console scripts compose runs) on a private Zenoh network, shows live
+progress, and on the end (or Ctrl-C, or a child dying) stops every child and
+writes ``runs/<timestamp>/``: the resolved scenario, per-process logs, TUM
+trajectories, ``metrics.json`` and plots.
+"""
+
+from __future__ import annotations
+
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Sequence
+from datetime import datetime
+from pathlib import Path
+from typing import Any
+
+import msgspec
+from rich.console import Console
+from rich.live import Live
+from rich.table import Table
+
+from protocol.bus import BusConfig, open_bus
+from protocol.config import ConfigError, OneLineParser, add_common_args, env_of, pick, run_main, scenario_from
+from protocol.keys import Keys
+from protocol.scenario import Scenario
+from tagswarm.recorder import Recorder
+
+BIN = Path(sys.executable).parent
+
+
+def free_endpoint() -> str:
+    """A loopback TCP endpoint on a port that is free right now."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return f"tcp/127.0.0.1:{s.getsockname()[1]}"
+
+
+def _script(name: str) -> list[str]:
+    path = BIN / name
+    if path.exists():
+        return [str(path)]
+    module = {"tagswarm-world": "world.node", "tagswarm-agent": "agents.node", "tagswarm-server": "server.node"}[name]
+    return [sys.executable, "-m", module]
+
+
+def parser() -> OneLineParser:
+    p = OneLineParser(prog="tagswarm up", description=__doc__)
+    add_common_args(p)
+    p.add_argument("--out", type=Path, help="run folder (default runs/<timestamp>)")
+    p.add_argument("--no-live", action="store_true", help="plain log lines instead of the live table")
+    p.add_argument("--no-report", action="store_true", help="do not compute metrics and plots at the end")
+    return p
+
+
+class Child:
+    """One child process and its log file."""
+
+    def __init__(self, name: str, argv: list[str], log: Path) -> None:
+        self.name, self.log = name, log
+        self._fh = open(log, "wb")
+        self.proc = subprocess.Popen(argv, stdout=self._fh, stderr=subprocess.STDOUT, start_new_session=True)
+
+    def stop(self, timeout_s: float = 10.0) -> None:
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
+            try:
+                self.proc.wait(timeout=timeout_s)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+        self._fh.close()
+
+    def tail(self, n: int = 15) -> str:
+        lines = self.log.read_text(errors="replace").splitlines()
+        return "\n".join(lines[-n:])
+
+
+def resolve(args: Any, env: dict[str, str]) -> Scenario:
+    """Scenario with lockstep participants filled in (every agent and the server)."""
+    scenario = scenario_from(args, env)
+    if scenario.clock.mode == "lockstep" and not scenario.clock.participants:
+        parts = [f"agent/{r}" for r in scenario.robot_ids] + ["server/0"]
+        table = msgspec.to_builtins(scenario)
+        table["clock"]["participants"] = parts
+        scenario = msgspec.convert(table, Scenario)
+    return scenario
+
+
+def _table(rec: Recorder, scenario: Scenario, wall_s: float, out: Path, endpoint: str) -> Table:
+    sim = rec.sim_ns / 1e9
+    t = Table(title=f"tagswarm up — {scenario.name}  t={sim:6.1f}/{scenario.duration_s:g} s  "
+                    f"RTF {sim / max(wall_s, 1e-9):4.2f}  {endpoint}", caption=f"run folder: {out}")
+    for col in ("robot", "mode", "fused error [m]", "fixes", "searches", "frames"):
+        t.add_column(col)
+    for rid in scenario.robot_ids:
+        c = rec.counters.get(f"agent/{rid}", {})
+        err = rec.fused_error(rid)
+        t.add_row(str(rid), rec.mode_now.get(rid, "-"), "-" if err is None else f"{err:.3f}",
+                  str(c.get("fixes", 0)), str(c.get("searches", 0)), str(c.get("frames_processed", 0)))
+    return t
+
+
+def run_up(scenario: Scenario, out: Path, endpoint: str, run: str, *, live: bool, report: bool,
+           stop: threading.Event, console: Console) -> int:
+    """Start everything, record until the world ends or ``stop``, write the run folder."""
+    out.mkdir(parents=True, exist_ok=True)
+    logs = out / "logs"
+    logs.mkdir(exist_ok=True)
+    scen_file = out / "scenario.json"
+    scen_file.write_bytes(msgspec.json.format(msgspec.json.encode(scenario)))
+    common = ["--scenario", str(scen_file), "--run", run]
+    children: list[Child] = []
+    failure: str | None = None
+    t0 = time.monotonic()
+    try:
+        children.append(Child("server", [*_script("tagswarm-server"), *common, "--connect", endpoint],
+                              logs / "server.log"))
+        for rid in scenario.robot_ids:
+            children.append(Child(f"agent/{rid}", [*_script("tagswarm-agent"), *common, "--connect", endpoint,
+                                                   "--robot-id", str(rid)], logs / f"agent{rid}.log"))
+        world = Child("world", [*_script("tagswarm-world"), *common, "--listen", endpoint], logs / "world.log")
+        children.append(world)
+        console.print(f"[bold]tagswarm up[/]: {len(scenario.robot_ids)} robots, {scenario.clock.mode} clock, "
+                      f"Zenoh endpoint [cyan]{endpoint}[/] (join with --connect {endpoint}), run id {run!r}")
+        with open_bus(BusConfig(connect=(endpoint,))) as bus:
+            rec = Recorder(bus, Keys(run), scenario)
+            with Live(console=console, refresh_per_second=2, transient=False) if live else _Null() as display:
+                last_print = 0.0
+                while not stop.is_set():
+                    bus.wait(0.25)
+                    rec.poll()
+                    wall = time.monotonic() - t0
+                    if live:
+                        display.update(_table(rec, scenario, wall, out, endpoint))
+                    elif wall - last_print > 5:
+                        console.print(f"t={rec.sim_ns / 1e9:.1f} s  RTF {rec.sim_ns / 1e9 / max(wall, 1e-9):.2f}")
+                        last_print = wall
+                    if world.proc.poll() is not None:
+                        if world.proc.returncode != 0:
+                            failure = f"world exited with code {world.proc.returncode}"
+                        break
+                    dead = [c for c in children if c is not world and c.proc.poll() is not None
+                            and (c.proc.returncode != 0 or rec.sim_ns / 1e9 < scenario.duration_s - 0.5)]
+                    if dead:
+                        failure = ", ".join(f"{c.name} exited with code {c.proc.returncode}" for c in dead)
+                        break
+                # let agents and the server finish their last tick, then collect what they sent
+                deadline = time.monotonic() + 5.0
+                while time.monotonic() < deadline and any(c.proc.poll() is None for c in children) and not failure:
+                    bus.wait(0.2)
+                    rec.poll()
+                rec.poll()
+    finally:
+        for c in children:
+            c.stop()
+    wall = time.monotonic() - t0
+    if failure:
+        console.print(f"[red]run failed: {failure}[/]")
+        for c in children:
+            if c.proc.returncode not in (0, -signal.SIGTERM):
+                console.print(f"[bold]last lines of {c.log}[/]:\n{c.tail()}")
+    code = 1 if failure else (130 if stop.is_set() else 0)
+    rec.write(out, {"wall_time_s": wall, "exit_code": code, "failure": failure, "endpoint": endpoint})
+    if report:
+        from tagswarm.report import write_report
+
+        metrics = write_report(out)
+        console.print(f"metrics: {out / 'metrics.json'}  plots: {out / 'plots'}")
+        _summary(console, metrics)
+    console.print(f"run folder: {out}")
+    return code
+
+
+def _summary(console: Console, metrics: dict[str, Any]) -> None:
+    swarm = metrics.get("swarm", {})
+    if not swarm:
+        return
+    t = Table(title="swarm accuracy (map frame)")
+    t.add_column("trajectory")
+    t.add_column("ATE RMSE [m]")
+    t.add_column("ATE max [m]")
+    for name in ("fused", "odom"):
+        ate = swarm.get(name, {}).get("ate_unaligned") or {}
+        t.add_row(name, f"{ate.get('rmse', float('nan')):.3f}", f"{ate.get('max', float('nan')):.3f}")
+    console.print(t)
+
+
+class _Null:
+    def __enter__(self) -> _Null:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        return None
+
+    def update(self, *_: object) -> None:
+        return None
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Console entry for ``tagswarm up``."""
+
+    def body() -> int:
+        args = parser().parse_args(list(argv) if argv is not None else None)
+        env = env_of()
+        if args.duration is not None and args.duration <= 0:
+            raise ConfigError("--duration must be > 0")
+        if args.robots is not None and args.robots < 1:
+            raise ConfigError("--robots must be >= 1")
+        scenario = resolve(args, env)
+        run = pick(args, env, "run", f"up{int(time.time()) % 100000}")
+        Keys(run)
+        out = args.out or Path("runs") / datetime.now().strftime("%Y%m%d-%H%M%S")
+        endpoint = (args.listen or [None])[0] or free_endpoint()
+        stop = threading.Event()
+        previous = signal.signal(signal.SIGINT, lambda *_: stop.set())
+        signal.signal(signal.SIGTERM, lambda *_: stop.set())
+        try:
+            return run_up(scenario, out, endpoint, run, live=not args.no_live and sys.stdout.isatty(),
+                          report=not args.no_report, stop=stop, console=Console())
+        finally:
+            signal.signal(signal.SIGINT, previous)
+
+    return run_main("tagswarm up", body)

@@ -148,7 +148,6 @@ class _Candidate:
     T_base_target: Mat
     sse: float
     cost: float
-    plausible: bool
     se2: NDArray[np.float64]
 
 
@@ -363,32 +362,28 @@ class CubePoseEstimator:
         if not cands:
             self._reject("degenerate")
             return None
-        plausible = [c for c in cands if c.plausible]
-        if not plausible:
-            self._reject("implausible")
-            return None
-        plausible.sort(key=lambda c: c.cost)
-        best = plausible[0]
+        cands.sort(key=lambda c: c.cost)
         n_corners = sum(len(v.obj) for v in vlist)
+        plausible: list[tuple[_Candidate, Mat]] = []
+        constrained = False
+        for cand in cands:
+            cov6 = self._covariance6(cand, vlist, n_corners)
+            constrained = constrained or cov6 is not None
+            if cov6 is not None and self._plausible(key, cand.T_base_target, cov6):
+                plausible.append((cand, cov6))
+        if not plausible:
+            self._reject("implausible" if constrained else "degenerate")
+            return None
+        best, cov6 = plausible[0]
         rms = math.sqrt(best.sse / n_corners)
         if rms > self.max_rms_px:
             self._reject("reprojection")
-            return None
-        jac = np.concatenate([project_with_jacobian(v.cam, v.cam.T_cam_base @ best.T_base_target, v.obj)[1]
-                              for v in vlist])
-        dof = 2 * n_corners - 6
-        s2 = max(self.pixel_sigma_px**2, best.sse / dof) if dof > 0 else self.pixel_sigma_px**2
-        info = jac.T @ jac
-        try:
-            cov6 = s2 * np.linalg.inv(info)
-        except np.linalg.LinAlgError:
-            self._reject("degenerate")
             return None
         g = se2_jacobian(best.T_base_target)
         cov = g @ cov6 @ g.T
         ambiguity = 0.0
         if len(plausible) > 1:
-            alt = plausible[1]
+            alt = plausible[1][0]
             d = alt.se2 - best.se2
             d[2] = _wrap(float(d[2]))
             # both refined to the same pose (several faces): no ambiguity left
@@ -404,6 +399,42 @@ class CubePoseEstimator:
             x_m=float(best.se2[0]), y_m=float(best.se2[1]), yaw_rad=float(best.se2[2]), cov=cov,
             reprojection_rms_px=rms, tag_ids=tag_ids, cameras=tuple(v.cam.name for v in vlist),
             n_corners=n_corners, ambiguity=ambiguity)
+
+    def _covariance6(self, cand: _Candidate, vlist: list[_View], n_corners: int) -> Mat | None:
+        """(6, 6) covariance of the right perturbation xi = (w, v) of ``T_base_target``, or
+        None when the corners do not constrain all six degrees of freedom."""
+        jac = np.concatenate([project_with_jacobian(v.cam, v.cam.T_cam_base @ cand.T_base_target, v.obj)[1]
+                              for v in vlist])
+        dof = 2 * n_corners - 6
+        s2 = max(self.pixel_sigma_px**2, cand.sse / dof) if dof > 0 else self.pixel_sigma_px**2
+        info = jac.T @ jac
+        if np.linalg.cond(info) > 1e12:
+            return None
+        cov6: Mat = s2 * np.linalg.inv(info)
+        return cov6
+
+    def _plausible(self, key: tuple[str, int], t_bt: Mat, cov6: Mat) -> bool:
+        """Whether the target stands on the floor like the observer: height within
+        ``z_tol_m`` of the expected one and roll/pitch within ``tilt_tol_rad`` -- each
+        widened by 3 sigma of the estimate itself, so a far single face whose tilt is
+        barely observable is not thrown away while a confident tilted solution is."""
+        r = t_bt[:3, :3]
+        dz = float(t_bt[2, 3]) - self._expected_z.get(key, 0.0)
+        tv = r[0:2, 2]  # horizontal part of the target's z axis: (sin tilt) * direction
+        tilt = math.asin(min(1.0, float(np.hypot(tv[0], tv[1])))) if r[2, 2] > 0 else math.pi / 2
+        hz = r[2, :]
+        sz = math.sqrt(max(0.0, float(hz @ cov6[3:, 3:] @ hz)))
+        if abs(dz) > self.z_tol_m + 3.0 * sz:
+            return False
+        if tilt <= self.tilt_tol_rad:
+            return True
+        if r[2, 2] <= 0:
+            return False
+        u = tv / np.hypot(tv[0], tv[1])
+        # d(R e3)[:2] / dw = R[:2, :] @ [[0, 1, 0], [-1, 0, 0], [0, 0, 0]]
+        ht = np.array([-(u @ r[0:2, 1]), u @ r[0:2, 0], 0.0])
+        st = math.sqrt(max(0.0, float(ht @ cov6[:3, :3] @ ht)))
+        return tilt <= self.tilt_tol_rad + 3.0 * st
 
     def _score(self, key: tuple[str, int], t_bt: Mat, vlist: list[_View],
                prior: tuple[float, float, float] | None) -> _Candidate | None:
@@ -422,10 +453,8 @@ class CubePoseEstimator:
                 if bad:
                     return None
                 missing += miss
-        z_exp = self._expected_z.get(key, 0.0)
-        dz = float(t_bt[2, 3]) - z_exp
+        dz = float(t_bt[2, 3]) - self._expected_z.get(key, 0.0)
         tilt = math.acos(max(-1.0, min(1.0, float(t_bt[2, 2]))))
-        plausible = abs(dz) <= self.z_tol_m and tilt <= self.tilt_tol_rad
         se2 = _se2(t_bt)
         cost = sse / self.pixel_sigma_px**2
         cost += (3.0 * dz / self.z_tol_m) ** 2 + (3.0 * tilt / self.tilt_tol_rad) ** 2
@@ -433,7 +462,7 @@ class CubePoseEstimator:
         if prior is not None:
             cost += ((se2[0] - prior[0]) ** 2 + (se2[1] - prior[1]) ** 2) / self.prior_sigma_xy_m**2
             cost += (_wrap(float(se2[2]) - prior[2]) / self.prior_sigma_yaw_rad) ** 2
-        return _Candidate(t_bt, sse, cost, plausible, se2)
+        return _Candidate(t_bt, sse, cost, se2)
 
     def _face_evidence(self, v: _View, t_ct: Mat) -> tuple[bool, int]:
         """(a detected face is turned away from the camera, number of faces that squarely

@@ -108,8 +108,10 @@ class AgentNode:
             except codec.DecodeError as exc:
                 self.rejects.reject(exc.kind, f"map reply: {exc.detail}")
                 continue
+            self.counters["map_entries_at_start"] = len(gmap.robots)
             for e in gmap.robots:
                 if e.robot_id == self.rid:
+                    self.counters["resumed_from_map"] = 1
                     # odometry restarts at zero, so map -> odom is the last known pose
                     self.map_odom = (e.x_m, e.y_m, e.yaw_rad)
                     log.info("resuming from the server's last pose (%.2f, %.2f, %.2f)", e.x_m, e.y_m, e.yaw_rad)

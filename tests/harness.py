@@ -99,3 +99,17 @@ class Participant:
             return done
 
         assert self.bus.wait_for(step, timeout_s), "world stopped ticking"
+
+
+def wait_alive(bus: Bus, keys: Keys, participant: str, timeout_s: float = 20.0) -> None:
+    """Block until ``participant``'s liveliness token is visible.  Its subscribers
+    were declared before the token, so after this our puts reach them."""
+    changes = bus.watch_liveliness(keys.alive(participant))
+    seen = False
+
+    def up() -> bool:
+        nonlocal seen
+        seen = seen or any(c.value for c in changes.drain())
+        return seen
+
+    assert bus.wait_for(up, timeout_s), f"{participant} never came up"

@@ -1,0 +1,91 @@
+"""The whole system as compose runs it: world + server + one agent per robot,
+started by ``tagswarm up`` (real OS processes, private loopback network)."""
+
+from __future__ import annotations
+
+import json
+import math
+import signal
+import subprocess
+import time
+from pathlib import Path
+
+import numpy as np
+import psutil
+import pytest
+
+from tests.harness import script
+
+
+def _final_errors(run: Path, rid: int) -> tuple[float, float]:
+    truth = np.loadtxt(run / "trajectories" / f"truth_{rid}.tum", ndmin=2)
+    fused = np.loadtxt(run / "trajectories" / f"fused_{rid}.tum", ndmin=2)
+    odom = np.loadtxt(run / "trajectories" / f"odom_{rid}.tum", ndmin=2)
+    t_end = truth[-1]
+
+    def err(est: np.ndarray) -> float:
+        i = int(np.argmin(np.abs(est[:, 0] - t_end[0])))
+        assert abs(est[i, 0] - t_end[0]) < 0.1
+        return math.hypot(est[i, 1] - t_end[1], est[i, 2] - t_end[2])
+
+    return err(fused), err(odom)
+
+
+@pytest.fixture(scope="module")
+def paper_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("paper") / "run"
+    res = subprocess.run([script("tagswarm"), "up", "--duration", "60", "--clock", "lockstep", "--seed", "3",
+                          "--out", str(out), "--no-live"], capture_output=True, text=True, timeout=600)
+    assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
+    return out
+
+
+def test_paper_scenario_localises_every_robot_within_10cm(paper_run: Path) -> None:
+    drifts = []
+    for rid in range(4):
+        fused_err, odom_err = _final_errors(paper_run, rid)
+        assert fused_err < 0.10, f"robot {rid}: fused error {fused_err:.3f} m at the end"
+        drifts.append(odom_err)
+        if rid != 0:  # the origin holds station: no drift to beat
+            assert odom_err > fused_err, f"robot {rid}: odometry {odom_err:.3f} m vs fused {fused_err:.3f} m"
+    assert max(drifts) > 0.10  # the error model really drifts over 60 s
+
+
+def test_run_folder_is_complete_and_loads_with_evo(paper_run: Path) -> None:
+    from evo.tools import file_interface
+
+    for name in ("scenario.json", "run.json", "observations.csv", "modes.csv", "metrics.json",
+                 "logs/world.log", "logs/server.log", "logs/agent0.log"):
+        assert (paper_run / name).is_file(), name
+    for kind in ("truth", "odom", "fused"):
+        for rid in range(4):
+            traj = file_interface.read_tum_trajectory_file(str(paper_run / "trajectories" / f"{kind}_{rid}.tum"))
+            assert traj.num_poses > 1000
+    metrics = json.loads((paper_run / "metrics.json").read_text())
+    swarm = metrics["swarm"]
+    assert swarm["fused"]["ate_unaligned"]["rmse"] < swarm["odom"]["ate_unaligned"]["rmse"]
+    assert len(list((paper_run / "plots").glob("*.png"))) >= 4
+    run = json.loads((paper_run / "run.json").read_text())
+    assert run["exit_code"] == 0 and run["sim_time_s"] >= 59.9
+    assert all(run["counters"][f"agent/{r}"]["frames_processed"] > 100 for r in range(4))
+
+
+def test_sigint_stops_every_child_and_still_writes_a_report(tmp_path: Path) -> None:
+    out = tmp_path / "run"
+    proc = subprocess.Popen([script("tagswarm"), "up", "--duration", "600", "--out", str(out), "--no-live",
+                             "--set", "robots.count=2", "--set", "missions=[]"],
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+    me = psutil.Process(proc.pid)
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline and len(me.children(recursive=True)) < 4:
+        time.sleep(0.2)
+    kids = me.children(recursive=True)
+    assert len(kids) >= 4  # server, 2 agents, world
+    while time.monotonic() < deadline and not (out / "logs" / "world.log").read_text().count("INFO"):
+        time.sleep(0.2)
+    proc.send_signal(signal.SIGINT)
+    assert proc.wait(timeout=60) == 130
+    gone, alive = psutil.wait_procs(kids, timeout=10)
+    assert not alive, f"children still running: {alive}"
+    assert (out / "run.json").is_file() and (out / "metrics.json").is_file()
+    assert (out / "trajectories" / "truth_0.tum").stat().st_size > 0

@@ -1,0 +1,88 @@
+"""The server process fed by a test that plays two agents over loopback Zenoh."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+from protocol import codec
+from protocol import messages as m
+from protocol.keys import Keys
+from tests.harness import client, endpoint, process, script, wait_alive
+
+COV = (1e-4, 0, 0, 0, 1e-4, 0, 0, 0, 1e-4)
+
+
+def _odom(rid: int, k: int, x: float = 0.0) -> m.OdometryEstimate:
+    return m.OdometryEstimate(seq=k, stamp_ns=k * 100_000_000, robot_id=rid, x_m=x, y_m=0.0, yaw_rad=0.0,
+                              cov=COV, distance_m=abs(x))
+
+
+def _obs(observer: int, target: int, k: int, x: float, y: float, yaw: float) -> m.RelativeObservation:
+    return m.RelativeObservation(seq=k, stamp_ns=k * 100_000_000, robot_id=observer, target_kind="robot",
+                                 target_id=target, x_m=x, y_m=y, yaw_rad=yaw, cov=COV,
+                                 pose=m.Pose3(x_m=x, y_m=y, z_m=0.0), reprojection_rms_px=0.3, tag_ids=(11,),
+                                 camera="front")
+
+
+def test_map_queryable_and_spoofed_observations(tmp_path: Path) -> None:
+    ep, run = endpoint(), "srv"
+    keys = Keys(run)
+    argv = [script("tagswarm-server"), "--listen", ep, "--run", run, "--set", "robots.count=3",
+            "--set", 'robots.placement="ring"', "--set", "missions=[]", "--map-rate", "10"]
+    with process(argv, tmp_path / "server.log"), client(ep) as bus:
+        status = bus.subscribe(keys.server_status())
+        corr = bus.subscribe(keys.correction(1))
+        for rid in (0, 1):
+            bus.declare_token(keys.alive(f"agent/{rid}"))
+        wait_alive(bus, keys, "server/0")
+
+        def put(key: str, msg: m.Msg) -> None:
+            bus.put(key, codec.encode(msg))
+
+        # both robots stand still; robot 0 (the origin) sees robot 1 at (2, 1) facing back
+        for k in range(20):
+            for rid in (0, 1):
+                put(keys.odometry(rid), _odom(rid, k))
+            if k % 2 == 0:
+                put(keys.observation(0), _obs(0, 1, k, 2.0, 1.0, math.pi))
+        got: list[m.Correction] = []
+
+        def localised() -> bool:
+            got.extend(codec.decode(m.Correction, it.value) for it in corr.drain())
+            return bool(got) and got[-1].localised and got[-1].stamp_ns >= 1_800_000_000
+
+        assert bus.wait_for(localised, 20), got[-1:] or "no correction"
+        c = got[-1]
+        assert math.hypot(c.x_m - 2.0, c.y_m - 1.0) < 0.01 and abs(abs(c.yaw_rad) - math.pi) < 0.01
+
+        # a late joiner asks the queryable and gets the map at once
+        replies = bus.get(keys.map(), 5.0)
+        assert len(replies) == 1
+        gmap = codec.decode(m.GlobalMap, replies[0].value)
+        before = {e.robot_id: (e.x_m, e.y_m, e.yaw_rad) for e in gmap.robots}
+        assert set(before) == {0, 1} and gmap.origin_id == 0
+        assert (0, 1) in gmap.edges
+
+        # spoofs: payload id != key id, an id outside the roster, a target outside the roster
+        for k in range(20, 40):
+            for rid in (0, 1):
+                put(keys.odometry(rid), _odom(rid, k))
+            put(keys.observation(0), _obs(1, 0, k, -5.0, 3.0, 0.5))   # key says 0, payload says 1
+            put(keys.observation(7), _obs(7, 1, k, 0.1, 0.1, 0.0))    # robot 7 is not in the roster
+            put(keys.observation(0), _obs(0, 9, k, 1.0, 0.0, 0.0))    # target 9 is not in the roster
+            put(keys.odometry(1), _odom(0, k, x=3.0))                 # odometry of 0 on 1's key
+        counters: dict[str, int] = {}
+
+        def counted() -> bool:
+            for it in status.drain():
+                counters.update(codec.decode(m.AgentStatus, it.value).counters)
+            return counters.get("rejected_spoofed", 0) >= 40 and counters.get("rejected_unknown_robot", 0) >= 40
+
+        assert bus.wait_for(counted, 20), counters
+        assert counters["rejected_spoofed"] == 40 and counters["rejected_unknown_robot"] == 40
+        after = {e.robot_id: (e.x_m, e.y_m, e.yaw_rad)
+                 for e in codec.decode(m.GlobalMap, bus.get(keys.map(), 5.0)[0].value).robots}
+        assert set(after) == {0, 1}
+        for rid in (0, 1):
+            assert math.dist(before[rid][:2], after[rid][:2]) < 1e-6

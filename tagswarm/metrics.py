@@ -87,6 +87,7 @@ from __future__ import annotations
 
 import copy
 import csv
+import itertools
 import json
 import math
 from dataclasses import dataclass, field
@@ -510,7 +511,7 @@ def error_vs_distance(run: RunData, tracks: dict[tuple[int, str], Track],
         if tr is None:
             continue
         t = tr.stamps_s
-        nearest = np.full(len(t), np.inf)
+        nearest: F64 = np.full(len(t), np.inf)
         for j in run.robots:
             times = pair_times.get((min(j, k), max(j, k)))
             truth_j = run.truth.get(j)
@@ -541,7 +542,7 @@ def bin_by_distance(distance_m: F64, error_m: F64,
     "mean_error_m"}]``, lo <= d < hi; ``hi_m`` ``None`` for an open last bin."""
     d, e = np.asarray(distance_m, float), np.asarray(error_m, float)
     out: list[dict[str, float | int | None]] = []
-    for lo, hi in zip(edges[:-1], edges[1:], strict=True):
+    for lo, hi in itertools.pairwise(edges):
         sel = e[(d >= lo) & (d < hi)]
         out.append({"lo_m": float(lo), "hi_m": float(hi) if math.isfinite(hi) else None, "count": int(sel.size),
                     "median_error_m": float(np.median(sel)) if sel.size else None,

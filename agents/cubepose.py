@@ -40,7 +40,7 @@ from __future__ import annotations
 import math
 from collections import Counter
 from dataclasses import dataclass, field
-from typing import Final
+from typing import Any, Final, cast
 
 import cv2
 import numpy as np
@@ -56,6 +56,12 @@ from protocol.scenario import Scenario
 #: Mirrors the default of ``world.assets.landmark_mesh`` (tests/unit/test_cubepose.py pins it).
 LANDMARK_PLATE_THICKNESS_M: Final = 0.01
 
+_EYE4: Final = np.eye(4)
+# (axis, sign) of each face's outward normal in the cube frame, by Face value
+_FACE_AXIS_SIGN: Final = tuple((int(np.argmax(np.abs(n))), float(n[np.argmax(np.abs(n))]))
+                               for n in (tags.face_axes(f)[0] for f in tags.Face))
+_Arr = NDArray[Any]  # float64 arrays that come out of OpenCV (its stubs do not say so)
+
 # IPPE_SQUARE wants the corners TL, TR, BR, BL; the contract order is TR, TL, BL, BR.
 _TO_IPPE: Final = np.array([1, 0, 3, 2])
 # negative evidence: a face whose normal is within ~55 deg of the line of sight and whose tag spans
@@ -63,6 +69,15 @@ _TO_IPPE: Final = np.array([1, 0, 3, 2])
 _MISSING_COS: Final = 0.57
 _MISSING_MIN_PX: Final = 24.0
 _MISSING_PENALTY: Final = 9.0
+# a single tag's losing IPPE start is refined only if its score is within this (chi^2) of the winner's
+_AMBIGUITY_GAP: Final = 40.0
+# a single tag's valley along the two-fold ambiguity is flat: Gauss-Newton crawls there, and 2 steps
+# get ~90% of the residual decrease IPPE leaves
+_SINGLE_TAG_ITERATIONS: Final = 1
+# IPPE's second solution counts as the mirror of its first if their normals agree within ~20 deg;
+# a rebuilt mirror starts off the residual minimum and gets a few more steps
+_MIRROR_COS: Final = math.cos(math.radians(20.0))
+_MIRROR_ITERATIONS: Final = 3
 
 
 @dataclass(frozen=True)
@@ -127,111 +142,118 @@ class PoseEstimate:
 class _TagGeom:
     kind: TargetKind
     target_id: int
-    face: tags.Face | None
+    face: int  # Face value, -1 for a landmark
     obj: NDArray[np.float64]  # (4, 3) corners in the target frame, contract order
     ippe_obj: NDArray[np.float64]  # (4, 3) corners in the tag's own frame, IPPE order
     T_tag_target: Mat  # (4, 4)
 
 
-@dataclass
+@dataclass(slots=True)
 class _View:
-    """The corners of one target in one camera."""
+    """The corners of one target in one camera; ``T_cam_c0`` (4, 4) maps the start
+    camera's optical frame into this camera's."""
 
     cam: CameraModel
     obj: NDArray[np.float64]  # (M, 3) target frame
     img: NDArray[np.float64]  # (M, 2) pixels
-    faces: set[tags.Face]
+    seen: list[bool]  # faces detected, by Face value
+    T_cam_c0: Mat
 
 
-@dataclass
-class _Candidate:
-    T_base_target: Mat
+@dataclass(slots=True)
+class _Solution:
+    """A candidate pose: T_c0_target (4, 4), its theta = (rvec, tvec) and the residuals'
+    Jacobian (2M, 6) w.r.t. theta (None until needed: an unrefined single-tag alternative),
+    sum of squared residuals (px^2), ``T_base_target`` with its (x, y, yaw), height z and
+    R22 (cos of tilt), and its score."""
+
+    T_c0_target: Mat
+    rvec: _Arr | None
+    tvec: _Arr | None
+    jac: _Arr | None
     sse: float
+    T_base_target: Mat
+    se2: tuple[float, float, float]
+    z: float
+    r22: float
     cost: float
-    se2: NDArray[np.float64]
+    penalty: float = 0.0  # negative evidence (missing faces), included in cost
+
+    def theta(self) -> tuple[_Arr, _Arr]:
+        if self.rvec is None or self.tvec is None:
+            self.rvec, self.tvec = cv2.Rodrigues(self.T_c0_target[:3, :3])[0].ravel(), self.T_c0_target[:3, 3].copy()
+        return self.rvec, self.tvec
 
 
-def _rt_to_matrix(rvec: NDArray[np.float64], tvec: NDArray[np.float64]) -> Mat:
-    t = np.eye(4)
+def _rt_to_matrix(rvec: NDArray[Any], tvec: NDArray[Any]) -> Mat:
+    t = _EYE4.copy()
     t[:3, :3] = cv2.Rodrigues(rvec)[0]
-    t[:3, 3] = tvec.ravel()
+    t[:3, 3] = tvec.reshape(3)
     return t
 
 
-def _se2(t: Mat) -> NDArray[np.float64]:
-    return np.array([t[0, 3], t[1, 3], math.atan2(t[1, 0], t[0, 0])])
+def _quad_area(c: NDArray[np.float64]) -> float:
+    """Signed area (px^2) of a quadrilateral (4, 2) from its diagonals: positive for the
+    contract order TR, TL, BL, BR of a tag seen from the front (counter-clockwise on
+    screen), negative for one seen from behind (mirrored order)."""
+    (x0, y0), (x1, y1), (x2, y2), (x3, y3) = c.tolist()
+    return 0.5 * ((x1 - x3) * (y0 - y2) - (x0 - x2) * (y1 - y3))
 
 
 def _wrap(a: float) -> float:
     return (a + math.pi) % (2.0 * math.pi) - math.pi
 
 
-def project_with_jacobian(cam: CameraModel, T_cam_target: Mat, obj: NDArray[np.float64]
-                          ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
-    """Pixels (M, 2) of target-frame points ``obj`` (M, 3), their Jacobian (2M, 6) w.r.t.
-    a right perturbation ``T_cam_target @ [Exp(w), v]`` with xi = (w, v) (rad, m, in the
-    target frame), and the points' depths (M,) in metres.
-
-    A right perturbation of ``T_cam_target`` is the same as one of ``T_base_target``
-    (``T_cam_base`` multiplies on the left), so Jacobians from several cameras stack.
-    """
-    r, t = T_cam_target[:3, :3], T_cam_target[:3, 3]
-    pc = obj @ r.T + t
-    z = pc[:, 2]
-    iz = 1.0 / z
-    k = cam.K
-    fx, fy = k[0, 0], k[1, 1]
-    uv = np.empty((len(obj), 2))
-    uv[:, 0] = fx * pc[:, 0] * iz + k[0, 2]
-    uv[:, 1] = fy * pc[:, 1] * iz + k[1, 2]
-    a = np.zeros((len(obj), 2, 3))
-    a[:, 0, 0] = fx * iz
-    a[:, 0, 2] = -fx * pc[:, 0] * iz * iz
-    a[:, 1, 1] = fy * iz
-    a[:, 1, 2] = -fy * pc[:, 1] * iz * iz
-    b = a @ r  # d uv / d v, (M, 2, 3)
-    # d pc / d w = -R [P]x, and b^T [P]x = (b x P)^T, hence P x b
-    jw = np.cross(obj[:, None, :], b)
-    jac = np.concatenate([jw, b], axis=2).reshape(-1, 6)
-    return uv, jac, z
+def output_jacobian(T_base_cam: Mat, rvec: NDArray[Any], tvec: NDArray[Any]) -> tuple[Mat, NDArray[np.float64]]:
+    """``T_base_target`` of ``T_cam_target = (rvec, tvec)`` seen from a camera at ``T_base_cam``,
+    and the (6, 6) Jacobian w.r.t. theta = (rvec, tvec) of its (x, y, yaw, z, s_x, s_y),
+    where yaw = atan2(R10, R00) and (s_x, s_y) = (R02, R12), the horizontal part of the
+    target's z axis (sin of its tilt times the tilt direction).  Metres, radians."""
+    r_ct, jr = cv2.Rodrigues(rvec)  # jr[i] = d vec_rowmajor(R) / d rvec_i
+    r_bc = T_base_cam[:3, :3]
+    t_bt = np.eye(4)
+    m = r_bc @ r_ct
+    t_bt[:3, :3] = m
+    t_bt[:3, 3] = r_bc @ np.ravel(tvec) + T_base_cam[:3, 3]
+    dcol0 = r_bc @ jr[:, 0::3].T  # (3 rows of M, 3 rvec components): d M[:, 0] / d rvec
+    dcol2 = r_bc @ jr[:, 2::3].T
+    g = np.zeros((6, 6))
+    g[0:2, 3:6] = r_bc[0:2]
+    den = m[0, 0] ** 2 + m[1, 0] ** 2
+    g[2, 0:3] = (m[0, 0] * dcol0[1] - m[1, 0] * dcol0[0]) / den
+    g[3, 3:6] = r_bc[2]
+    g[4:6, 0:3] = dcol2[0:2]
+    return t_bt, g
 
 
-def se2_jacobian(T_base_target: Mat) -> NDArray[np.float64]:
-    """(3, 6) Jacobian of (x, y, yaw) of ``T_base_target`` w.r.t. the right perturbation
-    xi = (w, v) of :func:`project_with_jacobian`."""
-    r = T_base_target[:3, :3]
-    den = r[0, 0] ** 2 + r[1, 0] ** 2
+def _se2_jacobian(T_base_cam: Mat, T_base_target: Mat, rvec: NDArray[Any]) -> NDArray[np.float64]:
+    """The first three rows of :func:`output_jacobian`: (x, y, yaw) w.r.t. (rvec, tvec)."""
+    jr = cv2.Rodrigues(rvec)[1]
+    r_bc, m = T_base_cam[:3, :3], T_base_target
+    dcol0 = r_bc[0:2] @ jr[:, 0::3].T
     g = np.zeros((3, 6))
-    g[0:2, 3:6] = r[0:2, :]
-    g[2, 1] = (r[1, 0] * r[0, 2] - r[0, 0] * r[1, 2]) / den
-    g[2, 2] = (r[0, 0] * r[1, 1] - r[1, 0] * r[0, 1]) / den
+    g[0:2, 3:6] = r_bc[0:2]
+    g[2, 0:3] = (m[0, 0] * dcol0[1] - m[1, 0] * dcol0[0]) / (m[0, 0] ** 2 + m[1, 0] ** 2)
     return g
-
-
-def _retract(t: Mat, xi: NDArray[np.float64]) -> Mat:
-    out = t.copy()
-    out[:3, :3] = t[:3, :3] @ cv2.Rodrigues(xi[:3].reshape(3, 1))[0]
-    out[:3, 3] = t[:3, 3] + t[:3, :3] @ xi[3:]
-    return out
 
 
 class CubePoseEstimator:
     """Bundle adjustment of observed tag cubes and landmark tags, one camera or a rig.
 
     ``pixel_sigma_px`` is the corner noise (1 sigma per axis) assumed for the
-    covariance and the candidate scores: measured on our renders (640x480 and
-    320x240, 0.5-5 m), AprilTag 3 corners scatter ~0.27 px RMS per axis about the
-    projected truth, but the errors of one tag's four corners are correlated
-    (edge fits share pixels), so the honest per-corner sigma is larger; 0.5 px
-    gives NEES ~3 for (x, y, yaw) over many random views (tests/unit/test_cubepose.py
-    asserts it).  ``max_rms_px``, ``z_tol_m`` and ``tilt_tol_rad`` gate the result;
-    ``prior_sigma_xy_m``/``prior_sigma_yaw_rad`` weigh a caller's prior pose when
-    choosing between the two-fold solutions.
+    covariance and the candidate scores.  Measured on our renders (AprilTag 3,
+    0.5-5 m, 320x240 and 640x480, 60 deg HFOV): corners scatter ~0.27 px RMS per
+    axis about the projected truth; with 0.3 px the NEES of (x, y, yaw) averages
+    2.9-3.0 over 400 random views at either resolution (expected: 3), lower close
+    up (~2) and higher far away (~4) -- tests/unit/test_cubepose.py asserts the
+    average.  ``max_rms_px``, ``z_tol_m`` and ``tilt_tol_rad`` gate the result (see
+    :meth:`_plausible`); ``prior_sigma_xy_m``/``prior_sigma_yaw_rad`` weigh a caller's
+    prior pose when choosing between the two-fold solutions.
     """
 
-    def __init__(self, scenario: Scenario, pixel_sigma_px: float = 0.5, max_rms_px: float = 2.0,
+    def __init__(self, scenario: Scenario, pixel_sigma_px: float = 0.3, max_rms_px: float = 2.0,
                  z_tol_m: float = 0.08, tilt_tol_rad: float = 0.15, *, prior_sigma_xy_m: float = 0.25,
-                 prior_sigma_yaw_rad: float = 0.35, max_iterations: int = 10) -> None:
+                 prior_sigma_yaw_rad: float = 0.35, choice_sigma_px: float = 0.8, max_iterations: int = 10) -> None:
         if pixel_sigma_px <= 0:
             raise ValueError("pixel_sigma_px must be positive")
         self.scenario = scenario
@@ -241,35 +263,35 @@ class CubePoseEstimator:
         self.tilt_tol_rad = tilt_tol_rad
         self.prior_sigma_xy_m = prior_sigma_xy_m
         self.prior_sigma_yaw_rad = prior_sigma_yaw_rad
+        self.choice_sigma_px = max(choice_sigma_px, pixel_sigma_px)
         self.max_iterations = max_iterations
         self.rejects: Counter[str] = Counter()
         self.tag_map = TagMap.from_scenario(scenario)
         self._geom: dict[int, _TagGeom] = {}
         self._expected_z: dict[tuple[str, int], float] = {}
-        self._faces: dict[tags.Face, tuple[NDArray[np.float64], NDArray[np.float64]]] = {}
-        self._build()
-
-    # ------------------------------------------------------------------ geometry
-    def _build(self) -> None:
-        s = self.scenario
-        zc = s.robot.cube_center_z_m
-        for face in tags.Face:
-            n, _, _ = tags.face_axes(face)
-            self._faces[face] = (n, n * (s.robot.cube_edge_m / 2.0) + np.array([0.0, 0.0, zc]))
-        for rid in s.robot_ids:
+        self._cos_tilt_tol = math.cos(tilt_tol_rad)
+        # Gauss-Newton has converged once a step would buy less than this (px^2, i.e. 0.01 in chi^2: the
+        # pose then moves by ~0.1 sigma at most); saves the evaluations that only confirm convergence
+        self._tiny_px2 = 1e-2 * pixel_sigma_px**2
+        r = scenario.robot
+        axes = [tags.face_axes(f) for f in tags.Face]
+        # outward normals and tag centres of the six faces in the robot's base frame, (3, 6), by Face value
+        self._face_n = np.stack([a[0] for a in axes], axis=1)
+        self._face_c = self._face_n * (r.cube_edge_m / 2.0) + np.array([[0.0], [0.0], [r.cube_center_z_m]])
+        for rid in scenario.robot_ids:
             self._expected_z[("robot", rid)] = 0.0
-            for face, tid in zip(tags.Face, s.tag_ids(rid), strict=True):
-                n, u, r = tags.face_axes(face)
-                centre = n * (s.robot.cube_edge_m / 2.0) + np.array([0.0, 0.0, zc])
-                self._geom[tid] = self._tag_geom("robot", rid, face, centre, n, u, r, s.tags.size_m)
-        for lm in s.landmarks:
+            for face, tid in zip(tags.Face, scenario.tag_ids(rid), strict=True):
+                n, u, rr = axes[face]
+                self._geom[tid] = self._tag_geom("robot", rid, int(face), self._face_c[:, face], n, u, rr,
+                                                 scenario.tags.size_m)
+        for lm in scenario.landmarks:
             self._expected_z[("landmark", lm.id)] = lm.z_m
-            n, u, r = tags.face_axes(tags.Face.FRONT)
-            centre = n * (LANDMARK_PLATE_THICKNESS_M / 2.0)
-            self._geom[lm.id] = self._tag_geom("landmark", lm.id, None, centre, n, u, r, lm.size_m)
+            n, u, rr = axes[tags.Face.FRONT]
+            self._geom[lm.id] = self._tag_geom("landmark", lm.id, -1, n * (LANDMARK_PLATE_THICKNESS_M / 2.0), n, u,
+                                               rr, lm.size_m)
 
     @staticmethod
-    def _tag_geom(kind: TargetKind, target_id: int, face: tags.Face | None, centre: NDArray[np.float64],
+    def _tag_geom(kind: TargetKind, target_id: int, face: int, centre: NDArray[np.float64],
                   n: NDArray[np.float64], u: NDArray[np.float64], r: NDArray[np.float64], size: float) -> _TagGeom:
         obj = tags.square_corners(centre, u, r, size)
         t_target_tag = np.eye(4)
@@ -277,10 +299,10 @@ class CubePoseEstimator:
         t_target_tag[:3, 3] = centre
         h = size / 2.0
         ippe = np.array([[-h, h, 0.0], [h, h, 0.0], [h, -h, 0.0], [-h, -h, 0.0]])
-        return _TagGeom(kind, target_id, face, obj, ippe, np.linalg.inv(t_target_tag))
+        return _TagGeom(kind, target_id, face, obj, ippe, np.asarray(np.linalg.inv(t_target_tag), np.float64))
 
     def object_points(self, tag_id: int) -> NDArray[np.float64] | None:
-        """(4, 3) corners of ``tag_id`` in its target's frame (contract order), or None."""
+        """(4, 3) corners of ``tag_id`` in its target's frame (metres, contract order), or None."""
         g = self._geom.get(tag_id)
         return None if g is None else g.obj.copy()
 
@@ -291,9 +313,9 @@ class CubePoseEstimator:
 
         Detections of tags that belong to nothing in the scenario are ignored (the
         caller counts them with :class:`~agents.detect.TagMap`).  ``priors`` maps
-        ``(kind, target_id)`` to a predicted (x_m, y_m, yaw_rad) in the observer's base
-        frame; it only breaks ties between the two-fold solutions.  Rejected
-        targets are counted in :attr:`rejects` by reason.
+        ``(kind, target_id)`` to a predicted (x_m, y_m, yaw_rad) of the target in the
+        observer's base frame; it only helps choose between the two-fold solutions.
+        Rejected targets are counted in :attr:`rejects` by reason.
         """
         groups: dict[tuple[str, int], list[tuple[int, _TagGeom, TagDetection]]] = {}
         for vi, (_, dets) in enumerate(views):
@@ -312,215 +334,360 @@ class CubePoseEstimator:
     def _reject(self, reason: str) -> None:
         self.rejects[reason] += 1
 
+    def _views(self, members: list[tuple[int, _TagGeom, TagDetection]],
+               views: list[tuple[CameraModel, list[TagDetection]]]) -> tuple[list[_View], _TagGeom, TagDetection]:
+        """The target's corners per camera, the start camera first, and the largest tag
+        (geometry, detection); raises ValueError("duplicate"/"degenerate")."""
+        if len(members) == 1:
+            vi, g, d = members[0]
+            c = d.corners
+            if c.shape != (4, 2) or not np.isfinite(c).all():
+                raise ValueError("degenerate")
+            area = _quad_area(c)
+            if area < 4.0:
+                # a tag is only decodable from its front: clockwise corners mean a fake or garbled set
+                raise ValueError("implausible" if area < -4.0 else "degenerate")
+            return [_View(views[vi][0], g.obj, c, [g.face == f for f in range(6)], _EYE4)], g, d
+        per_cam: dict[int, list[tuple[_TagGeom, TagDetection]]] = {}
+        best_area, start = -1.0, members[0]
+        for m in members:
+            vi, g, d = m
+            items = per_cam.setdefault(vi, [])
+            if any(other.tag_id == d.tag_id for _, other in items):  # one tag twice in one image: a false decode
+                raise ValueError("duplicate")
+            items.append((g, d))
+            c = d.corners
+            if c.shape != (4, 2):
+                raise ValueError("degenerate")
+            area = _quad_area(c)  # the largest tag gives the best-constrained start
+            if area < -4.0:
+                raise ValueError("implausible")
+            if area > best_area:
+                best_area, start = area, m
+        if not best_area >= 4.0:
+            raise ValueError("degenerate")
+        c0 = views[start[0]][0]
+        out: list[_View] = []
+        for vi, items in per_cam.items():
+            seen = [False] * 6
+            for g, _ in items:
+                if g.face >= 0:
+                    seen[g.face] = True
+            img = items[0][1].corners if len(items) == 1 else np.concatenate([d.corners for _, d in items])
+            obj = items[0][0].obj if len(items) == 1 else np.concatenate([g.obj for g, _ in items])
+            if not np.isfinite(img).all():
+                raise ValueError("degenerate")
+            cam = views[vi][0]
+            if vi == start[0]:
+                out.insert(0, _View(cam, obj, np.ascontiguousarray(img, np.float64), seen, _EYE4))
+            else:
+                out.append(_View(cam, obj, np.ascontiguousarray(img, np.float64), seen,
+                                 cam.T_cam_base @ c0.T_base_cam))
+        return out, start[1], start[2]
+
     def _estimate_target(self, key: tuple[str, int], members: list[tuple[int, _TagGeom, TagDetection]],
                          views: list[tuple[CameraModel, list[TagDetection]]],
                          prior: tuple[float, float, float] | None) -> PoseEstimate | None:
-        per_cam: dict[int, list[tuple[_TagGeom, TagDetection]]] = {}
-        seen: set[tuple[int, int]] = set()
-        best_area, start = -1.0, (0, members[0][1], members[0][2])
-        for vi, g, d in members:
-            if (vi, d.tag_id) in seen:  # one tag twice in one image: a false decode somewhere
-                self._reject("duplicate")
-                return None
-            seen.add((vi, d.tag_id))
-            per_cam.setdefault(vi, []).append((g, d))
-            c = d.corners
-            area = 0.5 * abs(float((c[0, 0] - c[2, 0]) * (c[1, 1] - c[3, 1]) - (c[1, 0] - c[3, 0]) * (c[0, 1] - c[2, 1])))
-            if area > best_area:
-                best_area, start = area, (vi, g, d)
-        if best_area < 4.0 or not np.all(np.isfinite([d.corners for _, _, d in members])):
-            self._reject("degenerate")
-            return None
-        vlist = []
-        for vi, items in per_cam.items():
-            vlist.append(_View(views[vi][0], np.concatenate([g.obj for g, _ in items]),
-                               np.concatenate([d.corners for _, d in items]).astype(np.float64),
-                               {g.face for g, _ in items if g.face is not None}))
-        svi, sg, sd = start
-        scam = views[svi][0]
-        sview = next(v for v, vi in zip(vlist, per_cam, strict=True) if vi == svi)
         try:
-            n, rvecs, tvecs, _ = cv2.solvePnPGeneric(sg.ippe_obj, np.ascontiguousarray(sd.corners[_TO_IPPE]),
-                                                     scam.K, None, flags=cv2.SOLVEPNP_IPPE_SQUARE)
+            vlist, sg, sd = self._views(members, views)
+        except ValueError as exc:
+            self._reject(str(exc))
+            return None
+        c0 = vlist[0].cam
+        try:
+            n, rvecs, tvecs, errs = cv2.solvePnPGeneric(sg.ippe_obj, np.ascontiguousarray(sd.corners[_TO_IPPE]),
+                                                        c0.K, None, flags=cv2.SOLVEPNP_IPPE_SQUARE)
         except cv2.error:
             n = 0
         if n == 0:
             self._reject("degenerate")
             return None
-        cands: list[_Candidate] = []
-        for rvec, tvec in zip(rvecs, tvecs, strict=True):
-            t_cam_target = _rt_to_matrix(rvec, tvec) @ sg.T_tag_target
-            rv, tv = cv2.Rodrigues(t_cam_target[:3, :3])[0], t_cam_target[:3, 3:4].copy()
-            if len(sview.obj) > 4:
-                rv, tv = cv2.solvePnPRefineLM(sview.obj, sview.img, scam.K, None, rv, tv)
-            t_bt = scam.T_base_cam @ _rt_to_matrix(rv, tv)
-            if len(vlist) > 1:
-                t_bt = self._refine(t_bt, vlist)
-            cand = self._score(key, t_bt, vlist, prior)
-            if cand is not None:
-                cands.append(cand)
-        if not cands:
+        robot = sg.kind == "robot"
+        n_corners = sum(len(v.obj) for v in vlist)
+        z_exp = self._expected_z.get(key, 0.0)
+        t_bc = c0.T_base_cam
+        sse_ippe = [e * e * 8.0 for e in errs.ravel().tolist()]  # IPPE's error: RMS of the 8 coordinates
+        t_tags = [_rt_to_matrix(rv, tv) for rv, tv in zip(rvecs, tvecs, strict=True)]
+        starts = [self._candidate(t @ sg.T_tag_target, t_bc, sse, 0, z_exp, prior)
+                  for t, sse in zip(t_tags, sse_ippe, strict=True)]
+        if n_corners == 4:
+            mirror = self._mirror_start(vlist, t_tags, sg, z_exp, prior)
+            if mirror is not None:
+                starts = [starts[0], mirror]
+                n = 2
+        sols: list[_Solution] = []
+        if n_corners == 4:
+            # one tag: IPPE's own reprojection error scores the starts.  The winner is refined; the
+            # loser only matters through the ambiguity term (weight exp(-gap/2)), so it stays where
+            # IPPE put it, and is dropped when the gap is large.  Only a close call pays for the
+            # negative evidence of faces that should have been seen
+            if robot and n > 1 and abs(starts[1].cost - starts[0].cost) < _AMBIGUITY_GAP + 2 * _MISSING_PENALTY:
+                for c, m in zip(starts, self._evidence(vlist, [c.T_c0_target for c in starts]), strict=True):
+                    c.penalty = _MISSING_PENALTY * m if m >= 0 else math.inf
+                    c.cost += c.penalty
+            starts.sort(key=lambda c: c.cost)
+            first = starts[0]
+            sol = self._solve(vlist, *first.theta(), first.penalty, z_exp, prior, _SINGLE_TAG_ITERATIONS)
+            if sol is not None:
+                sols.append(sol)
+            sols += [c for c in starts[1:] if c.cost - first.cost < _AMBIGUITY_GAP]
+        else:
+            # several tags: the wrong IPPE start throws the other tags' corners far off; refine the
+            # starts whose residuals are not clearly worse than the best one's
+            evals = [self._residuals(vlist, *c.theta()) for c in starts]
+            sse0 = [float(r0 @ r0) for r0, _ in evals]
+            lim = 3.0 * min(sse0) + _AMBIGUITY_GAP * self.choice_sigma_px**2
+            for c, sse, ev in zip(starts, sse0, evals, strict=True):
+                if sse <= lim:
+                    sol = self._solve(vlist, *c.theta(), 0.0, z_exp, prior, self.max_iterations, ev)
+                    if sol is not None:
+                        sols.append(sol)
+            if robot and len(sols) > 1:
+                # two refined solutions compete: a detected face turned away from a camera rules one
+                # out, an undetected face that should have been seen counts against it
+                for c, m in zip(sols, self._evidence(vlist, [c.T_c0_target for c in sols]), strict=True):
+                    c.cost += _MISSING_PENALTY * m if m >= 0 else math.inf
+                sols = [c for c in sols if math.isfinite(c.cost)]
+                if not sols:
+                    self._reject("implausible")  # every solution shows a detected face from behind
+                    return None
+        if not sols:
             self._reject("degenerate")
             return None
-        cands.sort(key=lambda c: c.cost)
-        n_corners = sum(len(v.obj) for v in vlist)
-        plausible: list[tuple[_Candidate, Mat]] = []
+        sols.sort(key=lambda c: c.cost)
+        plausible: list[tuple[_Solution, Mat | None]] = []
         constrained = False
-        for cand in cands:
-            cov6 = self._covariance6(cand, vlist, n_corners)
-            constrained = constrained or cov6 is not None
-            if cov6 is not None and self._plausible(key, cand.T_base_target, cov6):
-                plausible.append((cand, cov6))
+        for sol in sols:
+            cov = None
+            if abs(sol.z - z_exp) > self.z_tol_m or sol.r22 < self._cos_tilt_tol:
+                cov = self._cov_theta(sol, vlist, n_corners)
+                if cov is None or not self._plausible(sol, c0, z_exp, cov):
+                    constrained = constrained or cov is not None
+                    continue
+            constrained = True
+            plausible.append((sol, cov))
+            if len(plausible) == 2:
+                break
         if not plausible:
             self._reject("implausible" if constrained else "degenerate")
             return None
-        best, cov6 = plausible[0]
+        best, cov_theta = plausible[0]
         rms = math.sqrt(best.sse / n_corners)
         if rms > self.max_rms_px:
             self._reject("reprojection")
             return None
-        g = se2_jacobian(best.T_base_target)
-        cov = g @ cov6 @ g.T
+        if cov_theta is None:
+            cov_theta = self._cov_theta(best, vlist, n_corners)
+            if cov_theta is None:
+                self._reject("degenerate")
+                return None
+        g3 = _se2_jacobian(t_bc, best.T_base_target, best.theta()[0])
+        cov = g3 @ cov_theta @ g3.T
         ambiguity = 0.0
         if len(plausible) > 1:
             alt = plausible[1][0]
-            d = alt.se2 - best.se2
-            d[2] = _wrap(float(d[2]))
+            d = (alt.se2[0] - best.se2[0], alt.se2[1] - best.se2[1], _wrap(alt.se2[2] - best.se2[2]))
             # both refined to the same pose (several faces): no ambiguity left
             if abs(d[2]) > 1e-3 or math.hypot(d[0], d[1]) > 1e-3:
                 ambiguity = 1.0 / (1.0 + math.exp(min(50.0, 0.5 * (alt.cost - best.cost))))
-                cov = cov + ambiguity * np.outer(d, d)
-        if not np.all(np.isfinite(cov)) or np.linalg.det(cov) <= 0.0:
+                cov += ambiguity * np.outer(d, d)
+        c00, c11, c22 = cov[0, 0], cov[1, 1], cov[2, 2]
+        # G Sigma G^T of finite factors: a finite positive diagonal means a usable covariance
+        if not (c00 > 0.0 and c11 > 0.0 and c22 > 0.0 and math.isfinite(c00 + c11 + c22)):
             self._reject("degenerate")
             return None
-        tag_ids = tuple(sorted({d.tag_id for _, _, d in members}))
         return PoseEstimate(
             target_kind=sg.kind, target_id=sg.target_id, T_base_target=best.T_base_target,
-            x_m=float(best.se2[0]), y_m=float(best.se2[1]), yaw_rad=float(best.se2[2]), cov=cov,
-            reprojection_rms_px=rms, tag_ids=tag_ids, cameras=tuple(v.cam.name for v in vlist),
+            x_m=best.se2[0], y_m=best.se2[1], yaw_rad=best.se2[2], cov=cov, reprojection_rms_px=rms,
+            tag_ids=(sd.tag_id,) if len(members) == 1 else tuple(sorted({d.tag_id for _, _, d in members})),
+            cameras=(c0.name,) if len(vlist) == 1 else tuple(v.cam.name for v in vlist),
             n_corners=n_corners, ambiguity=ambiguity)
 
-    def _covariance6(self, cand: _Candidate, vlist: list[_View], n_corners: int) -> Mat | None:
-        """(6, 6) covariance of the right perturbation xi = (w, v) of ``T_base_target``, or
-        None when the corners do not constrain all six degrees of freedom."""
-        jac = np.concatenate([project_with_jacobian(v.cam, v.cam.T_cam_base @ cand.T_base_target, v.obj)[1]
-                              for v in vlist])
-        dof = 2 * n_corners - 6
-        s2 = max(self.pixel_sigma_px**2, cand.sse / dof) if dof > 0 else self.pixel_sigma_px**2
-        info = jac.T @ jac
-        if np.linalg.cond(info) > 1e12:
-            return None
-        cov6: Mat = s2 * np.linalg.inv(info)
-        return cov6
+    def _mirror_start(self, vlist: list[_View], t_tags: list[Mat], sg: _TagGeom, z_exp: float,
+                      prior: tuple[float, float, float] | None) -> _Solution | None:
+        """The other half of a single tag's two-fold ambiguity when IPPE did not return it.
 
-    def _plausible(self, key: tuple[str, int], t_bt: Mat, cov6: Mat) -> bool:
+        The two poses of a small square mirror its normal about the line of sight.  On
+        small, nearly frontal tags IPPE's second solution sometimes degenerates (e.g.
+        upside down) and the real alternative goes missing, leaving a confidently wrong
+        yaw; this rebuilds it from the first solution and refines it (None if IPPE's
+        second solution already is that mirror, or the view is exactly frontal)."""
+        t = t_tags[0]
+        n = t[:3, 2]  # the tag's outward normal in the camera frame
+        v = -t[:3, 3] / np.linalg.norm(t[:3, 3])  # towards the camera
+        axis = np.cross(n, v)
+        sin = float(np.linalg.norm(axis))
+        if sin < 1e-4:
+            return None
+        r = cv2.Rodrigues(axis * (2.0 * math.atan2(sin, float(n @ v)) / sin))[0] @ t[:3, :3]
+        if len(t_tags) > 1 and float(r[:, 2] @ t_tags[1][:3, 2]) > _MIRROR_COS:
+            return None
+        t_ct = t.copy()
+        t_ct[:3, :3] = r
+        t_ct = t_ct @ sg.T_tag_target
+        return self._solve(vlist, cv2.Rodrigues(t_ct[:3, :3])[0].ravel(), t_ct[:3, 3].copy(), 0.0, z_exp, prior,
+                           _MIRROR_ITERATIONS)
+
+    def _prior_terms(self, sol: _Solution, z_exp: float, prior: tuple[float, float, float] | None) -> float:
+        """Negative log-likelihood (chi^2 units) of a candidate under the ground-robot prior
+        (tolerances taken as 3 sigma) and the caller's prior pose."""
+        tilt = math.acos(max(-1.0, min(1.0, sol.r22)))
+        cost = (3.0 * (sol.z - z_exp) / self.z_tol_m) ** 2 + (3.0 * tilt / self.tilt_tol_rad) ** 2
+        if prior is not None:
+            x, y, yaw = sol.se2
+            cost += ((x - prior[0]) ** 2 + (y - prior[1]) ** 2) / self.prior_sigma_xy_m**2
+            cost += (_wrap(yaw - prior[2]) / self.prior_sigma_yaw_rad) ** 2
+        return cost
+
+    def _residuals(self, vlist: list[_View], rvec: _Arr, tvec: _Arr) -> tuple[_Arr, _Arr]:
+        """Stacked residuals (2M,) projected - detected (px) and their Jacobian (2M, 6) w.r.t.
+        theta = (rvec, tvec) of T_c0_target."""
+        v = vlist[0]
+        proj, jac = cv2.projectPoints(v.obj, rvec, tvec, v.cam.K, None)
+        if len(vlist) == 1:
+            return proj.reshape(-1) - v.img.reshape(-1), jac[:, :6]
+        rs, js = [proj.reshape(-1) - v.img.reshape(-1)], [jac[:, :6]]
+        r_c0, jr = cv2.Rodrigues(rvec)
+        jr = jr.reshape(3, 3, 3)  # [i] = d R / d rvec_i
+        for v in vlist[1:]:
+            rcc = v.T_cam_c0[:3, :3]
+            proj, jac = cv2.projectPoints(v.obj, cv2.Rodrigues(rcc @ r_c0)[0], rcc @ tvec + v.T_cam_c0[:3, 3],
+                                          v.cam.K, None)
+            rs.append(proj.reshape(-1) - v.img.reshape(-1))
+            # d uv / d tvec_c is d uv / d p_cam; chain through p_cam = Rcc (R(rvec) P + tvec) + tcc
+            duv = jac[:, 3:6].reshape(-1, 2, 3)
+            dp = np.transpose(rcc @ (jr @ v.obj.T), (2, 1, 0))  # (M, 3, 3): [k, a, i] = d p_cam[k, a] / d rvec_i
+            j = np.empty((len(v.obj), 2, 6))
+            j[:, :, :3] = duv @ dp
+            j[:, :, 3:] = duv @ rcc
+            js.append(j.reshape(-1, 6))
+        return np.concatenate(rs), np.concatenate(js)
+
+    def _in_front(self, vlist: list[_View], t_c0_target: Mat) -> bool:
+        """Whether every corner lies in front of every camera."""
+        for v in vlist:
+            t = t_c0_target if v.T_cam_c0 is _EYE4 else v.T_cam_c0 @ t_c0_target
+            if not (v.obj @ t[2, :3] + t[2, 3] > 0.0).all():
+                return False
+        return True
+
+    def _solve(self, vlist: list[_View], rvec: _Arr, tvec: _Arr, penalty: float, z_exp: float,
+               prior: tuple[float, float, float] | None, max_iterations: int,
+               start: tuple[_Arr, _Arr] | None = None) -> _Solution | None:
+        """Gauss-Newton (with step halving) on theta = (rvec, tvec) of T_c0_target over every
+        corner of every view, then scored (``penalty``: the start's score beyond the pixels
+        and the priors, i.e. missing faces; ``start``: residuals and Jacobian at the start if
+        already known); None if a corner ends up behind a camera."""
+        r, jac = start if start is not None else self._residuals(vlist, rvec, tvec)
+        sse = float(r @ r)
+        tiny = self._tiny_px2
+        for _ in range(max_iterations):
+            grad = jac.T @ r
+            ok, step = cv2.solve(jac.T @ jac, -grad, flags=cv2.DECOMP_CHOLESKY)
+            if not ok:
+                break
+            step = step.ravel()
+            if -float(step @ grad) < tiny:
+                break
+            for _halving in range(4):
+                nr, nt = rvec + step[:3], tvec + step[3:]
+                r2, jac2 = self._residuals(vlist, nr, nt)
+                sse2 = float(r2 @ r2)
+                if sse2 <= sse:
+                    rvec, tvec, r, jac, sse = nr, nt, r2, jac2, sse2
+                    break
+                step *= 0.5
+            else:
+                break
+        t_ct = _rt_to_matrix(rvec, tvec)
+        # one view: the start faced the camera and Gauss-Newton does not jump through the image plane
+        if len(vlist) > 1 and not self._in_front(vlist, t_ct):
+            return None
+        sol = self._candidate(t_ct, vlist[0].cam.T_base_cam, sse, 0, z_exp, prior)
+        sol.rvec, sol.tvec, sol.jac = rvec, tvec, jac
+        # the start's negative evidence (missing faces) carries over
+        sol.penalty = penalty
+        sol.cost += penalty
+        return sol
+
+    def _candidate(self, t_ct: Mat, t_bc: Mat, sse: float, missing: int, z_exp: float,
+                   prior: tuple[float, float, float] | None) -> _Solution:
+        t_bt = t_bc @ t_ct
+        (r00, _, _, x), (r10, _, _, y), (_, _, r22, z), _ = t_bt.tolist()
+        sol = _Solution(t_ct, None, None, None, sse, t_bt, (x, y, math.atan2(r10, r00)), z, r22, 0.0)
+        sol.penalty = _MISSING_PENALTY * missing
+        sol.cost = sse / self.choice_sigma_px**2 + self._prior_terms(sol, z_exp, prior) + sol.penalty
+        return sol
+
+    def _evidence(self, vlist: list[_View], t_c0_targets: list[Mat]) -> list[int]:
+        """Per candidate T_c0_target: -1 if it turns a detected face away from a camera,
+        else the number of undetected faces that would squarely face a camera, inside
+        its image and big enough to decode (negative evidence against the candidate)."""
+        h = self.scenario.robot.cube_edge_m / 2.0
+        zc = self.scenario.robot.cube_center_z_m
+        tag = self.scenario.tags.size_m
+        out = []
+        for t_c0 in t_c0_targets:
+            missing = 0
+            for v in vlist:
+                t = t_c0 if v.T_cam_c0 is _EYE4 else v.T_cam_c0 @ t_c0
+                (r00, r01, r02, tx), (r10, r11, r12, ty), (r20, r21, r22, tz), _ = t.tolist()
+                cols = ((r00, r10, r20), (r01, r11, r21), (r02, r12, r22))
+                seen = v.seen
+                k = v.cam.K
+                # face f has outward normal s*e_a and tag centre s*h*e_a + zc*e_z (target frame); in the
+                # camera: n = s*R[:, a], c = s*h*R[:, a] + zc*R[:, 2] + t
+                for f, (a, sgn) in enumerate(_FACE_AXIS_SIGN):
+                    ca = cols[a]
+                    cx = sgn * h * ca[0] + zc * r02 + tx
+                    cy = sgn * h * ca[1] + zc * r12 + ty
+                    cz = sgn * h * ca[2] + zc * r22 + tz
+                    dist = math.sqrt(cx * cx + cy * cy + cz * cz)
+                    cos = -sgn * (ca[0] * cx + ca[1] * cy + ca[2] * cz) / dist
+                    if seen[f]:
+                        if cos <= 0.0:
+                            missing = -1
+                            break
+                    elif cos >= _MISSING_COS and cz > 0.0:
+                        size = k[0, 0] * tag / dist * math.sqrt(cos)
+                        u, w = k[0, 0] * cx / cz + k[0, 2], k[1, 1] * cy / cz + k[1, 2]
+                        if size >= _MISSING_MIN_PX and size <= u <= v.cam.width - size and (
+                                size <= w <= v.cam.height - size):
+                            missing += 1
+                if missing < 0:
+                    break
+            out.append(missing)
+        return out
+
+    def _cov_theta(self, sol: _Solution, vlist: list[_View], n_corners: int) -> Mat | None:
+        """(6, 6) covariance of theta = (rvec, tvec), or None when the corners do not
+        constrain all six degrees of freedom."""
+        if sol.jac is None:
+            sol.jac = self._residuals(vlist, *sol.theta())[1]
+        dof = 2 * n_corners - 6
+        s2 = max(self.pixel_sigma_px**2, sol.sse / dof) if dof > 0 else self.pixel_sigma_px**2
+        # the SVD inverse also returns 1/condition number: a near-singular system is degenerate
+        rcond, inv = cv2.invert(sol.jac.T @ sol.jac, flags=cv2.DECOMP_SVD)
+        if not rcond > 1e-12:
+            return None
+        return cast(Mat, s2 * inv)
+
+    def _plausible(self, sol: _Solution, c0: CameraModel, z_exp: float, cov_theta: Mat) -> bool:
         """Whether the target stands on the floor like the observer: height within
-        ``z_tol_m`` of the expected one and roll/pitch within ``tilt_tol_rad`` -- each
-        widened by 3 sigma of the estimate itself, so a far single face whose tilt is
-        barely observable is not thrown away while a confident tilted solution is."""
-        r = t_bt[:3, :3]
-        dz = float(t_bt[2, 3]) - self._expected_z.get(key, 0.0)
-        tv = r[0:2, 2]  # horizontal part of the target's z axis: (sin tilt) * direction
-        tilt = math.asin(min(1.0, float(np.hypot(tv[0], tv[1])))) if r[2, 2] > 0 else math.pi / 2
-        hz = r[2, :]
-        sz = math.sqrt(max(0.0, float(hz @ cov6[3:, 3:] @ hz)))
-        if abs(dz) > self.z_tol_m + 3.0 * sz:
+        ``z_tol_m`` of the expected one (0 for a robot's base, the scenario's height for
+        a landmark) and roll/pitch within ``tilt_tol_rad`` -- each widened by 3 sigma of
+        the estimate itself, so a far single face whose tilt is barely observable is
+        kept while a confident tilted (or fake) solution is not."""
+        t_bt = sol.T_base_target
+        g = output_jacobian(c0.T_base_cam, *sol.theta())[1]
+        dz = float(t_bt[2, 3]) - z_exp
+        if abs(dz) > self.z_tol_m + 3.0 * math.sqrt(max(0.0, float(g[3] @ cov_theta @ g[3]))):
             return False
+        if t_bt[2, 2] <= 0.0:
+            return False
+        s = float(np.hypot(t_bt[0, 2], t_bt[1, 2]))
+        tilt = math.asin(min(1.0, s))
         if tilt <= self.tilt_tol_rad:
             return True
-        if r[2, 2] <= 0:
-            return False
-        u = tv / np.hypot(tv[0], tv[1])
-        # d(R e3)[:2] / dw = R[:2, :] @ [[0, 1, 0], [-1, 0, 0], [0, 0, 0]]
-        ht = np.array([-(u @ r[0:2, 1]), u @ r[0:2, 0], 0.0])
-        st = math.sqrt(max(0.0, float(ht @ cov6[:3, :3] @ ht)))
-        return tilt <= self.tilt_tol_rad + 3.0 * st
-
-    def _score(self, key: tuple[str, int], t_bt: Mat, vlist: list[_View],
-               prior: tuple[float, float, float] | None) -> _Candidate | None:
-        """Negative log-likelihood of a candidate pose, or None if it is not physical
-        (a point behind a camera, a detected face turned away from it)."""
-        sse, missing = 0.0, 0
-        for v in vlist:
-            t_ct = v.cam.T_cam_base @ t_bt
-            rv = cv2.Rodrigues(t_ct[:3, :3])[0]
-            proj = cv2.projectPoints(v.obj, rv, t_ct[:3, 3], v.cam.K, None)[0].reshape(-1, 2)
-            if np.any(v.obj @ t_ct[2, :3] + t_ct[2, 3] <= 0.0):
-                return None
-            sse += float(np.sum((proj - v.img) ** 2))
-            if key[0] == "robot":
-                bad, miss = self._face_evidence(v, t_ct)
-                if bad:
-                    return None
-                missing += miss
-        dz = float(t_bt[2, 3]) - self._expected_z.get(key, 0.0)
-        tilt = math.acos(max(-1.0, min(1.0, float(t_bt[2, 2]))))
-        se2 = _se2(t_bt)
-        cost = sse / self.pixel_sigma_px**2
-        cost += (3.0 * dz / self.z_tol_m) ** 2 + (3.0 * tilt / self.tilt_tol_rad) ** 2
-        cost += _MISSING_PENALTY * missing
-        if prior is not None:
-            cost += ((se2[0] - prior[0]) ** 2 + (se2[1] - prior[1]) ** 2) / self.prior_sigma_xy_m**2
-            cost += (_wrap(float(se2[2]) - prior[2]) / self.prior_sigma_yaw_rad) ** 2
-        return _Candidate(t_bt, sse, cost, se2)
-
-    def _face_evidence(self, v: _View, t_ct: Mat) -> tuple[bool, int]:
-        """(a detected face is turned away from the camera, number of faces that squarely
-        face the camera, would be big enough to decode and inside the image, yet were not seen)."""
-        r, t = t_ct[:3, :3], t_ct[:3, 3]
-        k = v.cam.K
-        tag = self.scenario.tags.size_m
-        missing = 0
-        for face, (n, c) in self._faces.items():
-            nc, cc = r @ n, r @ c + t
-            dist = float(np.linalg.norm(cc))
-            cos = -float(nc @ cc) / dist
-            if face in v.faces:
-                if cos <= 0.0:
-                    return True, 0
-                continue
-            if cos < _MISSING_COS or cc[2] <= 0.0:
-                continue
-            u, w = k[0, 0] * cc[0] / cc[2] + k[0, 2], k[1, 1] * cc[1] / cc[2] + k[1, 2]
-            size = k[0, 0] * tag / dist * math.sqrt(cos)
-            m = size
-            if size >= _MISSING_MIN_PX and m <= u <= v.cam.width - m and m <= w <= v.cam.height - m:
-                missing += 1
-        return False, missing
-
-    def _refine(self, t_bt: Mat, vlist: list[_View]) -> Mat:
-        """Levenberg-Marquardt on ``T_base_target`` over every camera's corners."""
-        def residuals(t: Mat, with_jac: bool) -> tuple[NDArray[np.float64], NDArray[np.float64] | None, bool]:
-            rs, js, ok = [], [], True
-            for v in vlist:
-                uv, jac, z = project_with_jacobian(v.cam, v.cam.T_cam_base @ t, v.obj)
-                ok = ok and bool(np.all(z > 0))
-                rs.append((uv - v.img).ravel())
-                js.append(jac)
-            return np.concatenate(rs), (np.concatenate(js) if with_jac else None), ok
-
-        lam = 1e-3
-        r, j, _ = residuals(t_bt, True)
-        cost = float(r @ r)
-        for _ in range(self.max_iterations):
-            assert j is not None
-            h = j.T @ j
-            g = j.T @ r
-            try:
-                step = -np.linalg.solve(h + lam * np.diag(np.diag(h)), g)
-            except np.linalg.LinAlgError:
-                break
-            t_new = _retract(t_bt, step)
-            r_new, j_new, ok = residuals(t_new, True)
-            c_new = float(r_new @ r_new)
-            if ok and c_new < cost:
-                t_bt, r, j, lam = t_new, r_new, j_new, max(lam / 10.0, 1e-9)
-                converged = cost - c_new < 1e-10 * max(cost, 1.0) or float(np.abs(step).max()) < 1e-10
-                cost = c_new
-                if converged:
-                    break
-            else:
-                lam *= 10.0
-                if lam > 1e8:
-                    break
-        return t_bt
+        gt = (t_bt[0, 2] * g[4] + t_bt[1, 2] * g[5]) / s  # d sin(tilt) / d theta
+        return tilt <= self.tilt_tol_rad + 3.0 * math.sqrt(max(0.0, float(gt @ cov_theta @ gt)))

@@ -328,11 +328,28 @@ def convert(table: dict[str, Any], cls: type[Any], what: str) -> Any:
         raise ScenarioError(f"{what}: {text}") from None
 
 
+def _trim_to_count(table: dict[str, Any]) -> None:
+    """``robots.count`` below the length of an explicit start list keeps the first
+    robots and their missions, so ``--robots 2`` works on any scenario."""
+    robots = table.get("robots")
+    if not isinstance(robots, dict):
+        return
+    count, start = robots.get("count"), robots.get("start")
+    if not isinstance(count, int):
+        return
+    if isinstance(start, list) and len(start) > count and robots.get("placement", "ring") == "explicit":
+        robots["start"] = start[:count]
+    missions = table.get("missions")
+    if isinstance(missions, list):
+        table["missions"] = [mi for mi in missions if not isinstance(mi, dict) or mi.get("robot", 0) < count]
+
+
 def load_scenario(name_or_path: str = "paper", overrides: tuple[str, ...] | list[str] = ()) -> Scenario:
     """Load, override and validate a scenario."""
     table = read_scenario_dict(name_or_path)
     for o in overrides:
         apply_override(table, o)
+    _trim_to_count(table)
     scenario: Scenario = convert(table, Scenario, f"scenario {name_or_path!r}")
     validate(scenario)
     return scenario

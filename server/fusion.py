@@ -54,6 +54,10 @@ class FusionParams:
     origin_sigma: float = 1e-4
     odom_buffer: int = 4096
     max_pending_s: float = 3.0
+    cov_period_s: float = 1.0  # marginal covariances are recomputed at most this often (simulated time)
+    # consecutive frames of one pair share their errors (same viewpoint, same tag pixels): fusing every
+    # frame buys little accuracy and costs graph size, so each (observer, target) pair is thinned to this
+    obs_min_interval_s: float = 0.3
 
 
 @dataclass
@@ -109,6 +113,7 @@ class Fusion:
         self.robots = {rid: _Robot(odom=deque(maxlen=params.odom_buffer)) for rid in robot_ids}
         isam = gtsam.ISAM2Params()
         isam.setRelinearizeThreshold(0.01)
+        isam.relinearizeSkip = 5
         self.smoother = gtsam.IncrementalFixedLagSmoother(params.lag_s, isam)
         self._factors = gtsam.NonlinearFactorGraph()
         self._values = gtsam.Values()
@@ -119,6 +124,7 @@ class Fusion:
         self.edges: dict[tuple[int, int], int] = {}  # (observer, target) -> last stamp
         self.watermark_ns = -1
         self.updates = 0
+        self._next_cov_ns = 0
 
     # ------------------------------------------------------------------ input
     def _push(self, stamp_ns: int, kind: Literal["odom", "obs", "landmark"], data: tuple) -> None:  # type: ignore[type-arg]
@@ -258,6 +264,11 @@ class Fusion:
         if o.estimate is None and g.estimate is None:
             self.counters["deferred_unanchored"] += 1
             return
+        last = self.edges.get((observer, target))
+        if last is not None and stamp_ns - last < self.p.obs_min_interval_s * 1e9 and None not in (o.estimate,
+                                                                                                  g.estimate):
+            self.counters["thinned_observations"] += 1
+            return
         po = None if o.estimate is None else se2_compose(o.estimate, se2_between(o.kf_odom, oo))
         pg = None if g.estimate is None else se2_compose(g.estimate, se2_between(g.kf_odom, go))
         if po is not None and pg is not None:
@@ -270,12 +281,27 @@ class Fusion:
             po = stitch([Edge(observer, target, rel, cov)], target, {target: pg})[observer]  # type: ignore[dict-item]
         if pg is None:
             pg = stitch([Edge(observer, target, rel, cov)], observer, {observer: po})[target]
-        ko = self._new_keyframe(observer, stamp_ns, oo, initial=po)
-        kg = self._new_keyframe(target, stamp_ns, go, initial=pg)
-        self._factors.add(gtsam.BetweenFactorPose2(ko, kg, gtsam.Pose2(*rel), self._robust(cov)))
+        ko, do, co = self._anchor(observer, stamp_ns, oo, po)
+        kg, dg, cg = self._anchor(target, stamp_ns, go, pg)
+        # the measurement between the two keyframes: observer's motion since its keyframe, the
+        # observation, then back along the target's motion since its keyframe
+        z = se2_compose(se2_compose(do, rel), se2_inverse(dg))
+        self._factors.add(gtsam.BetweenFactorPose2(ko, kg, gtsam.Pose2(*z), self._robust(cov + co + cg)))
         o.last_fix_ns = g.last_fix_ns = stamp_ns
         self.edges[(observer, target)] = stamp_ns
         self.counters["accepted_observations"] += 1
+
+    def _anchor(self, rid: int, stamp_ns: int, odom_pose: Pose2, guess: Pose2) -> tuple[int, Pose2, Cov]:
+        """Keyframe an observation at ``stamp_ns`` attaches to: the robot's latest
+        keyframe if it has barely moved since (returning the odometry offset from it
+        and that offset's covariance), else a new keyframe at ``stamp_ns``.  Reusing
+        keyframes keeps the graph small when many robots see each other every frame."""
+        r = self.robots[rid]
+        if r.kf_key is not None and r.estimate is not None:
+            delta = se2_between(r.kf_odom, odom_pose)
+            if math.hypot(delta[0], delta[1]) < self.p.kf_dist_m / 4 and abs(delta[2]) < self.p.kf_angle_rad / 4:
+                return r.kf_key, delta, odom_increment_cov(delta, self.p)
+        return self._new_keyframe(rid, stamp_ns, odom_pose, initial=guess), (0.0, 0.0, 0.0), np.zeros((3, 3))
 
     def _rel_cov(self, o: _Robot, g: _Robot) -> Cov:
         return o.cov + g.cov
@@ -314,15 +340,24 @@ class Fusion:
         self._factors = gtsam.NonlinearFactorGraph()
         self._values = gtsam.Values()
         self._stamps = gtsam.FixedLagSmootherKeyTimestampMap()
-        est = self.smoother.calculateEstimate()
+        # only each robot's newest keyframe is needed; per-key retrieval avoids
+        # materialising every variable of the window on every update
+        with_cov = self.watermark_ns >= self._next_cov_ns
         for r in self.robots.values():
-            if r.kf_key is not None and est.exists(r.kf_key):
-                p = est.atPose2(r.kf_key)
-                r.estimate = (p.x(), p.y(), p.theta())
+            if r.kf_key is None:
+                continue
+            try:
+                p = self.smoother.calculateEstimatePose2(r.kf_key)
+            except RuntimeError:
+                continue
+            r.estimate = (p.x(), p.y(), p.theta())
+            if with_cov:
                 try:
                     r.cov = np.asarray(self.smoother.marginalCovariance(r.kf_key))
                 except RuntimeError:
                     pass
+        if with_cov:
+            self._next_cov_ns = self.watermark_ns + int(self.p.cov_period_s * 1e9)
         self.updates += 1
 
     # ------------------------------------------------------------------ output

@@ -81,21 +81,22 @@ class ServerNode:
         for change in self.alive_in.drain():
             who = self.keys.participant_of(change.key)
             if who and who.startswith("agent/") and who[6:].isdigit():
-                rid = int(who[6:])
+                agent = int(who[6:])
                 if change.value:
-                    self.alive.add(rid)
+                    self.alive.add(agent)
                 else:
-                    self.alive.discard(rid)
-                    log.info("robot %d's agent is gone; its last pose stays in the map", rid)
+                    self.alive.discard(agent)
+                    log.info("robot %d's agent is gone; its last pose stays in the map", agent)
         for item in self.odom_in.drain():
             try:
                 od = codec.decode(m.OdometryEstimate, item.value)
             except codec.DecodeError as exc:
                 self.rejects.reject(exc.kind, f"{item.key}: {exc.detail}")
                 continue
-            rid = self._robot_from_key(item.key, od.robot_id)
-            if rid is None:
+            sender = self._robot_from_key(item.key, od.robot_id)
+            if sender is None:
                 continue
+            rid = sender
             self.fusion.add_odometry(rid, od.stamp_ns, (od.x_m, od.y_m, od.yaw_rad), od.distance_m)
             self.latest_rx[rid] = max(self.latest_rx.get(rid, -1), od.stamp_ns)
             self.counters["odometry"] += 1
@@ -105,9 +106,10 @@ class ServerNode:
             except codec.DecodeError as exc:
                 self.rejects.reject(exc.kind, f"{item.key}: {exc.detail}")
                 continue
-            rid = self._robot_from_key(item.key, ob.robot_id)
-            if rid is None:
+            observer = self._robot_from_key(item.key, ob.robot_id)
+            if observer is None:
                 continue
+            rid = observer
             cov = np.asarray(ob.cov, float).reshape(3, 3)
             if ob.target_kind == "robot":
                 if ob.target_id not in self.roster or ob.target_id == rid:

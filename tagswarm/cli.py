@@ -15,12 +15,13 @@ from protocol.scenario import builtin_names
 def _commands() -> dict[str, tuple[str, Callable[[Sequence[str] | None], int]]]:
     from agents import node as agent_node
     from server import node as server_node
-    from tagswarm import snapshot, up
+    from tagswarm import report, snapshot, up
     from world import node as world_node
     from world import render_worker
 
     return {
         "up": ("run a whole swarm (world, server, agents) and write a run folder with metrics and plots", up.main),
+        "report": ("evaluate a run folder again: metrics.json + plots", report.main),
         "snapshot": ("start a world, grab one frame per camera, decode tags, write PNGs + JSON", snapshot.main),
         "world": ("run the world process (physics, cameras, encoders, clock)", world_node.main),
         "render": ("run one render worker for a world started with --no-spawn-workers", render_worker.main),

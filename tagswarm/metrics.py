@@ -31,7 +31,8 @@ the true initial pose, so its error is pure drift).
 
 - ``schema``: ``"tagswarm.metrics/1"``.
 - ``run``: ``clock`` ("lockstep"/"realtime"), ``sim_time_s``, ``wall_time_s``,
-  ``exit_code``, ``origin_id``, ``robots`` (ids), copied from ``run.json``.
+  ``exit_code``, ``failure`` (the orchestrator's failure message or ``null``),
+  ``origin_id``, ``robots`` (ids), copied from ``run.json``.
 - ``settings``: ``assoc_max_diff_s`` (timestamp association tolerance, s),
   ``rpe_delta_m`` (RPE segment length, m), ``neighbour_window_s`` (± window for
   error-vs-distance, s), ``distance_bins_m`` (bin edges, m; ``null`` = infinity).
@@ -70,7 +71,8 @@ the true initial pose, so its error is pure drift).
     ``ate_unaligned`` S, ``ate_aligned`` S (under the swarm's shared alignment),
     ``rpe_per_m`` S.
   - ``fixes``, ``searches``, ``lost_events``, ``frames_processed``,
-    ``frames_skipped``: that agent's counters (``null`` if absent).
+    ``frames_skipped``: that agent's counters from ``run.json`` (a name missing
+    from a reported counter set counts 0; all ``null`` if the agent reported none).
   - ``time_lost_s``, ``mode_time_s``: from ``modes.csv``.  Each sample's mode
     holds until that robot's next sample; the last one until the end of the
     recorded truth (the latest truth timestamp of any robot).
@@ -633,7 +635,8 @@ def evaluate(run: RunData) -> Evaluation:
         agent = _dict(counters.get(f"agent/{k}"))
         r = robots_out[str(k)]
         for name in ("fixes", "searches", "lost_events", "frames_processed", "frames_skipped"):
-            r[name] = _counter(agent, name)
+            # agents report a Counter: a name it never incremented is absent, i.e. zero
+            r[name] = _counter(agent, name) if name in agent or not agent else 0
         modes = durations.get(k, {})
         r["mode_time_s"] = dict(sorted(modes.items()))
         r["time_lost_s"] = float(modes.get("lost", 0.0))
@@ -665,7 +668,8 @@ def evaluate(run: RunData) -> Evaluation:
     metrics: dict[str, Any] = {
         "schema": SCHEMA,
         "run": {"clock": run.info.get("clock"), "sim_time_s": sim_s, "wall_time_s": wall_s,
-                "exit_code": run.info.get("exit_code"), "origin_id": run.info.get("origin_id"),
+                "exit_code": run.info.get("exit_code"), "failure": run.info.get("failure"),
+                "origin_id": run.info.get("origin_id"),
                 "robots": list(run.robots)},
         "settings": {"assoc_max_diff_s": ASSOC_MAX_DIFF_S, "rpe_delta_m": RPE_DELTA_M,
                      "neighbour_window_s": NEIGHBOUR_WINDOW_S,
@@ -677,7 +681,21 @@ def evaluate(run: RunData) -> Evaluation:
                               "bins": bin_by_distance(dist.distance_m, dist.error_m)},
         "warnings": warnings,
     }
-    return Evaluation(run=run, tracks=tracks, alignment=alignment, distance=dist, metrics=metrics)
+    return Evaluation(run=run, tracks=tracks, alignment=alignment, distance=dist, metrics=_finite(metrics))
+
+
+def _finite(value: Any) -> Any:
+    """``value`` with NaN/inf floats replaced by ``None`` and numpy scalars by Python ones,
+    so that ``json.dumps(..., allow_nan=False)`` accepts it (strict JSON has no NaN)."""
+    if isinstance(value, dict):
+        return {k: _finite(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_finite(v) for v in value]
+    if isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
 
 
 def _pooled_ape(refs: list[PoseTrajectory3D], ests: list[PoseTrajectory3D]) -> dict[str, float | int] | None:

@@ -73,7 +73,8 @@ def test_run_folder_is_complete_and_loads_with_evo(paper_run: Path) -> None:
 def test_sigint_stops_every_child_and_still_writes_a_report(tmp_path: Path) -> None:
     out = tmp_path / "run"
     proc = subprocess.Popen([script("tagswarm"), "up", "--duration", "600", "--out", str(out), "--no-live",
-                             "--set", "robots.count=2", "--set", "missions=[]"],
+                             "--set", "robots.count=2", "--set", "missions=[]",
+                             "--set", 'robots.placement="ring"'],
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
     me = psutil.Process(proc.pid)
     deadline = time.monotonic() + 60
@@ -85,7 +86,7 @@ def test_sigint_stops_every_child_and_still_writes_a_report(tmp_path: Path) -> N
         time.sleep(0.2)
     proc.send_signal(signal.SIGINT)
     assert proc.wait(timeout=60) == 130
-    gone, alive = psutil.wait_procs(kids, timeout=10)
+    _gone, alive = psutil.wait_procs(kids, timeout=10)
     assert not alive, f"children still running: {alive}"
     assert (out / "run.json").is_file() and (out / "metrics.json").is_file()
     assert (out / "trajectories" / "truth_0.tum").stat().st_size > 0

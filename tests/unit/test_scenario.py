@@ -172,7 +172,7 @@ def test_explicit_start_outside_arena() -> None:
 
 
 def test_ring_too_big_for_arena() -> None:
-    text = _error(["robots.ring_radius_m=3.4"])
+    text = _error(['robots.placement="ring"', "robots.ring_radius_m=3.4"])
     assert "robot 0 starts at (3.40, 0.00), outside the arena" in text
 
 
@@ -344,7 +344,7 @@ def test_explicit_placement_is_taken_verbatim() -> None:
 
 
 def test_ring_faces_its_centre() -> None:
-    s = load_scenario("paper")
+    s = load_scenario("paper", ['robots.placement="ring"'])
     poses = _inside_and_apart(s)
     for x, y, yaw in poses:
         assert math.isclose(math.hypot(x, y), 1.5)

@@ -70,7 +70,7 @@ class Behaviour:
     robot: Robot
     arena_to_map: Pose2 = (0.0, 0.0, 0.0)
     leapfrog_team: tuple[int, ...] = ()
-    mode: Mode = Mode.SEARCHING
+    mode: Mode = Mode.ODOMETRY
     counter: int = 0
     fixes: int = 0
     searches: int = 0

@@ -70,7 +70,7 @@ _MISSING_COS: Final = 0.57
 _MISSING_MIN_PX: Final = 24.0
 _MISSING_PENALTY: Final = 9.0
 # a single tag's losing IPPE start is refined only if its score is within this (chi^2) of the winner's
-_AMBIGUITY_GAP: Final = 40.0
+_AMBIGUITY_GAP: Final = 20.0
 # a single tag's valley along the two-fold ambiguity is flat: Gauss-Newton crawls there, and 2 steps
 # get ~90% of the residual decrease IPPE leaves
 _SINGLE_TAG_ITERATIONS: Final = 1

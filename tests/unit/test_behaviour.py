@@ -1,0 +1,108 @@
+"""The paper's self-calibrating behaviour and the mission controller (pure logic)."""
+
+from __future__ import annotations
+
+import math
+
+from agents.behaviour import Behaviour, Mode, go_to, wheel_speeds
+from protocol.geometry import se2_compose
+from protocol.scenario import Agent, Mission, Robot
+
+CFG = Agent(fix_threshold=10, search_speed_rad_s=1.0, search_max_sweep_rad=6.3)
+ROBOT = Robot()
+
+
+def _moving(mission: Mission | None = None) -> Behaviour:
+    return Behaviour(1, mission or Mission(robot=1, kind="waypoints", waypoints=((3.0, 0.0),)), CFG, ROBOT)
+
+
+def test_counter_threshold_triggers_search_and_a_fix_resets_it() -> None:
+    b = _moving()
+    pose = (0.0, 0.0, 0.0)
+    v, w = b.cycle(t_s=0, map_pose=pose, odom_yaw=0.0, moved=False, fix=True)
+    assert b.mode == Mode.VISUAL and b.counter == 0 and v > 0
+    for k in range(CFG.fix_threshold):
+        v, w = b.cycle(t_s=k, map_pose=pose, odom_yaw=0.0, moved=True, fix=False)
+        assert b.mode == Mode.ODOMETRY and v > 0
+    v, w = b.cycle(t_s=11, map_pose=pose, odom_yaw=0.0, moved=True, fix=False)
+    assert b.mode == Mode.SEARCHING and (v, w) == (0.0, CFG.search_speed_rad_s) and b.searches == 1
+    b.cycle(t_s=12, map_pose=pose, odom_yaw=0.5, moved=True, fix=True)
+    assert b.mode == Mode.VISUAL and b.counter == 0 and b.fixes == 2
+
+
+def test_standing_still_does_not_count() -> None:
+    b = _moving()
+    b.cycle(t_s=0, map_pose=(0, 0, 0), odom_yaw=0.0, moved=False, fix=True)
+    for k in range(100):
+        b.cycle(t_s=k, map_pose=(0, 0, 0), odom_yaw=0.0, moved=False, fix=False)
+    assert b.counter == 0 and b.mode == Mode.ODOMETRY
+
+
+def test_full_sweep_without_tag_ends_lost_not_spinning() -> None:
+    b = _moving()
+    yaw, spins = 0.0, 0
+    for k in range(400):
+        v, w = b.cycle(t_s=k, map_pose=None, odom_yaw=yaw, moved=True, fix=False)
+        yaw = math.remainder(yaw + w * 0.1, 2 * math.pi)
+        spins += w != 0
+    assert b.mode == Mode.LOST and b.lost_events == 1 and b.searches == 1
+    assert 55 <= spins <= 70  # ~2*pi at 1 rad/s and 0.1 s steps, then it stops
+    # lost and localised again later: it resumes the mission slowly
+    v, w = b.cycle(t_s=500, map_pose=(0, 0, 0), odom_yaw=yaw, moved=True, fix=False)
+    assert b.mode == Mode.LOST and 0 < v <= CFG.lost_speed_factor * CFG.max_speed_m_s + 1e-9
+
+
+def test_station_keeping_robot_never_searches() -> None:
+    b = Behaviour(0, Mission(robot=0, kind="hold"), CFG, ROBOT)
+    for k in range(100):
+        assert b.cycle(t_s=k, map_pose=(0, 0, 0), odom_yaw=0.0, moved=True, fix=False) == (0.0, 0.0)
+    assert b.searches == 0
+
+
+def test_wheel_speeds_respect_limit_and_keep_curvature() -> None:
+    left, right = wheel_speeds(2.0, 4.0, ROBOT)
+    assert max(abs(left), abs(right)) <= ROBOT.max_wheel_speed_rad_s + 1e-9
+    r, b = ROBOT.wheel_radius_m, ROBOT.wheel_base_m
+    v, w = r * (left + right) / 2, r * (right - left) / b
+    assert math.isclose(w / v, 2.0, rel_tol=1e-9)
+
+
+def _drive(b: Behaviour, pose: tuple[float, float, float], seconds: float, dt: float = 0.05) -> tuple:
+    for k in range(int(seconds / dt)):
+        v, w = b.cycle(t_s=k * dt, map_pose=pose, odom_yaw=pose[2], moved=True, fix=True)
+        pose = se2_compose(pose, (v * dt, 0.0, w * dt))
+    return pose
+
+
+def test_go_to_reaches_waypoints_and_stops() -> None:
+    b = _moving(Mission(robot=1, kind="waypoints", waypoints=((1.0, 1.0), (-1.0, 0.5))))
+    end = _drive(b, (0.0, 0.0, 0.0), 40.0)
+    assert b.done and math.dist(end[:2], (-1.0, 0.5)) < CFG.goal_tolerance_m + 0.02
+    assert go_to(end, (-1.0, 0.5), CFG)[0] < 0.1
+
+
+def test_run_time_goal_overrides_mission_in_map_frame() -> None:
+    b = Behaviour(1, Mission(robot=1, kind="hold"), CFG, ROBOT, arena_to_map=(1.0, 0.0, 0.0))
+    b.set_goal(0.5, -0.5, 0.05)
+    end = _drive(b, (0.0, 0.0, 0.0), 20.0)
+    assert math.dist(end[:2], (0.5, -0.5)) < 0.07 and b.goal is None
+
+
+def test_patrol_turns_back_and_waypoints_are_in_the_arena_frame() -> None:
+    # map frame = arena shifted by +1 m in x
+    b = Behaviour(1, Mission(robot=1, kind="patrol", waypoints=((0.0, 0.0), (1.0, 0.0))), CFG, ROBOT,
+                  arena_to_map=(1.0, 0.0, 0.0))
+    pose = (1.0, 0.0, 0.0)
+    xs = []
+    for _ in range(40):
+        pose = _drive(b, pose, 1.0)
+        xs.append(pose[0])
+    assert max(xs) > 1.85 and min(xs[10:]) < 1.15  # visits map x=2 and comes back to map x=1
+
+
+def test_leapfrog_moves_only_on_its_turn() -> None:
+    m = Mission(robot=2, kind="leapfrog", waypoints=((2.0, 0.0), (0.0, 0.0)), leapfrog_period_s=5.0)
+    b = Behaviour(2, m, CFG, ROBOT, leapfrog_team=(1, 2))
+    v0, _ = b.cycle(t_s=1.0, map_pose=(0, 0, 0), odom_yaw=0.0, moved=False, fix=True)   # robot 1's turn
+    v1, _ = b.cycle(t_s=6.0, map_pose=(0, 0, 0), odom_yaw=0.0, moved=False, fix=True)   # robot 2's turn
+    assert v0 == 0.0 and v1 > 0.0

@@ -2,8 +2,9 @@
 self-calibrating loop (pure code, no I/O).
 
 Modes:
-- ``visual``: a visual fix this cycle (an accepted observation of another robot,
-  or a server correction built on a new observation involving this robot).
+- ``visual``: a visual fix within the last ``visual_hold`` cycles (an accepted
+  observation of another robot, or a server correction built on a new
+  observation involving this robot).
 - ``odometry``: no fix for fewer than ``fix_threshold`` moving cycles.
 - ``searching``: too long on odometry alone (or never localised): stop the
   mission and rotate in place until a fix, at most ``search_max_sweep_rad``.
@@ -72,6 +73,8 @@ class Behaviour:
     leapfrog_team: tuple[int, ...] = ()
     mode: Mode = Mode.ODOMETRY
     counter: int = 0
+    since_fix: int = 1_000_000
+    visual_hold: int = 15  # cycles a fix keeps the robot in visual mode (0.5 s at 30 Hz)
     fixes: int = 0
     searches: int = 0
     lost_events: int = 0
@@ -138,15 +141,17 @@ class Behaviour:
         self._last_yaw = odom_yaw
         if fix:
             self.fixes += 1
-            self.counter = 0
+            self.counter = self.since_fix = 0
             self.mode = Mode.VISUAL
-        elif moved or map_pose is None:
-            self.counter += 1
-        if not fix and self.mode == Mode.VISUAL:
+        else:
+            self.since_fix += 1
+            if moved or map_pose is None:
+                self.counter += 1
+        if self.mode == Mode.VISUAL and self.since_fix > self.visual_hold:
             self.mode = Mode.ODOMETRY
         stationary = self.mission.kind == "hold" and self.goal is None
         needs_search = map_pose is None or self.counter > self.cfg.fix_threshold
-        if self.mode == Mode.ODOMETRY and needs_search and not stationary:
+        if self.mode in (Mode.ODOMETRY, Mode.VISUAL) and needs_search and not stationary:
             self.mode = Mode.SEARCHING
             self.searches += 1
             self.swept_rad = 0.0

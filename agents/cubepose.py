@@ -69,7 +69,7 @@ _TO_IPPE: Final = np.array([1, 0, 3, 2])
 _MISSING_COS: Final = 0.57
 _MISSING_MIN_PX: Final = 24.0
 _MISSING_PENALTY: Final = 9.0
-# a single tag's losing IPPE start is refined only if its score is within this (chi^2) of the winner's
+# a losing candidate is kept (for the ambiguity term, weight exp(-gap/2)) only within this score gap
 _AMBIGUITY_GAP: Final = 20.0
 # a single tag's valley along the two-fold ambiguity is flat: Gauss-Newton crawls there, and 2 steps
 # get ~90% of the residual decrease IPPE leaves

@@ -23,7 +23,7 @@ def test_counter_threshold_triggers_search_and_a_fix_resets_it() -> None:
     assert b.mode == Mode.VISUAL and b.counter == 0 and v > 0
     for k in range(CFG.fix_threshold):
         v, w = b.cycle(t_s=k, map_pose=pose, odom_yaw=0.0, moved=True, fix=False)
-        assert b.mode == Mode.ODOMETRY and v > 0
+        assert b.mode == (Mode.VISUAL if k < b.visual_hold else Mode.ODOMETRY) and v > 0
     v, w = b.cycle(t_s=11, map_pose=pose, odom_yaw=0.0, moved=True, fix=False)
     assert b.mode == Mode.SEARCHING and (v, w) == (0.0, CFG.search_speed_rad_s) and b.searches == 1
     b.cycle(t_s=12, map_pose=pose, odom_yaw=0.5, moved=True, fix=True)
@@ -35,7 +35,7 @@ def test_standing_still_does_not_count() -> None:
     b.cycle(t_s=0, map_pose=(0, 0, 0), odom_yaw=0.0, moved=False, fix=True)
     for k in range(100):
         b.cycle(t_s=k, map_pose=(0, 0, 0), odom_yaw=0.0, moved=False, fix=False)
-    assert b.counter == 0 and b.mode == Mode.ODOMETRY
+    assert b.counter == 0 and b.mode == Mode.ODOMETRY and b.since_fix == 100
 
 
 def test_full_sweep_without_tag_ends_lost_not_spinning() -> None:

@@ -85,8 +85,36 @@ class AprilTagDetector:
         self.min_margin = min_margin
         self._det = _PupilDetector(families=family, quad_decimate=quad_decimate, nthreads=nthreads)
 
+    def close(self) -> None:
+        """Free the C detector (also done on garbage collection).
+
+        pupil_apriltags 1.0.4 frees the tag families before the detector, whose
+        destructor then writes into the freed families: heap corruption, seen as a
+        ``malloc(): mismatching next->prev_size`` abort (reliably with tag16h5 in a
+        process that also runs pybullet).  Free them in the right order and disarm
+        pupil's own destructor.
+        """
+        det = getattr(self, "_det", None)
+        ptr = getattr(det, "tag_detector_ptr", None)
+        if det is None or ptr is None:
+            return
+        lib = det.libc
+        lib.apriltag_detector_destroy.restype = None
+        lib.apriltag_detector_destroy(ptr)
+        for name, fam in det.tag_families.items():
+            destroy = getattr(lib, f"{name}_destroy")
+            destroy.restype = None
+            destroy(fam)
+        det.tag_families = {}
+        det.tag_detector_ptr = None
+
+    def __del__(self) -> None:
+        self.close()
+
     def detect(self, gray: NDArray[np.uint8]) -> list[TagDetection]:
         """Detections in ``gray`` ((H, W) uint8), corners in OpenCV's pixel convention."""
+        if self._det.tag_detector_ptr is None:
+            raise RuntimeError("detector is closed")
         out = []
         for d in self._det.detect(gray):
             if d.hamming <= self.max_hamming and d.decision_margin >= self.min_margin:

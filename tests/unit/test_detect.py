@@ -10,6 +10,9 @@ or a rotated corner order fails).
 from __future__ import annotations
 
 import math
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -161,3 +164,30 @@ def test_bad_arguments() -> None:
         make_detector("tag36h11", "nope")  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="family"):
         make_detector("tag25h9")
+
+
+def test_closing_a_tag16h5_detector_does_not_corrupt_the_heap() -> None:
+    """pupil_apriltags frees families before the detector; in a process that also runs
+    pybullet that aborts with a corrupted heap.  AprilTagDetector frees them in order."""
+    code = (
+        "import gc, numpy as np\n"
+        "from agents.detect import AprilTagDetector\n"
+        "from protocol.scenario import Scenario\n"
+        "from world.render import Renderer\n"
+        "r = Renderer(Scenario())\n"
+        "for _ in range(3):\n"
+        "    d = AprilTagDetector('tag16h5')\n"
+        "    d.detect(np.full((60, 80), 255, np.uint8))\n"
+        "    del d\n"
+        "    gc.collect()\n"
+        "r.close()\n"
+        "print('clean')\n"
+    )
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60,
+                         cwd=Path(__file__).resolve().parents[2])
+    assert res.returncode == 0 and "clean" in res.stdout, res.stderr[-2000:]
+    d = AprilTagDetector("tag16h5")
+    d.close()
+    d.close()  # idempotent
+    with pytest.raises(RuntimeError, match="closed"):
+        d.detect(painted(3, family="tag16h5"))

@@ -55,6 +55,9 @@ class FusionParams:
     odom_buffer: int = 4096
     max_pending_s: float = 3.0
     cov_period_s: float = 1.0  # marginal covariances are recomputed at most this often (simulated time)
+    init_min: int = 3  # agreeing observations needed to place a robot for the first time
+    init_agree_m: float = 0.15
+    init_window_s: float = 3.0
     # consecutive frames of one pair share their errors (same viewpoint, same tag pixels): fusing every
     # frame buys little accuracy and costs graph size, so each (observer, target) pair is thinned to this
     obs_min_interval_s: float = 0.3
@@ -125,6 +128,7 @@ class Fusion:
         self.watermark_ns = -1
         self.updates = 0
         self._next_cov_ns = 0
+        self._init: dict[int, list[tuple[int, Pose2, float]]] = {}
 
     # ------------------------------------------------------------------ input
     def _push(self, stamp_ns: int, kind: Literal["odom", "obs", "landmark"], data: tuple) -> None:  # type: ignore[type-arg]
@@ -276,11 +280,20 @@ class Fusion:
             if d2 > self.p.chi2_gate:
                 self.counters["rejected_gate"] += 1
                 return
-        # the paper's stitching places a robot seen for the first time
-        if po is None:
-            po = stitch([Edge(observer, target, rel, cov)], target, {target: pg})[observer]  # type: ignore[dict-item]
-        if pg is None:
-            pg = stitch([Edge(observer, target, rel, cov)], observer, {observer: po})[target]
+        # the paper's stitching places a robot seen for the first time; one observation can be a
+        # flipped single-tag pose, so wait for several that agree and start from the most certain
+        if po is None or pg is None:
+            new = observer if po is None else target
+            placed = stitch([Edge(observer, target, rel, cov)], target if po is None else observer,
+                            {target: pg} if po is None else {observer: po})[new]  # type: ignore[dict-item]
+            odom_new = oo if po is None else go
+            start = self._initial_pose(new, stamp_ns, placed, odom_new, float(np.trace(cov)))
+            if start is None:
+                return
+            if po is None:
+                po = start
+            else:
+                pg = start
         ko, do, co = self._anchor(observer, stamp_ns, oo, po)
         kg, dg, cg = self._anchor(target, stamp_ns, go, pg)
         # the measurement between the two keyframes: observer's motion since its keyframe, the
@@ -290,6 +303,27 @@ class Fusion:
         o.last_fix_ns = g.last_fix_ns = stamp_ns
         self.edges[(observer, target)] = stamp_ns
         self.counters["accepted_observations"] += 1
+
+    def _initial_pose(self, rid: int, stamp_ns: int, placed: Pose2, odom_pose: Pose2, trace: float) -> Pose2 | None:
+        """Collect stitched placements of an unplaced robot; once ``init_min`` recent
+        ones agree, return the most certain one carried forward by odometry to now."""
+        cands = [c for c in self._init.setdefault(rid, []) if stamp_ns - c[0] < self.p.init_window_s * 1e9]
+        # express every candidate as the pose of the odometry origin, so they compare across time
+        origin = se2_compose(placed, se2_inverse(odom_pose))
+        cands.append((stamp_ns, origin, trace))
+        self._init[rid] = cands
+        if len(cands) < self.p.init_min:
+            self.counters["deferred_init"] += 1
+            return None
+        med = np.median(np.array([c[1][:2] for c in cands]), axis=0)
+        agree = [c for c in cands if math.dist(c[1][:2], med) < self.p.init_agree_m]
+        if len(agree) < self.p.init_min:
+            self.counters["deferred_init"] += 1
+            return None
+        best = min(agree, key=lambda c: c[2])
+        self.counters["init_discarded"] += len(cands) - len(agree)
+        del self._init[rid]
+        return se2_compose(best[1], odom_pose)
 
     def _anchor(self, rid: int, stamp_ns: int, odom_pose: Pose2, guess: Pose2) -> tuple[int, Pose2, Cov]:
         """Keyframe an observation at ``stamp_ns`` attaches to: the robot's latest

@@ -13,6 +13,7 @@ import math
 import subprocess
 import sys
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 import pytest
@@ -27,7 +28,8 @@ from world import camera
 from world.assets import CELL_PX, tag_image
 from world.render import Renderer
 
-BACKENDS = ["apriltag", "aruco"]
+Backend = Literal["apriltag", "aruco"]
+BACKENDS: list[Backend] = ["apriltag", "aruco"]
 
 
 def scenario() -> Scenario:
@@ -69,7 +71,7 @@ def painted(tag_id: int, flip_cell: tuple[int, int] | None = None, black: int = 
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
-def test_contract_corner_order_on_a_painted_tag(backend: str) -> None:
+def test_contract_corner_order_on_a_painted_tag(backend: Backend) -> None:
     (det,) = make_detector("tag36h11", backend).detect(painted(7))
     assert det.tag_id == 7 and det.corners.shape == (4, 2) and det.corners.dtype == np.float64
     (trx, try_), (tlx, tly), (blx, bly), (brx, bry) = det.corners
@@ -84,7 +86,7 @@ def test_contract_corner_order_on_a_painted_tag(backend: str) -> None:
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
-def test_rendered_ids_and_corners_match_projected_truth(scene, backend: str) -> None:
+def test_rendered_ids_and_corners_match_projected_truth(scene, backend: Backend) -> None:
     s, r = scene
     cam = s.robot.cameras[0]
     det = make_detector(s.tags.family, backend)
@@ -132,7 +134,7 @@ def test_tag_map_owners() -> None:
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
-def test_hamming_filter(backend: str) -> None:
+def test_hamming_filter(backend: Backend) -> None:
     img = painted(7, flip_cell=(3, 4))  # one data bit wrong
     assert make_detector("tag36h11", backend, max_hamming=0).detect(img) == []
     (d,) = make_detector("tag36h11", backend, max_hamming=1).detect(img)
@@ -154,7 +156,7 @@ def test_margin_filter() -> None:
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
-def test_tag16h5(backend: str) -> None:
+def test_tag16h5(backend: Backend) -> None:
     (d,) = make_detector("tag16h5", backend).detect(painted(3, family="tag16h5"))
     assert d.tag_id == 3 and isinstance(d, TagDetection)
 

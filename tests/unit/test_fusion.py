@@ -87,8 +87,8 @@ def test_restarted_odometry_starts_a_new_chain_near_the_old_pose() -> None:
     for k in range(30):
         fusion.add_odometry(0, k * 10**8, (0.0, 0.0, 0.0), 0.0)
         fusion.add_odometry(1, k * 10**8, (0.01 * k, 0.0, 0.0), 0.01 * k)
-        if k == 5:
-            fusion.add_observation(0, 1, k * 10**8, (1.05, 0.0, 0.0), COV)
+        if 5 <= k <= 7:  # three agreeing observations place robot 1
+            fusion.add_observation(0, 1, k * 10**8, (1.0 + 0.01 * k, 0.0, 0.0), COV)
         fusion.advance(k * 10**8)
     before = fusion.pose(1)
     assert before is not None
@@ -97,5 +97,21 @@ def test_restarted_odometry_starts_a_new_chain_near_the_old_pose() -> None:
         fusion.add_odometry(1, k * 10**8, (0.0, 0.0, 0.0), 0.0)
         fusion.advance(k * 10**8)
     after = fusion.pose(1)
-    assert fusion.counters["odometry_restarts"] == 1
+    assert fusion.counters["odometry_restarts"] == 1 and fusion.counters["deferred_init"] == 2
     assert after is not None and math.dist(before[0][:2], after[0][:2]) < 0.05
+
+
+def test_a_lone_flipped_first_observation_does_not_place_a_robot() -> None:
+    fusion = Fusion(FusionParams(), 0, (0, 1))
+    true_rel = (2.0, 0.5, 3.0)
+    for k in range(12):
+        fusion.add_odometry(0, k * 10**8, (0.0, 0.0, 0.0), 0.0)
+        fusion.add_odometry(1, k * 10**8, (0.0, 0.0, 0.0), 0.0)
+        if k == 2:
+            fusion.add_observation(0, 1, k * 10**8, (2.6, -0.4, 0.2), COV)  # a flipped pose
+        elif k > 2:
+            fusion.add_observation(0, 1, k * 10**8, true_rel, COV)
+        fusion.advance(k * 10**8)
+    est = fusion.pose(1)
+    assert est is not None and math.dist(est[0][:2], true_rel[:2]) < 0.01
+    assert fusion.counters["init_discarded"] == 1

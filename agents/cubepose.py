@@ -63,7 +63,7 @@ _FACE_AXIS_SIGN: Final = tuple((int(np.argmax(np.abs(n))), float(n[np.argmax(np.
 _Arr = NDArray[Any]  # float64 arrays that come out of OpenCV (its stubs do not say so)
 
 # IPPE_SQUARE wants the corners TL, TR, BR, BL; the contract order is TR, TL, BL, BR.
-_TO_IPPE: Final = np.array([0, 1, 2, 3])
+_TO_IPPE: Final = np.array([1, 0, 3, 2])
 # negative evidence: a face whose normal is within ~55 deg of the line of sight and whose tag spans
 # this many pixels decodes reliably on our renders, so a candidate predicting one that was not seen is penalised
 _MISSING_COS: Final = 0.57

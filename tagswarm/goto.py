@@ -1,0 +1,116 @@
+"""``tagswarm goto ROBOT X Y``: send a robot to (X, Y) in the map frame.
+
+Joins the network with the same flags and ``TAGSWARM_*`` variables as every
+process, waits (up to ``--timeout``) until the agent's liveliness token
+``tagswarm/<run>/alive/agent/ROBOT`` is visible, so that its goal subscriber is
+known (agents subscribe before they declare the token), then publishes one
+:class:`protocol.messages.Goal` on ``tagswarm/<run>/robot/ROBOT/goal`` and
+exits 0.  The goal is stamped with the simulation time of the newest world
+tick, if the world is ticking.  Exit 1 (one line) when the agent is not alive;
+exit 2 (one line) for bad arguments, e.g. a non-finite X or Y.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+from collections.abc import Sequence
+
+from protocol import codec
+from protocol import messages as m
+from protocol.bus import Bus, open_bus
+from protocol.config import ConfigError, OneLineParser, add_common_args, bus_from, env_of, pick, run_main
+from protocol.keys import Keys
+
+PROG = "tagswarm goto"
+MAX_ROBOT_ID = 100_000  # protocol.messages.RobotId
+TICK_WAIT_S = 0.5
+
+
+def parser() -> OneLineParser:
+    p = OneLineParser(prog=PROG, description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("robot", type=int, metavar="ROBOT", help="robot id")
+    p.add_argument("x", type=float, metavar="X", help="goal x in the map frame (m)")
+    p.add_argument("y", type=float, metavar="Y", help="goal y in the map frame (m)")
+    p.add_argument("--tolerance", type=float, default=0.1, metavar="M",
+                   help="the robot stops within this distance of the goal (default 0.1)")
+    p.add_argument("--timeout", type=float, default=10.0, metavar="SECONDS",
+                   help="how long to wait for the agent's liveliness token (default 10)")
+    add_common_args(p)
+    return p
+
+
+def make_goal(robot: int, x: float, y: float, tolerance: float, stamp_ns: int = 0) -> m.Goal:
+    """The Goal message; raises ConfigError (one line) for values the wire would reject."""
+    if not 0 <= robot <= MAX_ROBOT_ID:
+        raise ConfigError(f"ROBOT must be between 0 and {MAX_ROBOT_ID}, got {robot}")
+    if not (math.isfinite(x) and math.isfinite(y)):
+        raise ConfigError(f"X and Y must be finite numbers (metres), got {x!r}, {y!r}")
+    if not math.isfinite(tolerance) or tolerance <= 0:
+        raise ConfigError(f"--tolerance must be a positive number of metres, got {tolerance!r}")
+    return m.Goal(seq=0, stamp_ns=stamp_ns, robot_id=robot, x_m=x, y_m=y, tolerance_m=tolerance)
+
+
+def wait_alive(bus: Bus, key: str, timeout_s: float) -> bool:
+    """True once a liveliness token on ``key`` is (or already was) visible."""
+    changes = bus.watch_liveliness(key)
+    seen = False
+
+    def up() -> bool:
+        nonlocal seen
+        seen = seen or any(c.value for c in changes.drain())
+        return seen
+
+    return bus.wait_for(up, timeout_s)
+
+
+def newest_tick_ns(bus: Bus, keys: Keys, timeout_s: float) -> int:
+    """Simulation time of the next world tick, or 0 if none comes within ``timeout_s``."""
+    ticks = bus.subscribe(keys.tick(), newest_only=True)
+    stamp = 0
+
+    def got() -> bool:
+        nonlocal stamp
+        for item in ticks.drain():
+            try:
+                stamp = max(stamp, codec.decode(m.Tick, item.value).stamp_ns)
+            except codec.DecodeError:
+                continue
+        return stamp > 0
+
+    bus.wait_for(got, timeout_s)
+    return stamp
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Console entry for ``tagswarm goto``: 0 sent, 1 agent not alive, 2 bad arguments."""
+
+    def body() -> int:
+        args = parser().parse_args(list(argv) if argv is not None else None)
+        env = env_of()
+        make_goal(args.robot, args.x, args.y, args.tolerance)  # validate before touching the network
+        if not math.isfinite(args.timeout) or args.timeout <= 0:
+            raise ConfigError("--timeout must be a positive number of seconds")
+        run = pick(args, env, "run", "default")
+        keys = Keys(run)
+        participant = f"agent/{args.robot}"
+        alive_key = keys.alive(participant)
+        with open_bus(bus_from(args, env)) as bus:
+            if not wait_alive(bus, alive_key, args.timeout):
+                sys.stderr.write(f"{PROG}: error: {participant} is not alive on run {run!r} "
+                                 f"(no liveliness token {alive_key} after {args.timeout:g} s)\n")
+                return 1
+            goal = make_goal(args.robot, args.x, args.y, args.tolerance, newest_tick_ns(bus, keys, TICK_WAIT_S))
+            bus.put(keys.goal(args.robot), codec.encode(goal))
+            # a round trip on the same link before closing the session, so the goal is on its way
+            bus.alive_now(alive_key, 1.0)
+        print(f"goal ({goal.x_m:.2f}, {goal.y_m:.2f}) ±{goal.tolerance_m:g} m sent to {participant} "
+              f"on {keys.goal(args.robot)} at t={goal.stamp_ns / 1e9:.2f} s")
+        return 0
+
+    return run_main(PROG, body)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

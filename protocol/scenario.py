@@ -133,6 +133,7 @@ class Robots(Spec, frozen=True, kw_only=True, forbid_unknown_fields=True):
     placement: Literal["ring", "grid", "random", "explicit"] = "ring"
     ring_radius_m: Pos = 1.5
     start: tuple[StartPose, ...] = ()
+    may_die: tuple[int, ...] = ()  # robots whose agent may exit early (fault scenarios)
 
 
 class Encoders(Spec, frozen=True, kw_only=True, forbid_unknown_fields=True):

@@ -117,6 +117,7 @@ def run_up(scenario: Scenario, out: Path, endpoint: str, run: str, *, live: bool
     common = ["--scenario", str(scen_file), "--run", run]
     children: list[Child] = []
     failure: str | None = None
+    may_die = {f"agent/{r}" for r in scenario.robots.may_die}
     t0 = time.monotonic()
     try:
         children.append(Child("server", [*_script("tagswarm-server"), *common, "--connect", endpoint],
@@ -146,7 +147,8 @@ def run_up(scenario: Scenario, out: Path, endpoint: str, run: str, *, live: bool
                             failure = f"world exited with code {world.proc.returncode}"
                         break
                     dead = [c for c in children if c is not world and c.proc.poll() is not None
-                            and (c.proc.returncode != 0 or rec.sim_ns / 1e9 < scenario.duration_s - 0.5)]
+                            and (c.proc.returncode != 0 or rec.sim_ns / 1e9 < scenario.duration_s - 0.5)
+                            and c.name not in may_die]
                     if dead:
                         failure = ", ".join(f"{c.name} exited with code {c.proc.returncode}" for c in dead)
                         break

@@ -11,28 +11,36 @@ frame (on the floor, x forward, y left, z up) -- or of a landmark tag's frame
 OpenCV pinholes (pixel centres at integer coordinates, no distortion) mounted at
 ``T_base_cam``.  Metres, radians, pixels.
 
-Algorithm per target:
+Algorithm per target (``c0``: the camera that sees the target's largest tag):
 
 1. Start: ``cv2.solvePnPGeneric(SOLVEPNP_IPPE_SQUARE)`` on the largest tag gives the
-   two poses a planar square cannot tell apart.
-2. Each start is refined by Levenberg-Marquardt over every corner of the target
-   (``cv2.solvePnPRefineLM`` for one camera; a small LM over all cameras' corners
-   for a rig) and scored as a negative log-likelihood: reprojection residuals /
-   ``pixel_sigma_px``, the ground-robot prior (both robots stand on the floor, so the
-   target's base has z near 0 -- a landmark near its known height -- and little
-   roll/pitch), the caller's prior pose if any, and negative evidence: a face the
-   solution says squarely faces the camera, big enough to decode, yet not
-   detected.  The best plausible candidate wins.
-3. Covariance: ``s^2 (J^T J)^-1`` from the Jacobian of the residuals at the solution
-   w.r.t. a right perturbation of ``T_base_target``, with
-   ``s = max(pixel_sigma_px, residual-based estimate)``, propagated to (x, y, yaw).
-   When the losing candidate is still plausible and not negligible, its spread is
-   added (moment-matched two-component mixture), so a possibly flipped solution
+   two poses a small square cannot tell apart (normal mirrored about the line of
+   sight).  When IPPE's second pose is not that mirror (it degenerates on small,
+   nearly frontal tags) the mirror is rebuilt, so the ambiguity is never lost.
+2. Refine: Gauss-Newton on theta = (rvec, tvec) of ``T_c0_target`` over every corner
+   of the target in every view, with ``cv2.projectPoints`` Jacobians (other cameras
+   chained through their fixed ``T_cam_c0``).  One tag: the better start is refined,
+   the other kept as IPPE left it.  Several tags: the start that throws the other
+   tags' corners off is dropped unrefined.
+3. Choose: candidates are scored by a negative log-likelihood -- reprojection
+   residuals over ``choice_sigma_px``, the ground-robot prior (both robots stand on
+   the floor: the target's base near z = 0 -- a landmark near its known height --
+   with little roll/pitch) and the caller's prior pose if any.  The best plausible
+   one wins.
+4. Covariance: ``s^2 (J^T J)^-1`` with ``s = max(pixel_sigma_px, residual-based
+   estimate)``, propagated to (x, y, yaw) of ``T_base_target``; when the other
+   candidate of the two-fold ambiguity is still plausible its spread is added with
+   its weight (moment-matched two-component mixture), so a possibly flipped yaw
    says so in its covariance instead of being confidently wrong.
-4. Rejected (and counted in :attr:`CubePoseEstimator.rejects`): reprojection RMS
-   above ``max_rms_px`` ("reprojection"), |z - expected| > ``z_tol_m`` or roll/pitch
-   above ``tilt_tol_rad`` ("implausible"), too few/degenerate corners or a singular
-   Jacobian ("degenerate").
+5. Reject (counted in :attr:`CubePoseEstimator.rejects`): reprojection RMS above
+   ``max_rms_px`` ("reprojection"); height or roll/pitch out of tolerance beyond
+   the estimate's own 3-sigma, or a tag seen from behind ("implausible"); too few
+   or collapsed corners, a singular Jacobian ("degenerate"); one tag ID twice in
+   one image ("duplicate").
+
+Cost: the single-camera path is a handful of OpenCV calls per target (IPPE,
+Rodrigues, projectPoints, solve, invert); bench/detect.py measures it against a
+bare AprilTag detect call.
 """
 
 from __future__ import annotations
@@ -57,24 +65,16 @@ from protocol.scenario import Scenario
 LANDMARK_PLATE_THICKNESS_M: Final = 0.01
 
 _EYE4: Final = np.eye(4)
-# (axis, sign) of each face's outward normal in the cube frame, by Face value
-_FACE_AXIS_SIGN: Final = tuple((int(np.argmax(np.abs(n))), float(n[np.argmax(np.abs(n))]))
-                               for n in (tags.face_axes(f)[0] for f in tags.Face))
 _Arr = NDArray[Any]  # float64 arrays that come out of OpenCV (its stubs do not say so)
 
 # IPPE_SQUARE wants the corners TL, TR, BR, BL; the contract order is TR, TL, BL, BR.
 _TO_IPPE: Final = np.array([1, 0, 3, 2])
-# negative evidence: a face whose normal is within ~55 deg of the line of sight and whose tag spans
-# this many pixels decodes reliably on our renders, so a candidate predicting one that was not seen is penalised
-_MISSING_COS: Final = 0.57
-_MISSING_MIN_PX: Final = 24.0
-_MISSING_PENALTY: Final = 9.0
 # a losing candidate is kept (for the ambiguity term, weight exp(-gap/2)) only within this score gap
 _AMBIGUITY_GAP: Final = 20.0
-# a single tag's valley along the two-fold ambiguity is flat: Gauss-Newton crawls there, and 2 steps
-# get ~90% of the residual decrease IPPE leaves
+# a single tag's winning start gets this many Gauss-Newton steps: one takes ~90% of the residual
+# decrease IPPE leaves, and the valley along the two-fold ambiguity is too flat for more to pay
 _SINGLE_TAG_ITERATIONS: Final = 1
-# IPPE's second solution counts as the mirror of its first if their normals agree within ~20 deg;
+# IPPE's second solution counts as the mirror of its first if their normals agree within 20 deg;
 # a rebuilt mirror starts off the residual minimum and gets a few more steps
 _MIRROR_COS: Final = math.cos(math.radians(20.0))
 _MIRROR_ITERATIONS: Final = 3
@@ -142,7 +142,6 @@ class PoseEstimate:
 class _TagGeom:
     kind: TargetKind
     target_id: int
-    face: int  # Face value, -1 for a landmark
     obj: NDArray[np.float64]  # (4, 3) corners in the target frame, contract order
     ippe_obj: NDArray[np.float64]  # (4, 3) corners in the tag's own frame, IPPE order
     T_tag_target: Mat  # (4, 4)
@@ -156,7 +155,6 @@ class _View:
     cam: CameraModel
     obj: NDArray[np.float64]  # (M, 3) target frame
     img: NDArray[np.float64]  # (M, 2) pixels
-    seen: list[bool]  # faces detected, by Face value
     T_cam_c0: Mat
 
 
@@ -177,7 +175,6 @@ class _Solution:
     z: float
     r22: float
     cost: float
-    penalty: float = 0.0  # negative evidence (missing faces), included in cost
 
     def theta(self) -> tuple[_Arr, _Arr]:
         if self.rvec is None or self.tvec is None:
@@ -240,66 +237,65 @@ def _se2_jacobian(T_base_cam: Mat, T_base_target: Mat, rvec: NDArray[Any]) -> ND
 class CubePoseEstimator:
     """Bundle adjustment of observed tag cubes and landmark tags, one camera or a rig.
 
-    ``pixel_sigma_px`` is the corner noise (1 sigma per axis) assumed for the
-    covariance and the candidate scores.  Measured on our renders (AprilTag 3,
-    0.5-5 m, 320x240 and 640x480, 60 deg HFOV): corners scatter ~0.27 px RMS per
-    axis about the projected truth; with 0.3 px the NEES of (x, y, yaw) averages
-    2.9-3.0 over 400 random views at either resolution (expected: 3), lower close
-    up (~2) and higher far away (~4) -- tests/unit/test_cubepose.py asserts the
-    average.  ``max_rms_px``, ``z_tol_m`` and ``tilt_tol_rad`` gate the result (see
-    :meth:`_plausible`); ``prior_sigma_xy_m``/``prior_sigma_yaw_rad`` weigh a caller's
-    prior pose when choosing between the two-fold solutions.
+    ``pixel_sigma_px`` is the corner noise (1 sigma per axis) behind the covariance.
+    Measured on our renders (AprilTag 3, 0.5-5 m, 320x240 and 640x480, 60 deg HFOV):
+    corners scatter 0.25-0.33 px RMS per axis about the projected truth, whatever
+    the tag's size; with 0.3 px the NEES of (x, y, yaw) averages 2.5-3.4 over
+    several hundred random views (expected: 3; tests/unit/test_cubepose.py asserts
+    it).  ``choice_sigma_px`` (>= ``pixel_sigma_px``) scales the residuals when the
+    two-fold ambiguity is weighed: render errors are correlated within a tag, so a
+    wrong flip can fit a small tag slightly better than the truth, and judging
+    that with 0.3 px made some flips look certain (NEES ~400); 0.8 px keeps
+    them flagged.  ``max_rms_px``, ``z_tol_m`` and ``tilt_tol_rad`` gate the result
+    (see :meth:`_plausible`); ``prior_sigma_xy_m``/``prior_sigma_yaw_rad`` weigh a
+    caller's prior pose when choosing between the two-fold solutions.
     """
 
     def __init__(self, scenario: Scenario, pixel_sigma_px: float = 0.3, max_rms_px: float = 2.0,
-                 z_tol_m: float = 0.08, tilt_tol_rad: float = 0.15, *, prior_sigma_xy_m: float = 0.25,
-                 prior_sigma_yaw_rad: float = 0.35, choice_sigma_px: float = 0.8, max_iterations: int = 10) -> None:
+                 z_tol_m: float = 0.08, tilt_tol_rad: float = 0.15, *, choice_sigma_px: float = 0.8,
+                 prior_sigma_xy_m: float = 0.25, prior_sigma_yaw_rad: float = 0.35, max_iterations: int = 10) -> None:
         if pixel_sigma_px <= 0:
             raise ValueError("pixel_sigma_px must be positive")
         self.scenario = scenario
         self.pixel_sigma_px = pixel_sigma_px
+        self.choice_sigma_px = max(choice_sigma_px, pixel_sigma_px)
         self.max_rms_px = max_rms_px
         self.z_tol_m = z_tol_m
         self.tilt_tol_rad = tilt_tol_rad
         self.prior_sigma_xy_m = prior_sigma_xy_m
         self.prior_sigma_yaw_rad = prior_sigma_yaw_rad
-        self.choice_sigma_px = max(choice_sigma_px, pixel_sigma_px)
         self.max_iterations = max_iterations
         self.rejects: Counter[str] = Counter()
         self.tag_map = TagMap.from_scenario(scenario)
+        self._cos_tilt_tol = math.cos(tilt_tol_rad)
+        # Gauss-Newton has converged once a step would buy less than this (px^2, 0.01 in chi^2: the pose
+        # then moves by ~0.1 sigma at most); saves the evaluations that only confirm convergence
+        self._tiny_px2 = 1e-2 * pixel_sigma_px**2
         self._geom: dict[int, _TagGeom] = {}
         self._expected_z: dict[tuple[str, int], float] = {}
-        self._cos_tilt_tol = math.cos(tilt_tol_rad)
-        # Gauss-Newton has converged once a step would buy less than this (px^2, i.e. 0.01 in chi^2: the
-        # pose then moves by ~0.1 sigma at most); saves the evaluations that only confirm convergence
-        self._tiny_px2 = 1e-2 * pixel_sigma_px**2
         r = scenario.robot
-        axes = [tags.face_axes(f) for f in tags.Face]
-        # outward normals and tag centres of the six faces in the robot's base frame, (3, 6), by Face value
-        self._face_n = np.stack([a[0] for a in axes], axis=1)
-        self._face_c = self._face_n * (r.cube_edge_m / 2.0) + np.array([[0.0], [0.0], [r.cube_center_z_m]])
         for rid in scenario.robot_ids:
             self._expected_z[("robot", rid)] = 0.0
             for face, tid in zip(tags.Face, scenario.tag_ids(rid), strict=True):
-                n, u, rr = axes[face]
-                self._geom[tid] = self._tag_geom("robot", rid, int(face), self._face_c[:, face], n, u, rr,
-                                                 scenario.tags.size_m)
+                n, u, rr = tags.face_axes(face)
+                centre = n * (r.cube_edge_m / 2.0) + np.array([0.0, 0.0, r.cube_center_z_m])
+                self._geom[tid] = self._tag_geom("robot", rid, centre, n, u, rr, scenario.tags.size_m)
         for lm in scenario.landmarks:
             self._expected_z[("landmark", lm.id)] = lm.z_m
-            n, u, rr = axes[tags.Face.FRONT]
-            self._geom[lm.id] = self._tag_geom("landmark", lm.id, -1, n * (LANDMARK_PLATE_THICKNESS_M / 2.0), n, u,
-                                               rr, lm.size_m)
+            n, u, rr = tags.face_axes(tags.Face.FRONT)
+            self._geom[lm.id] = self._tag_geom("landmark", lm.id, n * (LANDMARK_PLATE_THICKNESS_M / 2.0), n, u, rr,
+                                               lm.size_m)
 
     @staticmethod
-    def _tag_geom(kind: TargetKind, target_id: int, face: int, centre: NDArray[np.float64],
-                  n: NDArray[np.float64], u: NDArray[np.float64], r: NDArray[np.float64], size: float) -> _TagGeom:
+    def _tag_geom(kind: TargetKind, target_id: int, centre: NDArray[np.float64], n: NDArray[np.float64],
+                  u: NDArray[np.float64], r: NDArray[np.float64], size: float) -> _TagGeom:
         obj = tags.square_corners(centre, u, r, size)
         t_target_tag = np.eye(4)
         t_target_tag[:3, :3] = np.stack([r, u, n], axis=1)  # tag frame: x right, y up, z out of the face
         t_target_tag[:3, 3] = centre
         h = size / 2.0
         ippe = np.array([[-h, h, 0.0], [h, h, 0.0], [h, -h, 0.0], [-h, -h, 0.0]])
-        return _TagGeom(kind, target_id, face, obj, ippe, np.asarray(np.linalg.inv(t_target_tag), np.float64))
+        return _TagGeom(kind, target_id, obj, ippe, np.asarray(np.linalg.inv(t_target_tag), np.float64))
 
     def object_points(self, tag_id: int) -> NDArray[np.float64] | None:
         """(4, 3) corners of ``tag_id`` in its target's frame (metres, contract order), or None."""
@@ -336,8 +332,8 @@ class CubePoseEstimator:
 
     def _views(self, members: list[tuple[int, _TagGeom, TagDetection]],
                views: list[tuple[CameraModel, list[TagDetection]]]) -> tuple[list[_View], _TagGeom, TagDetection]:
-        """The target's corners per camera, the start camera first, and the largest tag
-        (geometry, detection); raises ValueError("duplicate"/"degenerate")."""
+        """The target's corners per camera, the start camera (largest tag) first, and the
+        largest tag's geometry and detection; raises ValueError(reason) on a bad set."""
         if len(members) == 1:
             vi, g, d = members[0]
             c = d.corners
@@ -347,7 +343,7 @@ class CubePoseEstimator:
             if area < 4.0:
                 # a tag is only decodable from its front: clockwise corners mean a fake or garbled set
                 raise ValueError("implausible" if area < -4.0 else "degenerate")
-            return [_View(views[vi][0], g.obj, c, [g.face == f for f in range(6)], _EYE4)], g, d
+            return [_View(views[vi][0], g.obj, c, _EYE4)], g, d
         per_cam: dict[int, list[tuple[_TagGeom, TagDetection]]] = {}
         best_area, start = -1.0, members[0]
         for m in members:
@@ -357,9 +353,9 @@ class CubePoseEstimator:
                 raise ValueError("duplicate")
             items.append((g, d))
             c = d.corners
-            if c.shape != (4, 2):
+            if c.shape != (4, 2) or not np.isfinite(c).all():
                 raise ValueError("degenerate")
-            area = _quad_area(c)  # the largest tag gives the best-constrained start
+            area = _quad_area(c)
             if area < -4.0:
                 raise ValueError("implausible")
             if area > best_area:
@@ -369,20 +365,13 @@ class CubePoseEstimator:
         c0 = views[start[0]][0]
         out: list[_View] = []
         for vi, items in per_cam.items():
-            seen = [False] * 6
-            for g, _ in items:
-                if g.face >= 0:
-                    seen[g.face] = True
-            img = items[0][1].corners if len(items) == 1 else np.concatenate([d.corners for _, d in items])
-            obj = items[0][0].obj if len(items) == 1 else np.concatenate([g.obj for g, _ in items])
-            if not np.isfinite(img).all():
-                raise ValueError("degenerate")
+            img = np.ascontiguousarray(np.concatenate([d.corners for _, d in items]), np.float64)
+            obj = np.concatenate([g.obj for g, _ in items])
             cam = views[vi][0]
             if vi == start[0]:
-                out.insert(0, _View(cam, obj, np.ascontiguousarray(img, np.float64), seen, _EYE4))
+                out.insert(0, _View(cam, obj, img, _EYE4))
             else:
-                out.append(_View(cam, obj, np.ascontiguousarray(img, np.float64), seen,
-                                 cam.T_cam_base @ c0.T_base_cam))
+                out.append(_View(cam, obj, img, cam.T_cam_base @ c0.T_base_cam))
         return out, start[1], start[2]
 
     def _estimate_target(self, key: tuple[str, int], members: list[tuple[int, _TagGeom, TagDetection]],
@@ -402,32 +391,23 @@ class CubePoseEstimator:
         if n == 0:
             self._reject("degenerate")
             return None
-        robot = sg.kind == "robot"
         n_corners = sum(len(v.obj) for v in vlist)
         z_exp = self._expected_z.get(key, 0.0)
         t_bc = c0.T_base_cam
-        sse_ippe = [e * e * 8.0 for e in errs.ravel().tolist()]  # IPPE's error: RMS of the 8 coordinates
         t_tags = [_rt_to_matrix(rv, tv) for rv, tv in zip(rvecs, tvecs, strict=True)]
-        starts = [self._candidate(t @ sg.T_tag_target, t_bc, sse, 0, z_exp, prior)
+        sse_ippe = [e * e * 8.0 for e in errs.ravel().tolist()]  # IPPE's error: RMS of the 8 coordinates
+        starts = [self._candidate(t @ sg.T_tag_target, t_bc, sse, z_exp, prior)
                   for t, sse in zip(t_tags, sse_ippe, strict=True)]
+        sols: list[_Solution] = []
         if n_corners == 4:
             mirror = self._mirror_start(vlist, t_tags, sg, z_exp, prior)
             if mirror is not None:
                 starts = [starts[0], mirror]
-                n = 2
-        sols: list[_Solution] = []
-        if n_corners == 4:
-            # one tag: IPPE's own reprojection error scores the starts.  The winner is refined; the
-            # loser only matters through the ambiguity term (weight exp(-gap/2)), so it stays where
-            # IPPE put it, and is dropped when the gap is large.  Only a close call pays for the
-            # negative evidence of faces that should have been seen
-            if robot and n > 1 and abs(starts[1].cost - starts[0].cost) < _AMBIGUITY_GAP + 2 * _MISSING_PENALTY:
-                for c, m in zip(starts, self._evidence(vlist, [c.T_c0_target for c in starts]), strict=True):
-                    c.penalty = _MISSING_PENALTY * m if m >= 0 else math.inf
-                    c.cost += c.penalty
+            # one tag: the better start is refined; the other only matters through the ambiguity
+            # term, so it stays as IPPE left it, and is dropped when the gap is large
             starts.sort(key=lambda c: c.cost)
             first = starts[0]
-            sol = self._solve(vlist, *first.theta(), first.penalty, z_exp, prior, _SINGLE_TAG_ITERATIONS)
+            sol = self._solve(vlist, *first.theta(), z_exp, prior, _SINGLE_TAG_ITERATIONS)
             if sol is not None:
                 sols.append(sol)
             sols += [c for c in starts[1:] if c.cost - first.cost < _AMBIGUITY_GAP]
@@ -439,18 +419,9 @@ class CubePoseEstimator:
             lim = 3.0 * min(sse0) + _AMBIGUITY_GAP * self.choice_sigma_px**2
             for c, sse, ev in zip(starts, sse0, evals, strict=True):
                 if sse <= lim:
-                    sol = self._solve(vlist, *c.theta(), 0.0, z_exp, prior, self.max_iterations, ev)
+                    sol = self._solve(vlist, *c.theta(), z_exp, prior, self.max_iterations, ev)
                     if sol is not None:
                         sols.append(sol)
-            if robot and len(sols) > 1:
-                # two refined solutions compete: a detected face turned away from a camera rules one
-                # out, an undetected face that should have been seen counts against it
-                for c, m in zip(sols, self._evidence(vlist, [c.T_c0_target for c in sols]), strict=True):
-                    c.cost += _MISSING_PENALTY * m if m >= 0 else math.inf
-                sols = [c for c in sols if math.isfinite(c.cost)]
-                if not sols:
-                    self._reject("implausible")  # every solution shows a detected face from behind
-                    return None
         if not sols:
             self._reject("degenerate")
             return None
@@ -510,22 +481,28 @@ class CubePoseEstimator:
         The two poses of a small square mirror its normal about the line of sight.  On
         small, nearly frontal tags IPPE's second solution sometimes degenerates (e.g.
         upside down) and the real alternative goes missing, leaving a confidently wrong
-        yaw; this rebuilds it from the first solution and refines it (None if IPPE's
-        second solution already is that mirror, or the view is exactly frontal)."""
+        yaw; this rebuilds it from the first solution (``t_tags``: IPPE's T_cam_tag) and
+        refines it.  None if IPPE's second solution already is that mirror, or the view
+        is exactly frontal."""
         t = t_tags[0]
-        n = t[:3, 2]  # the tag's outward normal in the camera frame
-        v = -t[:3, 3] / np.linalg.norm(t[:3, 3])  # towards the camera
-        axis = np.cross(n, v)
+        (_, _, n0, c0), (_, _, n1, c1), (_, _, n2, c2), _ = t.tolist()  # normal n, centre c (camera frame)
+        dist = math.sqrt(c0 * c0 + c1 * c1 + c2 * c2)
+        v0, v1, v2 = -c0 / dist, -c1 / dist, -c2 / dist  # towards the camera
+        cos = n0 * v0 + n1 * v1 + n2 * v2
+        if len(t_tags) > 1:
+            # the mirrored normal is 2 (n.v) v - n
+            (_, _, o0, _), (_, _, o1, _), (_, _, o2, _), _ = t_tags[1].tolist()
+            if (2 * cos * v0 - n0) * o0 + (2 * cos * v1 - n1) * o1 + (2 * cos * v2 - n2) * o2 > _MIRROR_COS:
+                return None
+        axis = np.cross(t[:3, 2], (v0, v1, v2))
         sin = float(np.linalg.norm(axis))
         if sin < 1e-4:
             return None
-        r = cv2.Rodrigues(axis * (2.0 * math.atan2(sin, float(n @ v)) / sin))[0] @ t[:3, :3]
-        if len(t_tags) > 1 and float(r[:, 2] @ t_tags[1][:3, 2]) > _MIRROR_COS:
-            return None
+        r = cv2.Rodrigues(axis * (2.0 * math.atan2(sin, cos) / sin))[0] @ t[:3, :3]
         t_ct = t.copy()
         t_ct[:3, :3] = r
         t_ct = t_ct @ sg.T_tag_target
-        return self._solve(vlist, cv2.Rodrigues(t_ct[:3, :3])[0].ravel(), t_ct[:3, 3].copy(), 0.0, z_exp, prior,
+        return self._solve(vlist, cv2.Rodrigues(t_ct[:3, :3])[0].ravel(), t_ct[:3, 3].copy(), z_exp, prior,
                            _MIRROR_ITERATIONS)
 
     def _prior_terms(self, sol: _Solution, z_exp: float, prior: tuple[float, float, float] | None) -> float:
@@ -538,6 +515,15 @@ class CubePoseEstimator:
             cost += ((x - prior[0]) ** 2 + (y - prior[1]) ** 2) / self.prior_sigma_xy_m**2
             cost += (_wrap(yaw - prior[2]) / self.prior_sigma_yaw_rad) ** 2
         return cost
+
+    def _candidate(self, t_ct: Mat, t_bc: Mat, sse: float, z_exp: float,
+                   prior: tuple[float, float, float] | None) -> _Solution:
+        """A scored candidate from T_c0_target and its residual sum of squares (px^2)."""
+        t_bt = t_bc @ t_ct
+        (r00, _, _, x), (r10, _, _, y), (_, _, r22, z), _ = t_bt.tolist()
+        sol = _Solution(t_ct, None, None, None, sse, t_bt, (x, y, math.atan2(r10, r00)), z, r22, 0.0)
+        sol.cost = sse / self.choice_sigma_px**2 + self._prior_terms(sol, z_exp, prior)
+        return sol
 
     def _residuals(self, vlist: list[_View], rvec: _Arr, tvec: _Arr) -> tuple[_Arr, _Arr]:
         """Stacked residuals (2M,) projected - detected (px) and their Jacobian (2M, 6) w.r.t.
@@ -571,23 +557,21 @@ class CubePoseEstimator:
                 return False
         return True
 
-    def _solve(self, vlist: list[_View], rvec: _Arr, tvec: _Arr, penalty: float, z_exp: float,
+    def _solve(self, vlist: list[_View], rvec: _Arr, tvec: _Arr, z_exp: float,
                prior: tuple[float, float, float] | None, max_iterations: int,
                start: tuple[_Arr, _Arr] | None = None) -> _Solution | None:
         """Gauss-Newton (with step halving) on theta = (rvec, tvec) of T_c0_target over every
-        corner of every view, then scored (``penalty``: the start's score beyond the pixels
-        and the priors, i.e. missing faces; ``start``: residuals and Jacobian at the start if
-        already known); None if a corner ends up behind a camera."""
+        corner of every view, then scored (``start``: residuals and Jacobian at the start,
+        if already known); None if a corner ends up behind a camera."""
         r, jac = start if start is not None else self._residuals(vlist, rvec, tvec)
         sse = float(r @ r)
-        tiny = self._tiny_px2
         for _ in range(max_iterations):
             grad = jac.T @ r
             ok, step = cv2.solve(jac.T @ jac, -grad, flags=cv2.DECOMP_CHOLESKY)
             if not ok:
                 break
             step = step.ravel()
-            if -float(step @ grad) < tiny:
+            if -float(step @ grad) < self._tiny_px2:
                 break
             for _halving in range(4):
                 nr, nt = rvec + step[:3], tvec + step[3:]
@@ -603,61 +587,9 @@ class CubePoseEstimator:
         # one view: the start faced the camera and Gauss-Newton does not jump through the image plane
         if len(vlist) > 1 and not self._in_front(vlist, t_ct):
             return None
-        sol = self._candidate(t_ct, vlist[0].cam.T_base_cam, sse, 0, z_exp, prior)
+        sol = self._candidate(t_ct, vlist[0].cam.T_base_cam, sse, z_exp, prior)
         sol.rvec, sol.tvec, sol.jac = rvec, tvec, jac
-        # the start's negative evidence (missing faces) carries over
-        sol.penalty = penalty
-        sol.cost += penalty
         return sol
-
-    def _candidate(self, t_ct: Mat, t_bc: Mat, sse: float, missing: int, z_exp: float,
-                   prior: tuple[float, float, float] | None) -> _Solution:
-        t_bt = t_bc @ t_ct
-        (r00, _, _, x), (r10, _, _, y), (_, _, r22, z), _ = t_bt.tolist()
-        sol = _Solution(t_ct, None, None, None, sse, t_bt, (x, y, math.atan2(r10, r00)), z, r22, 0.0)
-        sol.penalty = _MISSING_PENALTY * missing
-        sol.cost = sse / self.choice_sigma_px**2 + self._prior_terms(sol, z_exp, prior) + sol.penalty
-        return sol
-
-    def _evidence(self, vlist: list[_View], t_c0_targets: list[Mat]) -> list[int]:
-        """Per candidate T_c0_target: -1 if it turns a detected face away from a camera,
-        else the number of undetected faces that would squarely face a camera, inside
-        its image and big enough to decode (negative evidence against the candidate)."""
-        h = self.scenario.robot.cube_edge_m / 2.0
-        zc = self.scenario.robot.cube_center_z_m
-        tag = self.scenario.tags.size_m
-        out = []
-        for t_c0 in t_c0_targets:
-            missing = 0
-            for v in vlist:
-                t = t_c0 if v.T_cam_c0 is _EYE4 else v.T_cam_c0 @ t_c0
-                (r00, r01, r02, tx), (r10, r11, r12, ty), (r20, r21, r22, tz), _ = t.tolist()
-                cols = ((r00, r10, r20), (r01, r11, r21), (r02, r12, r22))
-                seen = v.seen
-                k = v.cam.K
-                # face f has outward normal s*e_a and tag centre s*h*e_a + zc*e_z (target frame); in the
-                # camera: n = s*R[:, a], c = s*h*R[:, a] + zc*R[:, 2] + t
-                for f, (a, sgn) in enumerate(_FACE_AXIS_SIGN):
-                    ca = cols[a]
-                    cx = sgn * h * ca[0] + zc * r02 + tx
-                    cy = sgn * h * ca[1] + zc * r12 + ty
-                    cz = sgn * h * ca[2] + zc * r22 + tz
-                    dist = math.sqrt(cx * cx + cy * cy + cz * cz)
-                    cos = -sgn * (ca[0] * cx + ca[1] * cy + ca[2] * cz) / dist
-                    if seen[f]:
-                        if cos <= 0.0:
-                            missing = -1
-                            break
-                    elif cos >= _MISSING_COS and cz > 0.0:
-                        size = k[0, 0] * tag / dist * math.sqrt(cos)
-                        u, w = k[0, 0] * cx / cz + k[0, 2], k[1, 1] * cy / cz + k[1, 2]
-                        if size >= _MISSING_MIN_PX and size <= u <= v.cam.width - size and (
-                                size <= w <= v.cam.height - size):
-                            missing += 1
-                if missing < 0:
-                    break
-            out.append(missing)
-        return out
 
     def _cov_theta(self, sol: _Solution, vlist: list[_View], n_corners: int) -> Mat | None:
         """(6, 6) covariance of theta = (rvec, tvec), or None when the corners do not

@@ -9,12 +9,13 @@ bottom-left, bottom-right of the upright tag (counter-clockwise in the image).
 Two backends:
 
 * :class:`AprilTagDetector` (``pupil_apriltags``, AprilTag 3) -- the default: the
-  fastest here with ``quad_decimate=1, nthreads=1`` (2 ms at 320x240, 5.6 ms at
-  640x480) and it decodes the smallest tags.
+  fastest here with ``quad_decimate=1, nthreads=1`` (~0.9 ms at 320x240, ~2.4 ms at
+  640x480 on paper-arena frames, bench/detect.py) and it decodes the smallest tags.
 * :class:`ArucoDetector` (``cv2.aruco`` with ``CORNER_REFINE_APRILTAG``) -- a second
-  opinion; about 2x slower and loses tags under ~30 px.  It reports no decision
+  opinion; ~1.5x slower and it loses the smallest tags.  It reports no decision
   margin (treated as passing) and no Hamming distance, so the distance is measured
-  here by sampling the decoded cells.
+  here by sampling the decoded cells.  Measured: with AprilTag corner refinement
+  its corners carry AprilTag's +0.5 px offset too, and are shifted like them.
 """
 
 from __future__ import annotations
@@ -109,7 +110,10 @@ class AprilTagDetector:
         det.tag_detector_ptr = None
 
     def __del__(self) -> None:
-        self.close()
+        try:
+            self.close()
+        except Exception:  # at interpreter exit ctypes may already be torn down
+            pass
 
     def detect(self, gray: NDArray[np.uint8]) -> list[TagDetection]:
         """Detections in ``gray`` ((H, W) uint8), corners in OpenCV's pixel convention."""

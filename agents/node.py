@@ -28,7 +28,7 @@ from protocol import codec
 from protocol import messages as m
 from protocol.bus import Bus, Inbox, open_bus
 from protocol.config import install_stop_signals, run_main, setup_logging
-from protocol.geometry import Pose2, matrix_to_pose3, se2_compose
+from protocol.geometry import Pose2, se2_compose
 from protocol.keys import Keys
 from protocol.scenario import arena_to_map
 
@@ -211,12 +211,7 @@ class AgentNode:
 
     def _publish_observation(self, est: PoseEstimate, stamp_ns: int) -> None:
         key = self.keys.observation(self.rid)
-        self._publish(key, m.RelativeObservation(
-            seq=self._next(key), stamp_ns=stamp_ns, robot_id=self.rid, target_kind=est.target_kind,  # type: ignore[arg-type]
-            target_id=est.target_id, x_m=float(est.x_m), y_m=float(est.y_m), yaw_rad=float(est.yaw_rad),
-            cov=tuple(float(v) for v in np.asarray(est.cov).ravel()), pose=matrix_to_pose3(est.T_base_target),
-            reprojection_rms_px=float(est.reprojection_rms_px), tag_ids=tuple(int(t) for t in est.tag_ids),
-            camera="+".join(est.cameras)))
+        self._publish(key, est.to_message(self.rid, seq=self._next(key), stamp_ns=stamp_ns))
         self.counters["observations"] += 1
 
     # ------------------------------------------------------------------ control

@@ -55,7 +55,7 @@ def layouts(s: Scenario, n: int, rng: np.random.Generator) -> list[list[tuple[fl
     half = min(s.arena.size_x_m, s.arena.size_y_m) / 2 - s.arena.wall_thickness_m / 2 - footprint_radius(s.robot)
     gap = 2 * footprint_radius(s.robot) + 0.05
     hfov = math.radians(s.robot.cameras[0].hfov_deg)
-    out = []
+    out: list[list[tuple[float, float, float]]] = []
     while len(out) < n:
         x0, y0 = rng.uniform(-half, half, 2)
         yaw0 = math.atan2(-y0, -x0) + rng.uniform(-0.6, 0.6)
@@ -125,7 +125,8 @@ def run(width: int, height: int, frames: int, repeats: int, seed: int) -> dict[s
             bins.append({"range_m": [lo, hi], "n": 0})
             continue
         bins.append({"range_m": [lo, hi], "n": len(sel),
-                     "median_xy_cm": float(np.median(sel[:, 1]) * 100), "p90_xy_cm": float(np.percentile(sel[:, 1], 90) * 100),
+                     "median_xy_cm": float(np.median(sel[:, 1]) * 100),
+                     "p90_xy_cm": float(np.percentile(sel[:, 1], 90) * 100),
                      "median_yaw_deg": float(np.degrees(np.median(sel[:, 2]))),
                      "p90_yaw_deg": float(np.degrees(np.percentile(sel[:, 2], 90))),
                      "yaw_over_10deg": int((sel[:, 2] > math.radians(10)).sum()),

@@ -294,6 +294,7 @@ class Fusion:
                 po = start
             else:
                 pg = start
+        assert po is not None and pg is not None
         ko, do, co = self._anchor(observer, stamp_ns, oo, po)
         kg, dg, cg = self._anchor(target, stamp_ns, go, pg)
         # the measurement between the two keyframes: observer's motion since its keyframe, the

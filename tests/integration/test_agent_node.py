@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import math
 
 from agents.config import build_config
@@ -43,7 +44,7 @@ def test_corrections_move_the_map_pose_but_never_the_odometry() -> None:
             node.step()
         assert bus.wait_for(lambda: len(odom_out) >= 60, 5)
         odoms = [codec.decode(m.OdometryEstimate, it.value) for it in odom_out.drain()]
-    steps = [math.hypot(b.x_m - a.x_m, b.y_m - a.y_m) for a, b in zip(odoms, odoms[1:], strict=False)]
+    steps = [math.hypot(b.x_m - a.x_m, b.y_m - a.y_m) for a, b in itertools.pairwise(odoms)]
     assert max(steps) < 0.005  # smooth: no jump at the correction
     assert pose_before is None  # robot 1 is not the origin: unlocalised before its first correction
     final = node.map_pose

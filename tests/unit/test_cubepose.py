@@ -186,6 +186,25 @@ def test_single_face_flips_are_flagged_and_a_prior_resolves_them(observations) -
     assert fixed >= 0.8 * len(flagged)
 
 
+def test_a_degenerate_ippe_alternative_is_rebuilt(renderer, detector, monkeypatch) -> None:
+    """A small, nearly frontal tag where IPPE's second solution degenerates: without the
+    rebuilt mirror the flip goes unflagged (NEES ~140), with it the covariance covers it."""
+    renderer.set_pose(0, (0.0, 0.0, -10.0), (0, 0, 0, 1))
+    x, y, yaw = 2.9718, -0.9120, 3.0089
+    dets = view(renderer, detector, "front", x, y, yaw)
+    assert len(dets) == 1
+
+    def nees(e: PoseEstimate) -> float:
+        err = np.array([e.x_m - x, e.y_m - y, wrap_angle(e.yaw_rad - yaw)])
+        return float(err @ np.linalg.solve(e.cov, err))
+
+    (e,) = CubePoseEstimator(S).estimate([(MODELS["front"], dets)])
+    assert e.ambiguity > 0.2 and nees(e) < 12
+    monkeypatch.setattr(CubePoseEstimator, "_mirror_start", lambda self, *a: None)
+    (e,) = CubePoseEstimator(S).estimate([(MODELS["front"], dets)])
+    assert e.ambiguity == 0 and nees(e) > 30
+
+
 def test_a_camera_rig_beats_one_camera(renderer, detector) -> None:
     renderer.set_pose(0, (0.0, 0.0, -10.0), (0, 0, 0, 1))
     est = CubePoseEstimator(S)

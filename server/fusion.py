@@ -96,6 +96,13 @@ def odom_increment_cov(delta: Pose2, p: FusionParams) -> Cov:
     return np.diag([var_s + 1e-8, var_lat + 1e-8, var_th + 1e-8])
 
 
+def inverse_cov(rel: Pose2, cov: Cov) -> Cov:
+    """(3, 3) covariance of rel⁻¹ given that of ``rel`` (first order)."""
+    ci, si = math.cos(rel[2]), math.sin(rel[2])
+    j = -np.array([[ci, si, rel[0] * si - rel[1] * ci], [-si, ci, rel[0] * ci + rel[1] * si], [0, 0, 1.0]])
+    return np.asarray(j @ cov @ j.T)
+
+
 @dataclass(order=True)
 class _Event:
     stamp_ns: int
@@ -287,7 +294,10 @@ class Fusion:
             placed = stitch([Edge(observer, target, rel, cov)], target if po is None else observer,
                             {target: pg} if po is None else {observer: po})[new]  # type: ignore[dict-item]
             odom_new = oo if po is None else go
-            start = self._initial_pose(new, stamp_ns, placed, odom_new, float(np.trace(cov)))
+            # rank candidates by the position uncertainty they give the new robot: placing the
+            # observer goes through the inverse, where the yaw error is levered by the range
+            spread = inverse_cov(rel, cov) if po is None else cov
+            start = self._initial_pose(new, stamp_ns, placed, odom_new, float(spread[0, 0] + spread[1, 1]))
             if start is None:
                 return
             if po is None:
@@ -355,9 +365,7 @@ class Fusion:
         # covariance of L ⊕ rel⁻¹ (first order), rotated into the map frame
         c, s = math.cos(lm[2]), math.sin(lm[2])
         rot = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
-        ci, si = math.cos(rel[2]), math.sin(rel[2])
-        j_inv = -np.array([[ci, si, rel[0] * si - rel[1] * ci], [-si, ci, rel[0] * ci + rel[1] * si], [0, 0, 1.0]])
-        cov_map = rot @ j_inv @ cov @ j_inv.T @ rot.T
+        cov_map = rot @ inverse_cov(rel, cov) @ rot.T
         if r.estimate is not None:
             cur = se2_compose(r.estimate, se2_between(r.kf_odom, oo))
             if self._gate(cur, pose, cov_map + r.cov) > self.p.chi2_gate:

@@ -90,3 +90,28 @@ def test_sigint_stops_every_child_and_still_writes_a_report(tmp_path: Path) -> N
     assert not alive, f"children still running: {alive}"
     assert (out / "run.json").is_file() and (out / "metrics.json").is_file()
     assert (out / "trajectories" / "truth_0.tum").stat().st_size > 0
+
+
+def test_a_dying_agent_fails_the_run_with_its_last_log_lines(tmp_path: Path) -> None:
+    out = tmp_path / "run"
+    proc = subprocess.Popen([script("tagswarm"), "up", "--duration", "600", "--out", str(out), "--no-live",
+                             "--no-report", "--set", "robots.count=2", "--set", 'robots.placement="ring"',
+                             "--set", "missions=[]"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    me = psutil.Process(proc.pid)
+    victim = None
+    deadline = time.monotonic() + 60
+    while victim is None and time.monotonic() < deadline:
+        for child in me.children(recursive=True):
+            cmd = " ".join(child.cmdline())
+            if "--robot-id 1" in cmd:
+                victim = child
+        time.sleep(0.2)
+    assert victim is not None
+    while time.monotonic() < deadline and "agent 1 up" not in (out / "logs" / "agent1.log").read_text():
+        time.sleep(0.2)
+    victim.send_signal(signal.SIGKILL)
+    text, _ = proc.communicate(timeout=60)
+    assert proc.returncode == 1, text
+    assert "agent/1 exited with code -9" in text
+    assert "last lines of" in text and "agent 1 up" in text  # the agent's own log tail is shown
+    assert json.loads((out / "run.json").read_text())["exit_code"] == 1

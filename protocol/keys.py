@@ -57,6 +57,10 @@ class Keys:
     def prefix(self) -> str:
         return f"{ROOT}/{self.run}"
 
+    def all(self) -> str:
+        """Every key of this run."""
+        return f"{self.prefix}/**"
+
     # -- world ---------------------------------------------------------------
     def tick(self) -> str:
         return f"{self.prefix}/world/tick"

@@ -21,7 +21,7 @@ import time
 from collections.abc import Sequence
 
 from protocol.bus import open_bus
-from protocol.config import ConfigError, OneLineParser, add_common_args, bus_from, env_of, pick, run_main
+from protocol.config import ConfigError, OneLineParser, add_common_args, bus_from, env_of, pick, run_main, setup_logging
 from protocol.keys import Keys, split_participant
 
 PROG = "tagswarm alive"
@@ -59,6 +59,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             value = getattr(args, name)
             if not math.isfinite(value) or value <= 0:
                 raise ConfigError(f"--{name.replace('_', '-')} must be a positive number of seconds")
+        setup_logging(pick(args, env, "log_level", "WARNING"), "alive")  # validates --log-level too
         if (args.participant is None) == (args.heartbeat is None):
             raise ConfigError("give either PARTICIPANT (e.g. world/0) or --heartbeat PATH")
         if args.heartbeat is not None:

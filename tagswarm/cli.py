@@ -6,28 +6,37 @@ the console scripts; people use the subcommands).
 
 from __future__ import annotations
 
+import importlib
 import sys
 from collections.abc import Callable, Sequence
 
 from protocol.scenario import builtin_names
 
+# name -> (help, module, function); modules are imported only when their command
+# runs, so `tagswarm alive` (a compose healthcheck) does not load pybullet or GTSAM
+COMMANDS: dict[str, tuple[str, str, str]] = {
+    "up": ("run a whole swarm (world, server, agents) and write a run folder with metrics and plots",
+           "tagswarm.up", "main"),
+    "report": ("evaluate a run folder again: metrics.json + plots", "tagswarm.report", "main"),
+    "snapshot": ("start a world, grab one frame per camera, decode tags, write PNGs + JSON", "tagswarm.snapshot",
+                 "main"),
+    "world": ("run the world process (physics, cameras, encoders, clock)", "world.node", "main"),
+    "render": ("run one render worker for a world started with --no-spawn-workers", "world.render_worker", "main"),
+    "agent": ("run one robot's agent (detection, cube pose, odometry, behaviour)", "agents.node", "main"),
+    "server": ("run the map server (stitching, pose-graph fusion, corrections)", "server.node", "main"),
+    "router": ("run a Zenoh router for client-mode processes (compose), with a heartbeat file", "tagswarm.router",
+               "main"),
+    "spy": ("live table of a running system's keys: types, rates, bandwidth, last message", "tagswarm.spy", "main"),
+    "goto": ("send a robot to (X, Y) in the map frame once its agent is alive", "tagswarm.goto", "main"),
+    "alive": ("exit 0 if a participant's liveliness token is visible, else 1 (healthchecks)", "tagswarm.alive",
+              "main"),
+}
 
-def _commands() -> dict[str, tuple[str, Callable[[Sequence[str] | None], int]]]:
-    from agents import node as agent_node
-    from server import node as server_node
-    from tagswarm import report, snapshot, up
-    from world import node as world_node
-    from world import render_worker
 
-    return {
-        "up": ("run a whole swarm (world, server, agents) and write a run folder with metrics and plots", up.main),
-        "report": ("evaluate a run folder again: metrics.json + plots", report.main),
-        "snapshot": ("start a world, grab one frame per camera, decode tags, write PNGs + JSON", snapshot.main),
-        "world": ("run the world process (physics, cameras, encoders, clock)", world_node.main),
-        "render": ("run one render worker for a world started with --no-spawn-workers", render_worker.main),
-        "agent": ("run one robot's agent (detection, cube pose, odometry, behaviour)", agent_node.main),
-        "server": ("run the map server (stitching, pose-graph fusion, corrections)", server_node.main),
-    }
+def _entry(name: str) -> Callable[[Sequence[str] | None], int]:
+    _, module, func = COMMANDS[name]
+    fn: Callable[[Sequence[str] | None], int] = getattr(importlib.import_module(module), func)
+    return fn
 
 
 USAGE = """usage: tagswarm COMMAND [ARGS...]
@@ -44,8 +53,7 @@ commands:
 def main(argv: Sequence[str] | None = None) -> int:
     """Console script ``tagswarm``."""
     args = list(sys.argv[1:] if argv is None else argv)
-    commands = _commands()
-    listing = "\n".join(f"  {name:<10} {text}" for name, (text, _) in commands.items())
+    listing = "\n".join(f"  {name:<10} {text}" for name, (text, _, _) in COMMANDS.items())
     if not args or args[0] in ("-h", "--help"):
         print(USAGE.format(commands=listing))
         return 0
@@ -53,10 +61,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     if name == "scenarios":
         print("\n".join(builtin_names()))
         return 0
-    if name not in commands:
-        sys.stderr.write(f"tagswarm: error: unknown command {name!r} (commands: {', '.join(commands)}, scenarios)\n")
+    if name not in COMMANDS:
+        sys.stderr.write(f"tagswarm: error: unknown command {name!r} (commands: {', '.join(COMMANDS)}, scenarios)\n")
         return 2
-    return commands[name][1](rest)
+    return _entry(name)(rest)
 
 
 if __name__ == "__main__":

@@ -20,7 +20,7 @@ from collections.abc import Sequence
 from protocol import codec
 from protocol import messages as m
 from protocol.bus import Bus, open_bus
-from protocol.config import ConfigError, OneLineParser, add_common_args, bus_from, env_of, pick, run_main
+from protocol.config import ConfigError, OneLineParser, add_common_args, bus_from, env_of, pick, run_main, setup_logging
 from protocol.keys import Keys
 
 PROG = "tagswarm goto"
@@ -92,6 +92,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         make_goal(args.robot, args.x, args.y, args.tolerance)  # validate before touching the network
         if not math.isfinite(args.timeout) or args.timeout <= 0:
             raise ConfigError("--timeout must be a positive number of seconds")
+        setup_logging(pick(args, env, "log_level", "WARNING"), "goto")  # validates --log-level too
         run = pick(args, env, "run", "default")
         keys = Keys(run)
         participant = f"agent/{args.robot}"

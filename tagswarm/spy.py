@@ -39,6 +39,7 @@ import msgspec
 from rich.console import Console
 from rich.live import Live
 from rich.table import Table
+from rich.text import Text
 
 from protocol import codec
 from protocol import messages as m
@@ -52,6 +53,7 @@ from protocol.config import (
     install_stop_signals,
     pick,
     run_main,
+    setup_logging,
 )
 from protocol.keys import Keys
 
@@ -59,12 +61,6 @@ PROG = "tagswarm spy"
 #: Items an unread subscription may hold before the oldest are dropped (and counted).
 INBOX_CAPACITY = 20_000
 LAST_WIDTH = 90
-
-
-def every_key(keys: Keys) -> str:
-    """Every key of one run (``tagswarm/<run>/**``).  keys.py has no such method
-    yet; this is the one place that spells the wildcard."""
-    return f"{keys.prefix}/**"
 
 
 # --------------------------------------------------------------------------- message views
@@ -275,24 +271,28 @@ def plain_snapshot(rows: list[Row], alive: set[str], title: str) -> str:
     return "\n".join(lines)
 
 
-def rich_snapshot(rows: list[Row], alive: set[str], title: str, caption: str = "") -> Table:
-    """The same snapshot as a rich table (for a terminal)."""
-    t = Table(title=title, caption=caption or None, expand=False)
-    t.add_column("key", no_wrap=True, style="cyan")
-    t.add_column("type", no_wrap=True)
-    t.add_column("msgs", justify="right")
-    t.add_column("rate [Hz]", justify="right")
-    t.add_column("bandwidth", justify="right")
-    t.add_column("sim t [s]", justify="right")
-    t.add_column("last", no_wrap=True, overflow="ellipsis", max_width=LAST_WIDTH)
-    for r in rows:
-        kind = f"[red]{r.kind}[/]" if r.kind.startswith("undecodable") else r.kind
-        t.add_row(r.key, kind, str(r.count), f"{r.rate_hz:.1f}", human_rate(r.bytes_per_s),
-                  "-" if r.stamp_s is None else f"{r.stamp_s:.2f}", r.last)
+def rich_snapshot(rows: list[Row], alive: set[str], title: str, caption: str = "", strip: str = "") -> Table:
+    """The same snapshot as a rich table (for a terminal); keys are shown without the
+    common ``strip`` prefix (e.g. ``tagswarm/<run>/``, named in the title)."""
+
+    def short(key: str) -> str:
+        return key[len(strip):] if strip and key.startswith(strip) and len(key) > len(strip) else key
+
+    t = Table(title=Text(title), caption=Text(caption) if caption else None, expand=False)
+    # on a narrow terminal the key folds and the newest-message view wraps, never the numbers
+    t.add_column("key", style="cyan", overflow="fold", min_width=12)
+    t.add_column("type", no_wrap=True, overflow="ellipsis", min_width=6)
+    for name in ("msgs", "Hz", "bandwidth", "t [s]"):
+        t.add_column(Text(name), justify="right", no_wrap=True, min_width=len(name))
+    t.add_column("last", overflow="ellipsis", max_width=LAST_WIDTH, min_width=8)
+    for r in rows:  # Text cells: keys and payload details are data, never rich markup
+        kind = Text(r.kind, style="red" if r.kind.startswith("undecodable") else "")
+        t.add_row(Text(short(r.key)), kind, str(r.count), f"{r.rate_hz:.1f}", human_rate(r.bytes_per_s),
+                  "-" if r.stamp_s is None else f"{r.stamp_s:.2f}", Text(r.last))
     if alive:
         t.add_section()
         for k in sorted(alive):
-            t.add_row(k, "[green]alive[/]", "", "", "", "", "liveliness token")
+            t.add_row(Text(short(k)), Text("alive", style="green"), "", "", "", "", "liveliness token")
     return t
 
 
@@ -310,7 +310,8 @@ class Spy:
             self.inbox = bus.subscribe(keyexpr, capacity=INBOX_CAPACITY)
             self.alive_in = bus.watch_liveliness(keyexpr) if alive else None
         except Exception as exc:  # zenoh rejects malformed key expressions when declaring
-            raise ConfigError(f"bad key expression {keyexpr!r}: {' '.join(str(exc).split())}") from None
+            reason = " ".join(str(exc).split()).split(" at /", 1)[0]  # drop zenoh's Rust source location
+            raise ConfigError(f"bad key expression {keyexpr!r}: {reason}") from None
 
     @property
     def dropped(self) -> int:
@@ -363,6 +364,8 @@ def run_spy(spy: Spy, *, keyexpr: str, once: bool, window_s: float, echo: bool, 
         return (f"tagswarm spy  {keyexpr}  {now - t0:.1f} s  {len(spy.traffic.keys)} key(s)  "
                 f"{spy.traffic.total} msg(s)" + (f"  dropped {spy.dropped}" if spy.dropped else ""))
 
+    strip = keyexpr[:-2] if keyexpr.endswith("/**") else ""  # "tagswarm/<run>/" for the default
+
     def snapshot_plain() -> None:
         out.write(plain_snapshot(spy.traffic.rows(spy.clock()), spy.traffic.alive, title()) + "\n")
         out.flush()
@@ -385,7 +388,8 @@ def run_spy(spy: Spy, *, keyexpr: str, once: bool, window_s: float, echo: bool, 
             if plain or not out.isatty():
                 snapshot_plain()
             else:
-                Console(file=out).print(rich_snapshot(spy.traffic.rows(spy.clock()), spy.traffic.alive, title()))
+                Console(file=out).print(rich_snapshot(spy.traffic.rows(spy.clock()), spy.traffic.alive, title(),
+                                                      strip=strip))
         return 0
     console = Console(file=out)
     with Live(console=console, refresh_per_second=4, transient=False) as live:
@@ -393,7 +397,7 @@ def run_spy(spy: Spy, *, keyexpr: str, once: bool, window_s: float, echo: bool, 
             stop.wait(0.25)
             spy.poll()
             live.update(rich_snapshot(spy.traffic.rows(spy.clock()), spy.traffic.alive, title(),
-                                      "Ctrl-C to quit"))
+                                      "Ctrl-C to quit", strip=strip))
     return 0
 
 
@@ -405,8 +409,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         env = env_of()
         if not math.isfinite(args.window) or args.window <= 0:
             raise ConfigError("--window must be a positive number of seconds")
+        setup_logging(pick(args, env, "log_level", "WARNING"), "spy")  # validates --log-level too
         keys = Keys(pick(args, env, "run", "default"))
-        keyexpr = args.keyexpr if args.keyexpr is not None else every_key(keys)
+        keyexpr = args.keyexpr if args.keyexpr is not None else keys.all()
         if not keyexpr.strip():
             raise ConfigError("KEYEXPR must not be empty")
         stop = threading.Event()

@@ -1,0 +1,29 @@
+# tagswarm: one image for every role (router, world, server, agent, tools).
+#   docker build -t tagswarm .
+#   docker run --rm tagswarm --help            # the ENTRYPOINT is the `tagswarm` CLI
+#   docker compose up                          # see compose.yaml
+# Every dependency is a pinned manylinux wheel from PyPI (pybullet renders with its
+# CPU TinyRenderer, OpenCV is the headless build): no system packages are needed.
+FROM python:3.11-slim
+
+ENV PYTHONUNBUFFERED=1 \
+    PYTHONDONTWRITEBYTECODE=1 \
+    PIP_NO_CACHE_DIR=1 \
+    PIP_DISABLE_PIP_VERSION_CHECK=1
+
+WORKDIR /opt/tagswarm
+COPY pyproject.toml README.md ./
+COPY protocol ./protocol
+COPY world ./world
+COPY agents ./agents
+COPY server ./server
+COPY tagswarm ./tagswarm
+RUN pip install . \
+    && useradd --create-home --uid 10001 --shell /usr/sbin/nologin tagswarm
+
+USER tagswarm
+WORKDIR /home/tagswarm
+# the router's Zenoh endpoint (tagswarm router --listen tcp/0.0.0.0:7447)
+EXPOSE 7447
+ENTRYPOINT ["tagswarm"]
+CMD ["--help"]

@@ -1,0 +1,269 @@
+"""compose.yaml, run without Docker: every service's command with its environment as a
+LOCAL process, in the file's start order (``depends_on`` with ``service_healthy`` waits
+for the dependency's own healthcheck command to pass).  The router endpoint
+``tcp/router:7447`` is rewritten to a free loopback port that the router service
+listens on; every other process is a Zenoh client of it, so all traffic goes through
+the router.  A 20 s lockstep run of the paper scenario must localise every robot."""
+
+from __future__ import annotations
+
+import math
+import os
+import signal
+import subprocess
+import time
+from collections.abc import Iterator, Mapping
+from contextlib import ExitStack, contextmanager
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from protocol import codec
+from protocol import messages as m
+from protocol.bus import BusConfig, open_bus
+from protocol.geometry import se2_compose
+from protocol.keys import Keys
+from protocol.scenario import arena_to_map
+from tests.harness import BIN, free_port, script
+from tests.unit.test_compose import ROUTER_ENDPOINT, load_compose, service_env
+from world.config import build_config as world_config
+
+DURATION_S = 20.0
+MAX_ERROR_M = 0.15
+HEALTH_TIMEOUT_S = 60.0
+
+
+class Service:
+    """One compose service as a local process."""
+
+    def __init__(self, name: str, spec: Mapping[str, Any], env: dict[str, str], rewrite: Mapping[str, str],
+                 logs: Path) -> None:
+        self.name = name
+        self.spec = spec
+
+        def fix(text: str) -> str:
+            for old, new in rewrite.items():
+                text = text.replace(old, new)
+            return text
+
+        self.env = {k: fix(v) for k, v in env.items()}
+        self.argv = [script("tagswarm"), *(fix(a) for a in spec["command"])]
+        test = [fix(a) for a in spec["healthcheck"]["test"]]
+        self.health = test[1:] if test[0] == "CMD" else ["sh", "-c", test[1]]
+        assert test[0] in ("CMD", "CMD-SHELL"), test
+        self.log = logs / f"{name}.log"
+        self.proc: subprocess.Popen[bytes] | None = None
+
+    def process_env(self) -> dict[str, str]:
+        """The container's environment: ours without any TAGSWARM_*/ZENOH_* (isolation) plus
+        the service's; the venv's console scripts first on PATH (the image's /usr/local/bin)."""
+        base = {k: v for k, v in os.environ.items() if not k.startswith(("TAGSWARM_", "ZENOH_"))}
+        base["PATH"] = f"{BIN}{os.pathsep}{base.get('PATH', '')}"
+        return {**base, **self.env, "PYTHONUNBUFFERED": "1"}
+
+    def start(self) -> None:
+        with open(self.log, "wb") as out:
+            self.proc = subprocess.Popen(self.argv, stdout=out, stderr=subprocess.STDOUT, env=self.process_env())
+
+    def check(self) -> subprocess.Popen[bytes]:
+        """Start the healthcheck command (as compose would run it inside the container)."""
+        return subprocess.Popen(self.health, env=self.process_env(), stdout=subprocess.PIPE,
+                                stderr=subprocess.STDOUT)
+
+    def stop(self) -> int | None:
+        if self.proc is None:
+            return None
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
+            try:
+                self.proc.wait(timeout=15)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+        return self.proc.returncode
+
+    def tail(self) -> str:
+        return "\n".join(self.log.read_text(errors="replace").splitlines()[-20:]) if self.log.exists() else ""
+
+
+def wait_healthy(services: list[Service], timeout_s: float = HEALTH_TIMEOUT_S) -> None:
+    """Run the healthchecks of ``services`` (in parallel) until each has passed once."""
+    pending = {s.name: s for s in services}
+    last: dict[str, str] = {}
+    deadline = time.monotonic() + timeout_s
+    while pending:
+        checks = {name: s.check() for name, s in pending.items()}
+        for name, check in checks.items():
+            out, _ = check.communicate(timeout=30)
+            last[name] = out.decode(errors="replace").strip()
+            svc = pending[name]
+            if check.returncode == 0:
+                del pending[name]
+            else:
+                assert svc.proc is None or svc.proc.poll() is None, f"{name} died:\n{svc.tail()}"
+        assert time.monotonic() < deadline, f"never healthy: {[(n, last[n]) for n in sorted(pending)]}"
+        if pending:
+            time.sleep(0.5)
+
+
+@contextmanager
+def compose_up(services: dict[str, Service]) -> Iterator[dict[str, Service]]:
+    """Start every service once its ``service_healthy`` dependencies passed their checks."""
+    try:
+        healthy: set[str] = set()
+        todo = dict(services)
+        while todo:
+            ready = [s for s in todo.values() if set(s.spec.get("depends_on", {})) <= healthy]
+            for s in ready:
+                for dep, cond in s.spec.get("depends_on", {}).items():
+                    assert cond == {"condition": "service_healthy"}, (s.name, dep)
+                if s.proc is None:
+                    s.start()
+                del todo[s.name]
+            # wait for what the remaining services depend on and is already running
+            needed = {d for s in todo.values() for d in s.spec.get("depends_on", {})
+                      if d not in healthy and services[d].proc is not None}
+            assert ready or needed, f"dependency cycle among {sorted(todo)}"
+            wait_healthy([services[d] for d in sorted(needed)])
+            healthy |= needed
+        yield services
+    finally:
+        for s in services.values():
+            s.stop()
+
+
+def test_compose_services_as_local_processes_localise_through_the_router(tmp_path: Path) -> None:
+    port = free_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
+    run = f"compose{os.getpid()}"
+    host = {"TAGSWARM_RUN": run, "TAGSWARM_CLOCK": "lockstep", "TAGSWARM_DURATION": f"{DURATION_S:g}",
+            "TAGSWARM_SEED": "3"}
+    spec = load_compose(host)["services"]
+    router_cmd = spec["router"]["command"]
+    heartbeat = router_cmd[router_cmd.index("--heartbeat") + 1]
+    rewrite = {ROUTER_ENDPOINT: endpoint, "tcp/0.0.0.0:7447": endpoint, heartbeat: str(tmp_path / "router.hb")}
+    services = {name: Service(name, s, service_env(s, host), rewrite, tmp_path) for name, s in spec.items()}
+    for name, s in services.items():
+        if name != "router":
+            assert s.env["TAGSWARM_ZENOH_MODE"] == "client" and s.env["TAGSWARM_CONNECT"] == endpoint
+            assert "TAGSWARM_LISTEN" not in s.env and "--listen" not in s.argv
+    assert services["router"].argv[-4:] == ["--listen", endpoint, "--heartbeat", str(tmp_path / "router.hb")]
+
+    world_env = services["world"].env
+    scenario = world_config([], world_env).scenario
+    assert scenario.clock.mode == "lockstep" and len(scenario.robot_ids) == 4
+    a2m = arena_to_map(scenario)
+    keys = Keys(run)
+    truth: dict[int, dict[int, tuple[float, float, float]]] = {r: {} for r in scenario.robot_ids}
+    fused: dict[int, tuple[int, float, float, float]] = {}
+    corrections = 0
+
+    t0 = time.monotonic()
+    with ExitStack() as stack:
+        # the router first, then our observer (a client of the router, like every service)
+        router = services["router"]
+        router.start()
+        wait_healthy([router], 30)
+        bus = stack.enter_context(open_bus(BusConfig(mode="client", connect=(endpoint,))))
+        truth_in = bus.subscribe(keys.truth())
+        corr_in = bus.subscribe(keys.correction())
+        stack.enter_context(compose_up(services))
+        started = time.monotonic() - t0
+
+        # `tagswarm alive` against the running system, with the world's own environment
+        world = services["world"]
+        wait_healthy([world], 30)
+        probe = subprocess.run([script("tagswarm"), "alive", "agent/99", "--timeout", "1"], env=world.process_env(),
+                               capture_output=True, text=True, timeout=30)
+        assert probe.returncode == 1, probe.stderr
+        assert probe.stderr.strip().splitlines() == [
+            f"tagswarm alive: agent/99 is not alive (no liveliness token {keys.alive('agent/99')})"]
+        ok = subprocess.run([script("tagswarm"), "alive", "world/0"], env=world.process_env(), capture_output=True,
+                            text=True, timeout=30)
+        assert ok.returncode == 0 and keys.alive("world/0") in ok.stdout, ok.stdout + ok.stderr
+
+        def drain() -> None:
+            nonlocal corrections
+            for item in truth_in.drain():
+                t = codec.decode(m.GroundTruthPose, item.value)
+                truth[t.robot_id][t.stamp_ns] = se2_compose(a2m, (t.x_m, t.y_m, t.yaw_rad))
+            for item in corr_in.drain():
+                c = codec.decode(m.Correction, item.value)
+                if c.localised:
+                    corrections += 1
+                    fused[c.robot_id] = (c.stamp_ns, c.x_m, c.y_m, c.yaw_rad)
+
+        assert world.proc is not None
+        deadline = time.monotonic() + 90
+        while world.proc.poll() is None and time.monotonic() < deadline:
+            bus.wait(0.2)
+            drain()
+        assert world.proc.returncode == 0, world.tail()
+        for name, s in services.items():  # server and agents stop by themselves at the end
+            if name != "router":
+                assert s.proc is not None
+                assert s.proc.wait(timeout=30) == 0, f"{name}:\n{s.tail()}"
+        bus.wait(0.5)
+        drain()
+        assert router.proc is not None and router.proc.poll() is None
+        # touched every second all along (the run took far longer than the healthcheck's 5 s)
+        assert time.time() - (tmp_path / "router.hb").stat().st_mtime < 2.5
+        assert time.monotonic() - t0 > 10
+        router.proc.send_signal(signal.SIGTERM)
+        assert router.proc.wait(timeout=15) == 0, router.tail()
+        assert not (tmp_path / "router.hb").exists()  # removed on exit: unhealthy from then on
+    wall = time.monotonic() - t0
+
+    end_ns = int(DURATION_S * 1e9)
+    assert corrections > 100 * len(scenario.robot_ids)
+    errors = {}
+    for rid in scenario.robot_ids:
+        assert rid in fused, f"robot {rid} was never localised"
+        stamp, x, y, _ = fused[rid]
+        assert stamp >= end_ns - 100_000_000, f"robot {rid}: last correction at {stamp / 1e9:.2f} s"
+        tx, ty, _ = truth[rid][stamp]  # lockstep: the truth of that very tick arrived too
+        err = errors[rid] = math.hypot(x - tx, y - ty)
+        assert err < MAX_ERROR_M, f"robot {rid}: fused pose {err:.3f} m from the truth at {stamp / 1e9:.2f} s"
+    moved = max(math.dist(truth[r][min(truth[r])][:2], truth[r][max(truth[r])][:2]) for r in scenario.robot_ids)
+    assert moved > 0.3  # the patrols really drove: the check above is not about parked robots
+    print(f"compose run: started in {started:.1f} s, {wall:.1f} s wall, final errors [m] {errors}")
+
+
+@pytest.mark.parametrize("argv", [["alive"], ["alive", "world"], ["alive", "world/0", "--timeout", "0"],
+                                  ["alive", "--heartbeat", "x", "world/0"], ["router", "--zenoh-mode", "client"],
+                                  ["router", "--bogus"]])
+def test_alive_and_router_reject_bad_usage_with_one_line(argv: list[str], capsys: pytest.CaptureFixture[str]) -> None:
+    from tagswarm import cli
+
+    try:
+        code = cli.main(argv)
+    except SystemExit as exc:  # argparse errors exit from inside parse_args
+        code = int(exc.code or 0)
+    err = capsys.readouterr().err
+    assert code == 2
+    assert len(err.strip().splitlines()) == 1 and err.startswith(f"tagswarm {argv[0]}: error: "), err
+
+
+def test_alive_heartbeat_file(tmp_path: Path) -> None:
+    from tagswarm import alive
+
+    hb = tmp_path / "hb"
+    assert alive.main(["--heartbeat", str(hb)]) == 1
+    hb.touch()
+    assert alive.main(["--heartbeat", str(hb), "--max-age", "5"]) == 0
+    old = time.time() - 10
+    os.utime(hb, (old, old))
+    assert alive.main(["--heartbeat", str(hb), "--max-age", "5"]) == 1
+    assert alive.main(["--heartbeat", str(hb), "--max-age", "20"]) == 0
+
+
+def test_router_always_runs_in_router_mode() -> None:
+    from tagswarm import router
+
+    env = {"TAGSWARM_ZENOH_MODE": "client", "TAGSWARM_CONNECT": "tcp/10.0.0.1:7447"}  # a compose-wide env
+    cfg = router.router_config(router.parser().parse_args([]), env)
+    assert (cfg.mode, cfg.listen, cfg.connect) == ("router", ("tcp/0.0.0.0:7447",), ("tcp/10.0.0.1:7447",))
+    cfg = router.router_config(router.parser().parse_args(["--listen", "tcp/127.0.0.1:1", "--zenoh-mode", "router"]),
+                               {})
+    assert (cfg.mode, cfg.listen, cfg.multicast_scouting) == ("router", ("tcp/127.0.0.1:1",), False)

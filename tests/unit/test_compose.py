@@ -1,0 +1,287 @@
+"""compose.yaml: valid against the official Compose Specification schema, one service per
+role and per robot, client mode through the router, every variable documented, and
+environments that the real config builders accept.
+
+The helpers here (:func:`load_compose`, :func:`interpolate`, :func:`service_env`) read
+the file the way ``docker compose`` does for the features it uses (YAML anchors and
+merge keys, ``${VAR:-default}`` interpolation, ``$$`` escapes, pass-through variables
+without a value); tests/e2e/test_compose.py runs the services with them."""
+
+from __future__ import annotations
+
+import json
+import re
+import tomllib
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import jsonschema
+import pytest
+import yaml
+
+from agents.config import build_config as agent_config
+from protocol.scenario import load_scenario
+from server.config import build_config as server_config
+from world.config import build_config as world_config
+
+ROOT = Path(__file__).resolve().parents[2]
+COMPOSE = ROOT / "compose.yaml"
+SCHEMA = ROOT / "tests" / "data" / "compose-spec.json"
+DOCKERFILE = ROOT / "Dockerfile"
+ROUTER_ENDPOINT = "tcp/router:7447"
+#: Every variable the processes understand (protocol/config.py, agents/config.py, protocol/bus.py).
+ENV_NAMES = ("TAGSWARM_SCENARIO", "TAGSWARM_SET", "TAGSWARM_SEED", "TAGSWARM_ROBOTS", "TAGSWARM_CLOCK",
+             "TAGSWARM_DURATION", "TAGSWARM_RUN", "TAGSWARM_ZENOH_MODE", "TAGSWARM_LISTEN", "TAGSWARM_CONNECT",
+             "TAGSWARM_LOG_LEVEL", "TAGSWARM_ROBOT_ID", "TAGSWARM_MULTICAST_SCOUTING", "ZENOH_CONFIG")
+AGENTS = ("agent0", "agent1", "agent2", "agent3")
+
+_VAR = re.compile(r"\$(?:(\$)|\{([A-Za-z_][A-Za-z0-9_]*)(?:(:?[-?+])([^}]*))?\}|([A-Za-z_][A-Za-z0-9_]*))")
+
+
+# --------------------------------------------------------------------------- reading compose.yaml
+
+
+def interpolate(text: str, host: Mapping[str, str]) -> str:
+    """Compose's interpolation: ``$$``, ``$VAR``, ``${VAR}``, ``${VAR:-d}``, ``${VAR-d}``,
+    ``${VAR:+a}``, ``${VAR+a}``, ``${VAR:?err}``, ``${VAR?err}``."""
+
+    def one(mo: re.Match[str]) -> str:
+        if mo.group(1):
+            return "$"
+        name = mo.group(2) or mo.group(5)
+        op, arg = mo.group(3), mo.group(4) or ""
+        value = host.get(name)
+        unset_or_empty = value is None or (op is not None and op.startswith(":") and value == "")
+        if op in (":-", "-"):
+            return arg if unset_or_empty else str(value)
+        if op in (":+", "+"):
+            return "" if unset_or_empty else arg
+        if op in (":?", "?"):
+            if unset_or_empty:
+                raise ValueError(f"required variable {name} is missing: {arg}")
+            return str(value)
+        return "" if value is None else value
+
+    return _VAR.sub(one, text)
+
+
+def _interpolate_tree(node: Any, host: Mapping[str, str]) -> Any:
+    if isinstance(node, str):
+        return interpolate(node, host)
+    if isinstance(node, dict):
+        return {k: _interpolate_tree(v, host) for k, v in node.items()}
+    if isinstance(node, list):
+        return [_interpolate_tree(v, host) for v in node]
+    return node
+
+
+def load_raw() -> dict[str, Any]:
+    data: dict[str, Any] = yaml.safe_load(COMPOSE.read_text())
+    return data
+
+
+def load_compose(host: Mapping[str, str] | None = None) -> dict[str, Any]:
+    """compose.yaml after anchors/merge keys (YAML) and interpolation with ``host``."""
+    data: dict[str, Any] = _interpolate_tree(load_raw(), host or {})
+    return data
+
+
+def service_env(service: Mapping[str, Any], host: Mapping[str, str]) -> dict[str, str]:
+    """The container environment: ``KEY: value`` as a string, ``KEY:`` (no value) taken
+    from the host when set there, else left out."""
+    raw = service.get("environment") or {}
+    if isinstance(raw, list):
+        raw = dict(item.split("=", 1) if "=" in item else (item, None) for item in raw)
+    out = {}
+    for key, value in raw.items():
+        if value is None:
+            if key in host:
+                out[key] = host[key]
+        else:
+            out[key] = str(value).lower() if isinstance(value, bool) else str(value)
+    return out
+
+
+def header_comment() -> str:
+    """The comment block at the top of compose.yaml."""
+    lines = []
+    for line in COMPOSE.read_text().splitlines():
+        if not line.startswith("#"):
+            break
+        lines.append(line)
+    return "\n".join(lines)
+
+
+# --------------------------------------------------------------------------- schema
+
+
+def test_compose_file_validates_against_the_compose_specification() -> None:
+    schema = json.loads(SCHEMA.read_text())
+    assert schema["title"] == "Compose Specification"
+    assert "draft-07" in schema["$schema"]  # "https://json-schema.org/draft-07/schema" (no "#": say it explicitly)
+    jsonschema.Draft7Validator.check_schema(schema)
+    errors = sorted(jsonschema.Draft7Validator(schema).iter_errors(load_compose()), key=lambda e: list(e.path))
+    assert not errors, "\n".join(f"{list(e.path)}: {e.message}" for e in errors)
+
+
+def test_the_schema_really_rejects_mistakes() -> None:
+    schema = json.loads(SCHEMA.read_text())
+    validator = jsonschema.Draft7Validator(schema)
+    bad = load_compose()
+    bad["services"]["world"]["depends_on"]["router"]["condition"] = "service_ready"
+    bad["services"]["server"]["helthcheck"] = {}
+    messages = [e.message for e in validator.iter_errors(bad)]
+    assert len(messages) == 2, messages
+
+
+# --------------------------------------------------------------------------- services
+
+
+def test_router_world_server_and_one_agent_per_paper_robot() -> None:
+    services = load_compose()["services"]
+    assert set(services) == {"router", "world", "server", *AGENTS}
+    assert services["router"]["command"][0] == "router"
+    assert services["router"]["command"][1:3] == ["--listen", "tcp/0.0.0.0:7447"]
+    assert services["world"]["command"] == ["world"]
+    assert services["server"]["command"] == ["server"]
+    robots = load_scenario("paper").robot_ids
+    assert len(robots) == len(AGENTS)
+    for name in AGENTS:
+        assert services[name]["command"] == ["agent"]
+
+
+def test_every_agent_gets_a_distinct_robot_id_of_the_scenario() -> None:
+    services = load_compose()["services"]
+    ids = [service_env(services[name], {})["TAGSWARM_ROBOT_ID"] for name in AGENTS]
+    assert len(set(ids)) == len(AGENTS)
+    assert sorted(int(i) for i in ids) == list(load_scenario("paper").robot_ids)
+    for name, rid in zip(AGENTS, ids, strict=True):
+        assert name == f"agent{rid}"
+    others = [n for n in services if n not in AGENTS]
+    assert all("TAGSWARM_ROBOT_ID" not in service_env(services[n], {}) for n in others)
+
+
+def test_agents_share_one_definition_through_a_yaml_anchor() -> None:
+    text = COMPOSE.read_text()
+    assert re.search(r"^x-agent: &agent$", text, re.M)
+    assert len(re.findall(r"^    <<: \*agent$", text, re.M)) == len(AGENTS)
+    services = load_compose()["services"]
+    first = {k: v for k, v in services["agent0"].items() if k != "environment"}
+    for name in AGENTS[1:]:
+        assert {k: v for k, v in services[name].items() if k != "environment"} == first
+
+
+def test_every_process_is_a_client_of_the_router_with_multicast_off() -> None:
+    services = load_compose()["services"]
+    for name, svc in services.items():
+        env = service_env(svc, {})
+        assert svc.get("init") is True, name
+        assert "TAGSWARM_MULTICAST_SCOUTING" not in env and "ZENOH_CONFIG" not in env, name
+        assert "--multicast-scouting" not in svc["command"], name
+        if name == "router":
+            assert "TAGSWARM_ZENOH_MODE" not in env and "TAGSWARM_CONNECT" not in env
+            continue
+        assert env["TAGSWARM_ZENOH_MODE"] == "client", name
+        assert env["TAGSWARM_CONNECT"] == ROUTER_ENDPOINT, name
+        assert env["TAGSWARM_SCENARIO"] == "paper", name
+        assert env["TAGSWARM_RUN"] == services["router"]["environment"]["TAGSWARM_RUN"] == "compose"
+        assert "TAGSWARM_LISTEN" not in env, name
+        assert svc["depends_on"]["router"] == {"condition": "service_healthy"}, name
+
+
+def test_healthchecks_and_start_order() -> None:
+    services = load_compose()["services"]
+    router = services["router"]
+    heartbeat = router["command"][router["command"].index("--heartbeat") + 1]
+    assert router["healthcheck"]["test"] == ["CMD", "tagswarm", "alive", "--heartbeat", heartbeat, "--max-age", "5"]
+    assert services["world"]["healthcheck"]["test"] == ["CMD", "tagswarm", "alive", "world/0"]
+    assert services["server"]["healthcheck"]["test"] == ["CMD", "tagswarm", "alive", "server/0"]
+    for name in AGENTS:  # $$ is compose's escape: the container's shell sees $TAGSWARM_ROBOT_ID
+        assert services[name]["healthcheck"]["test"] == ["CMD-SHELL", "tagswarm alive agent/${TAGSWARM_ROBOT_ID}"]
+    world_deps = services["world"]["depends_on"]
+    assert set(world_deps) == {"router", "server", *AGENTS}
+    assert all(d == {"condition": "service_healthy"} for d in world_deps.values())
+    assert "depends_on" not in router
+
+
+def test_interpolation_defaults_and_host_values() -> None:
+    assert interpolate("${A:-x}/${B-y}/$$HOME/${C}", {}) == "x/y/$HOME/"
+    assert interpolate("${A:-x}/${A-y}/$A", {"A": ""}) == "x//"
+    assert interpolate("${A:+set}${B+set}", {"A": "1"}) == "set"
+    with pytest.raises(ValueError, match="A"):
+        interpolate("${A:?give A}", {})
+    host = {"TAGSWARM_RUN": "r7", "TAGSWARM_CLOCK": "lockstep", "TAGSWARM_SET": "seed=5"}
+    env = service_env(load_compose(host)["services"]["agent2"], host)
+    assert env["TAGSWARM_RUN"] == "r7" and env["TAGSWARM_CLOCK"] == "lockstep"
+    assert env["TAGSWARM_SET"].endswith(";seed=5")
+    assert "TAGSWARM_DURATION" not in env and "TAGSWARM_SEED" not in env  # not set on the host
+
+
+# --------------------------------------------------------------------------- documentation
+
+
+def test_every_environment_variable_is_documented_in_the_header() -> None:
+    header = header_comment()
+    documented = set(re.findall(r"^#\s+((?:TAGSWARM|ZENOH)_[A-Z_]+)\s", header, re.M))
+    assert documented == set(ENV_NAMES)
+    used: set[str] = set()
+    for svc in load_raw()["services"].values():
+        used |= set((svc.get("environment") or {}).keys())
+    assert used and used <= documented
+
+
+# --------------------------------------------------------------------------- the real config builders
+
+
+def test_service_environments_build_valid_process_configs() -> None:
+    host = {"TAGSWARM_CLOCK": "lockstep", "TAGSWARM_DURATION": "20", "TAGSWARM_SEED": "3"}
+    services = load_compose(host)["services"]
+    world = world_config([], service_env(services["world"], host))
+    assert world.bus.mode == "client" and world.bus.connect == (ROUTER_ENDPOINT,) and world.bus.listen == ()
+    assert world.run == "compose"
+    s = world.scenario
+    assert s.name == "paper" and s.clock.mode == "lockstep" and s.duration_s == 20.0 and s.seed == 3
+    # the same participants `tagswarm up` declares: every agent, then the server
+    assert s.clock.participants == (*(f"agent/{r}" for r in s.robot_ids), "server/0")
+    server = server_config([], service_env(services["server"], host))
+    assert server.scenario == s and server.bus == world.bus
+    for name in AGENTS:
+        agent = agent_config([], service_env(services[name], host))
+        assert agent.participant == f"agent/{name[-1]}"
+        assert agent.scenario == s and agent.bus == world.bus
+    # realtime (no host variables): the scenario's own clock and duration
+    rt = world_config([], service_env(load_compose({})["services"]["world"], {}))
+    assert rt.scenario.clock.mode == "realtime" and rt.scenario.duration_s == 60.0
+
+
+# --------------------------------------------------------------------------- the image
+
+
+def _instructions() -> list[tuple[str, str]]:
+    """(INSTRUCTION, arguments) of the Dockerfile, continuation lines joined."""
+    text = re.sub(r"\\\n", " ", DOCKERFILE.read_text())
+    out = []
+    for line in text.splitlines():
+        line = line.strip()
+        if line and not line.startswith("#"):
+            word, _, rest = line.partition(" ")
+            out.append((word.upper(), " ".join(rest.split())))
+    return out
+
+
+def test_dockerfile_installs_every_package_and_runs_tagswarm_as_a_user() -> None:
+    ins = _instructions()
+    assert ins[0] == ("FROM", "python:3.11-slim")
+    copied = {args.split()[0] for word, args in ins if word == "COPY"}
+    pyproject = tomllib.loads((ROOT / "pyproject.toml").read_text())
+    packages = {p.rstrip("*") for p in pyproject["tool"]["setuptools"]["packages"]["find"]["include"]}
+    assert packages and packages <= copied, f"packages {sorted(packages - copied)} are not copied into the image"
+    assert {"pyproject.toml", "README.md"} <= set(" ".join(a for w, a in ins if w == "COPY").split())
+    assert any(w == "RUN" and "pip install ." in a for w, a in ins)
+    users = [a for w, a in ins if w == "USER"]
+    assert users and users[-1] not in ("root", "0")
+    assert [a for w, a in ins if w == "ENTRYPOINT"] == ['["tagswarm"]']
+    assert ("EXPOSE", "7447") in ins  # the router's port in compose.yaml
+    for svc in load_compose()["services"].values():
+        assert svc["image"] == "tagswarm:latest" and svc["build"] == {"context": "."}

@@ -26,8 +26,8 @@ from agents.detect import TagMap, make_detector
 from agents.odometry import DiffDriveOdometry, DiffDriveParams
 from protocol import codec
 from protocol import messages as m
-from protocol.bus import Bus, Inbox, open_bus
-from protocol.config import install_stop_signals, run_main, setup_logging
+from protocol.bus import Bus, Inbox
+from protocol.config import serve_node
 from protocol.geometry import Pose2, se2_compose
 from protocol.keys import Keys
 from protocol.scenario import arena_to_map
@@ -56,7 +56,7 @@ class AgentNode:
         self.behaviour = Behaviour(rid, s.mission(rid), a, s.robot, arena_to_map(s), team)
         self.rejects = codec.RejectCounter(log)
         self.counters: Counter[str] = Counter()
-        self._seq: Counter[str] = Counter()
+        self.seq = codec.Sequencer()
         self.time_ns = 0
         self.last_fix_ns = 0
         self._moved = False
@@ -84,11 +84,6 @@ class AgentNode:
     # ------------------------------------------------------------------ helpers
     def _publish(self, key: str, msg: m.Msg) -> None:
         self.bus.put(key, codec.encode(msg))
-
-    def _next(self, key: str) -> int:
-        seq = self._seq[key]
-        self._seq[key] += 1
-        return seq
 
     @property
     def map_pose(self) -> Pose2 | None:
@@ -211,7 +206,7 @@ class AgentNode:
 
     def _publish_observation(self, est: PoseEstimate, stamp_ns: int) -> None:
         key = self.keys.observation(self.rid)
-        self._publish(key, est.to_message(self.rid, seq=self._next(key), stamp_ns=stamp_ns))
+        self._publish(key, est.to_message(self.rid, seq=self.seq.next(key), stamp_ns=stamp_ns))
         self.counters["observations"] += 1
 
     # ------------------------------------------------------------------ control
@@ -222,11 +217,11 @@ class AgentNode:
         self._moved = self._fix = False
         left, right = wheel_speeds(v, w, self.s.robot)
         key = self.keys.cmd(self.rid)
-        self._publish(key, m.WheelCommand(seq=self._next(key), stamp_ns=self.time_ns, robot_id=self.rid,
+        self._publish(key, m.WheelCommand(seq=self.seq.next(key), stamp_ns=self.time_ns, robot_id=self.rid,
                                           left_rad_s=left, right_rad_s=right))
         key = self.keys.odometry(self.rid)
         self._publish(key, m.OdometryEstimate(
-            seq=self._next(key), stamp_ns=self.time_ns, robot_id=self.rid, x_m=self.odom.x_m, y_m=self.odom.y_m,
+            seq=self.seq.next(key), stamp_ns=self.time_ns, robot_id=self.rid, x_m=self.odom.x_m, y_m=self.odom.y_m,
             yaw_rad=self.odom.yaw_rad, cov=tuple(float(v) for v in self.odom.cov.ravel()),
             distance_m=self.odom.distance_m))
         if self.time_ns >= self._next_status_ns:
@@ -244,7 +239,7 @@ class AgentNode:
 
     def _publish_status(self) -> None:
         key = self.keys.robot_status(self.rid)
-        self._publish(key, m.AgentStatus(seq=self._next(key), stamp_ns=self.time_ns, robot_id=self.rid, role="agent",
+        self._publish(key, m.AgentStatus(seq=self.seq.next(key), stamp_ns=self.time_ns, robot_id=self.rid, role="agent",
                                          mode=str(self.behaviour.mode), counters=self.status_counters()))
 
     @property
@@ -301,8 +296,8 @@ class AgentNode:
             self._process_frames()
             self._control()
             key = self.keys.ack(self.cfg.participant)
-            self._publish(key, m.TickAck(seq=self._next(key), stamp_ns=tick.stamp_ns, participant=self.cfg.participant,
-                                         step=tick.step))
+            self._publish(key, m.TickAck(seq=self.seq.next(key), stamp_ns=tick.stamp_ns,
+                                         participant=self.cfg.participant, step=tick.step))
         return bool(ticks)
 
     def run(self, stop_event: threading.Event) -> int:
@@ -318,16 +313,8 @@ class AgentNode:
 def main(argv: Sequence[str] | None = None, environ: Mapping[str, str] | None = None) -> int:
     """Console script ``tagswarm-agent``."""
 
-    def body() -> int:
-        config = build_config(argv, environ)
-        setup_logging(config.log_level, f"agent{config.robot_id}")
-        stop = threading.Event()
-        with open_bus(config.bus) as bus:
-            node = AgentNode(config, bus)
-            install_stop_signals(stop)
-            return node.run(stop)
-
-    return run_main("tagswarm-agent", body)
+    return serve_node("tagswarm-agent", lambda: build_config(argv, environ), lambda c: f"agent{c.robot_id}",
+                      AgentNode)
 
 
 if __name__ == "__main__":

@@ -135,3 +135,20 @@ class RejectCounter:
     def as_counters(self, prefix: str = "rejected_") -> dict[str, int]:
         """Counters for an :class:`~protocol.messages.AgentStatus`."""
         return {prefix + k: v for k, v in sorted(self.counts.items())}
+
+
+class Sequencer:
+    """Per-key sequence numbers of one publisher (receivers can count gaps)."""
+
+    def __init__(self) -> None:
+        self._seq: Counter[str] = Counter()
+
+    def next(self, key: str) -> int:
+        """The number for the next message on ``key``."""
+        seq = self._seq[key]
+        self._seq[key] += 1
+        return seq
+
+    def peek(self, key: str) -> int:
+        """The number the next message on ``key`` will get, without taking it."""
+        return self._seq[key]

@@ -17,9 +17,9 @@ import signal
 import sys
 import threading
 from collections.abc import Callable, Mapping, Sequence
-from typing import Any, NoReturn
+from typing import Any, NoReturn, Protocol, TypeVar
 
-from protocol.bus import BusConfig, BusError
+from protocol.bus import Bus, BusConfig, BusError, open_bus
 from protocol.keys import KeyError_
 from protocol.scenario import Scenario, ScenarioError, convert, load_scenario
 
@@ -158,3 +158,41 @@ def install_stop_signals(stop: threading.Event) -> None:
         return
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: stop.set())
+
+
+class _Node(Protocol):
+    def run(self, stop_event: threading.Event) -> int: ...
+
+
+class _NodeConfig(Protocol):
+    @property
+    def bus(self) -> BusConfig: ...
+
+    @property
+    def log_level(self) -> str: ...
+
+
+C = TypeVar("C", bound=_NodeConfig)
+
+
+def serve_node(prog: str, build: Callable[[], C], role: Callable[[C], str],
+               make_node: Callable[[C, Bus], _Node]) -> int:
+    """The common ``main`` of a node process: build the config (errors -> exit 2),
+    log as ``role``, open the bus, run the node until done or SIGTERM/SIGINT, then
+    call its ``close()`` if it has one and close the session."""
+
+    def body() -> int:
+        config = build()
+        setup_logging(config.log_level, role(config))
+        stop = threading.Event()
+        with open_bus(config.bus) as bus:
+            node = make_node(config, bus)
+            try:
+                install_stop_signals(stop)
+                return node.run(stop)
+            finally:
+                close = getattr(node, "close", None)
+                if close is not None:
+                    close()
+
+    return run_main(prog, body)

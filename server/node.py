@@ -17,8 +17,8 @@ import numpy as np
 
 from protocol import codec
 from protocol import messages as m
-from protocol.bus import Bus, open_bus
-from protocol.config import install_stop_signals, run_main, setup_logging
+from protocol.bus import Bus
+from protocol.config import serve_node
 from protocol.keys import Keys
 from server.config import ServerConfig, build_config
 from server.fusion import Fusion, FusionParams
@@ -42,7 +42,7 @@ class ServerNode:
         self.fusion = Fusion(params, s.map.origin_id, s.robot_ids, landmarks)
         self.rejects = codec.RejectCounter(log)
         self.counters: Counter[str] = Counter()
-        self._seq: Counter[str] = Counter()
+        self.seq = codec.Sequencer()
         self.alive: set[int] = set()
         self.latest_rx: dict[int, int] = {}
         self.time_ns = 0
@@ -57,11 +57,6 @@ class ServerNode:
         bus.declare_token(self.keys.alive(config.participant))
         log.info("server up: %d robots, origin %d, %s clock, lag %.0f s", len(self.roster), s.map.origin_id,
                  s.clock.mode, config.lag_s)
-
-    def _next(self, key: str) -> int:
-        seq = self._seq[key]
-        self._seq[key] += 1
-        return seq
 
     def _publish(self, key: str, msg: m.Msg) -> None:
         self.bus.put(key, codec.encode(msg))
@@ -137,7 +132,7 @@ class ServerNode:
                                       last_seen_ns=max(self.latest_rx.get(rid, 0), 0), alive=rid in self.alive))
         edges = tuple(sorted(e for e, t in self.fusion.edges.items() if self.time_ns - t <= EDGE_MEMORY_NS))
         key = self.keys.map()
-        return m.GlobalMap(seq=self._seq[key], stamp_ns=self.time_ns, origin_id=self.s.map.origin_id,
+        return m.GlobalMap(seq=self.seq.peek(key), stamp_ns=self.time_ns, origin_id=self.s.map.origin_id,
                            robots=tuple(entries), edges=edges)
 
     def _publish_corrections(self, all_robots: bool) -> None:
@@ -146,13 +141,13 @@ class ServerNode:
             key = self.keys.correction(rid)
             if est is None or mo is None:
                 if all_robots:
-                    self._publish(key, m.Correction(seq=self._next(key), stamp_ns=self.time_ns, robot_id=rid,
+                    self._publish(key, m.Correction(seq=self.seq.next(key), stamp_ns=self.time_ns, robot_id=rid,
                                                     map_odom_x_m=0.0, map_odom_y_m=0.0, map_odom_yaw_rad=0.0,
                                                     x_m=0.0, y_m=0.0, yaw_rad=0.0, cov=(0.0,) * 9, localised=False))
                 continue
             (x, y, yaw), cov = est
             self._publish(key, m.Correction(
-                seq=self._next(key), stamp_ns=self.time_ns, robot_id=rid, map_odom_x_m=mo[0], map_odom_y_m=mo[1],
+                seq=self.seq.next(key), stamp_ns=self.time_ns, robot_id=rid, map_odom_x_m=mo[0], map_odom_y_m=mo[1],
                 map_odom_yaw_rad=mo[2], x_m=x, y_m=y, yaw_rad=yaw, cov=tuple(float(v) for v in cov.ravel()),
                 last_fix_ns=self.fusion.last_fix_ns(rid)))
             self.counters["corrections"] += 1
@@ -161,7 +156,7 @@ class ServerNode:
         if self.time_ns >= self._next_map_ns:
             key = self.keys.map()
             self._publish(key, self.global_map())
-            self._seq[key] += 1
+            self.seq.next(key)
             self._next_map_ns = self.time_ns + int(1e9 / self.cfg.map_rate_hz)
             self._publish_status()
 
@@ -172,7 +167,7 @@ class ServerNode:
         counters["localised"] = len(self.fusion.localised())
         counters["alive"] = len(self.alive)
         key = self.keys.server_status()
-        self._publish(key, m.AgentStatus(seq=self._next(key), stamp_ns=self.time_ns, role="server",
+        self._publish(key, m.AgentStatus(seq=self.seq.next(key), stamp_ns=self.time_ns, role="server",
                                          mode=self.s.clock.mode, counters=counters))
 
     # ------------------------------------------------------------------ cycle
@@ -221,7 +216,7 @@ class ServerNode:
             self._publish_corrections(all_robots=True)
             self._maybe_publish_map()
             key = self.keys.ack(self.cfg.participant)
-            self._publish(key, m.TickAck(seq=self._next(key), stamp_ns=tick.stamp_ns,
+            self._publish(key, m.TickAck(seq=self.seq.next(key), stamp_ns=tick.stamp_ns,
                                          participant=self.cfg.participant, step=tick.step))
         return bool(ticks)
 
@@ -239,16 +234,7 @@ class ServerNode:
 def main(argv: Sequence[str] | None = None, environ: Mapping[str, str] | None = None) -> int:
     """Console script ``tagswarm-server``."""
 
-    def body() -> int:
-        config = build_config(argv, environ)
-        setup_logging(config.log_level, "server")
-        stop = threading.Event()
-        with open_bus(config.bus) as bus:
-            node = ServerNode(config, bus)
-            install_stop_signals(stop)
-            return node.run(stop)
-
-    return run_main("tagswarm-server", body)
+    return serve_node("tagswarm-server", lambda: build_config(argv, environ), lambda c: "server", ServerNode)
 
 
 if __name__ == "__main__":

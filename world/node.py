@@ -59,7 +59,7 @@ class WorldNode:
         self.workers = AckTracker(f"render/{i}" for i in range(s.render.workers))
         self.rejects = codec.RejectCounter(log)
         self.counters: Counter[str] = Counter()
-        self._seq: Counter[str] = Counter()
+        self.seq = codec.Sequencer()
         self._started = False
         self._next_status_ns = 0
         self._camera_pairs = [(rid, cam) for rid in s.robot_ids for cam in s.robot.cameras]
@@ -74,11 +74,6 @@ class WorldNode:
     # ------------------------------------------------------------------ helpers
     def _publish(self, key: str, msg: m.Msg, *, drop: bool = False) -> None:
         self.bus.put(key, codec.encode(msg), drop=drop)
-
-    def _next_seq(self, key: str) -> int:
-        seq = self._seq[key]
-        self._seq[key] += 1
-        return seq
 
     @property
     def time_ns(self) -> int:
@@ -159,14 +154,14 @@ class WorldNode:
             pos, quat = self.sim.base_pose(rid)
             key = self.keys.truth(rid)
             self._publish(key, m.GroundTruthPose(
-                seq=self._next_seq(key), stamp_ns=now, robot_id=rid, step=step, x_m=st.x_m, y_m=st.y_m,
+                seq=self.seq.next(key), stamp_ns=now, robot_id=rid, step=step, x_m=st.x_m, y_m=st.y_m,
                 yaw_rad=st.yaw_rad, v_m_s=st.v_m_s, omega_rad_s=st.omega_rad_s,
                 pose=m.Pose3(x_m=pos[0], y_m=pos[1], z_m=pos[2], qx=quat[0], qy=quat[1], qz=quat[2], qw=quat[3])))
         if due(step, s.encoders.rate_hz, self.tick_hz):
             for rid in self.sim.robots:
                 left, right = self.sim.encoder_ticks(rid)
                 key = self.keys.encoders(rid)
-                self._publish(key, m.EncoderTicks(seq=self._next_seq(key), stamp_ns=now, robot_id=rid,
+                self._publish(key, m.EncoderTicks(seq=self.seq.next(key), stamp_ns=now, robot_id=rid,
                                                   left_ticks=left, right_ticks=right,
                                                   ticks_per_rev=s.encoders.ticks_per_rev))
         pairs = [(rid, cam) for rid, cam in self._camera_pairs if due(step, cam.rate_hz, self.tick_hz)]
@@ -188,7 +183,7 @@ class WorldNode:
         for rid, cam in pairs:
             img = self.renderer.render(rid, cam, bases[rid])
             key = self.keys.image(rid, cam.name)
-            self._publish(key, image_message(self.s, rid, cam, img, seq=self._next_seq(key), step=step,
+            self._publish(key, image_message(self.s, rid, cam, img, seq=self.seq.next(key), step=step,
                                              stamp_ns=self.time_ns), drop=True)
         self.counters["frames_rendered"] += len(pairs)
 
@@ -202,7 +197,7 @@ class WorldNode:
         for w in range(k):
             mine = tuple(f"{rid}/{cam.name}" for i, (rid, cam) in enumerate(pairs) if i % k == w)
             key = self.keys.render(w)
-            self._publish(key, m.RenderPoses(seq=self._next_seq(key), stamp_ns=self.time_ns, step=step,
+            self._publish(key, m.RenderPoses(seq=self.seq.next(key), stamp_ns=self.time_ns, step=step,
                                              robot_ids=tuple(ids), poses=tuple(poses), cameras=mine),
                           drop=not self.lockstep)
         self.counters["frames_requested"] += len(pairs)
@@ -219,7 +214,7 @@ class WorldNode:
             counters["frames_rendered"] = self.renderer.frames_rendered
         counters.update(self.rejects.as_counters())
         key = self.keys.world_status()
-        self._publish(key, m.AgentStatus(seq=self._next_seq(key), stamp_ns=self.time_ns, role="world",
+        self._publish(key, m.AgentStatus(seq=self.seq.next(key), stamp_ns=self.time_ns, role="world",
                                          mode=self.s.clock.mode, counters=counters))
 
     # ------------------------------------------------------------------ cycle
@@ -234,7 +229,7 @@ class WorldNode:
         step = self.sim.step_index
         rendered = self._publish_state(step)
         key = self.keys.tick()
-        self._publish(key, m.Tick(seq=self._next_seq(key), stamp_ns=self.time_ns, run_id=self.instance, step=step,
+        self._publish(key, m.Tick(seq=self.seq.next(key), stamp_ns=self.time_ns, run_id=self.instance, step=step,
                                   dt_ns=self.sim.dt_ns, mode=self.s.clock.mode, cameras_rendered=tuple(rendered)))
         if self.time_ns >= self._next_status_ns:
             self._publish_status()

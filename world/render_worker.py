@@ -20,19 +20,17 @@ import msgspec
 
 from protocol import codec
 from protocol import messages as m
-from protocol.bus import Bus, BusConfig, open_bus
+from protocol.bus import Bus, BusConfig
 from protocol.config import (
     ConfigError,
     OneLineParser,
     add_common_args,
     bus_from,
     env_of,
-    install_stop_signals,
     parse,
     pick,
-    run_main,
     scenario_from,
-    setup_logging,
+    serve_node,
 )
 from protocol.keys import Keys
 from protocol.scenario import Scenario
@@ -80,7 +78,7 @@ class RenderWorkerNode:
         self.cams = {c.name: c for c in self.s.robot.cameras}
         self.rejects = codec.RejectCounter(log)
         self.counters: Counter[str] = Counter()
-        self._seq: Counter[str] = Counter()
+        self.seq = codec.Sequencer()
         lockstep = self.s.clock.mode == "lockstep"
         self.req_in = bus.subscribe(self.keys.render(config.worker_index), newest_only=not lockstep)
         bus.declare_token(self.keys.alive(self.name))
@@ -96,14 +94,9 @@ class RenderWorkerNode:
                 continue
             frames += self._render(req)
             key = self.keys.ack(self.name)
-            self.bus.put(key, codec.encode(m.TickAck(seq=self._next(key), stamp_ns=req.stamp_ns,
+            self.bus.put(key, codec.encode(m.TickAck(seq=self.seq.next(key), stamp_ns=req.stamp_ns,
                                                      participant=self.name, step=req.step)))
         return frames
-
-    def _next(self, key: str) -> int:
-        seq = self._seq[key]
-        self._seq[key] += 1
-        return seq
 
     def _render(self, req: m.RenderPoses) -> int:
         bases = {}
@@ -122,7 +115,7 @@ class RenderWorkerNode:
             rid = int(rid_s)
             img = self.renderer.render(rid, cam, bases[rid])
             key = self.keys.image(rid, cam.name)
-            self.bus.put(key, codec.encode(image_message(self.s, rid, cam, img, seq=self._next(key), step=req.step,
+            self.bus.put(key, codec.encode(image_message(self.s, rid, cam, img, seq=self.seq.next(key), step=req.step,
                                                          stamp_ns=req.stamp_ns)), drop=True)
             n += 1
         self.counters["frames_rendered"] += n
@@ -141,19 +134,8 @@ class RenderWorkerNode:
 def main(argv: Sequence[str] | None = None, environ: Mapping[str, str] | None = None) -> int:
     """Console script ``tagswarm-render``."""
 
-    def body() -> int:
-        config = build_config(argv, environ)
-        setup_logging(config.log_level, f"render{config.worker_index}")
-        stop = threading.Event()
-        with open_bus(config.bus) as bus:
-            node = RenderWorkerNode(config, bus)
-            try:
-                install_stop_signals(stop)
-                return node.run(stop)
-            finally:
-                node.close()
-
-    return run_main("tagswarm-render", body)
+    return serve_node("tagswarm-render", lambda: build_config(argv, environ), lambda c: f"render{c.worker_index}",
+                      RenderWorkerNode)
 
 
 if __name__ == "__main__":

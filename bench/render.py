@@ -39,7 +39,8 @@ from tests.harness import client, endpoint, process, world_argv  # noqa: E402
 
 
 def overrides(width: int, height: int, robots: int) -> list[str]:
-    return [f"robots.count={robots}", "robots.ring_radius_m=2.0", "clock.tick_hz=10", "encoders.rate_hz=10",
+    return [f"robots.count={robots}", 'robots.placement="ring"', "missions=[]", "robots.ring_radius_m=2.0",
+            "clock.tick_hz=10", "encoders.rate_hz=10",
             f'robot.cameras=[{{name="front", width={width}, height={height}, rate_hz=10}}]', "duration_s=100000"]
 
 

@@ -115,3 +115,14 @@ def test_a_dying_agent_fails_the_run_with_its_last_log_lines(tmp_path: Path) -> 
     assert "agent/1 exited with code -9" in text
     assert "last lines of" in text and "agent 1 up" in text  # the agent's own log tail is shown
     assert json.loads((out / "run.json").read_text())["exit_code"] == 1
+
+
+@pytest.mark.parametrize("args", [["--scenario", "nope"], ["--robots", "0"], ["--duration", "0"],
+                                  ["--duration", "-5"], ["--clock", "warp"], ["--set", "robot.cameras=[{width=-1}]"]])
+def test_up_rejects_bad_flags_with_one_line(args: list[str], tmp_path: Path) -> None:
+    res = subprocess.run([script("tagswarm"), "up", "--out", str(tmp_path / "r"), *args], capture_output=True,
+                         text=True, timeout=60)
+    assert res.returncode == 2
+    lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1 and "error" in lines[0], res.stderr
+    assert not (tmp_path / "r").exists()  # nothing started, nothing written

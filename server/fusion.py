@@ -366,12 +366,18 @@ class Fusion:
         c, s = math.cos(lm[2]), math.sin(lm[2])
         rot = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
         cov_map = rot @ inverse_cov(rel, cov) @ rot.T
+        initial = pose
         if r.estimate is not None:
             cur = se2_compose(r.estimate, se2_between(r.kf_odom, oo))
             if self._gate(cur, pose, cov_map + r.cov) > self.p.chi2_gate:
                 self.counters["rejected_gate"] += 1
                 return
-        key = self._new_keyframe(observer, stamp_ns, oo, initial=pose)
+        else:
+            start = self._initial_pose(observer, stamp_ns, pose, oo, float(cov_map[0, 0] + cov_map[1, 1]))
+            if start is None:
+                return
+            initial = start
+        key = self._new_keyframe(observer, stamp_ns, oo, initial=initial)
         self._factors.add(gtsam.PriorFactorPose2(key, gtsam.Pose2(*pose), self._robust(cov_map + np.eye(3) * 1e-8)))
         r.last_fix_ns = stamp_ns
         self.counters["accepted_landmarks"] += 1

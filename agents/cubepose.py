@@ -37,10 +37,29 @@ Algorithm per target (``c0``: the camera that sees the target's largest tag):
    the estimate's own 3-sigma, or a tag seen from behind ("implausible"); too few
    or collapsed corners, a singular Jacobian ("degenerate"); one tag ID twice in
    one image ("duplicate").
+6. Planar (the default for robots, ``planar=True``): both robots stand upright on
+   one floor, so once the 6-DOF stage has found a plausible pose (step 5 still
+   rejects a target its 6-DOF fit puts off the floor or tilted), (x, y, yaw) of
+   ``T_base_target`` is re-solved with z = 0 and roll = pitch = 0
+   (:mod:`agents.planar`: Gauss-Newton over every corner of every camera, each at
+   its ``T_base_cam``) from the plausible 6-DOF pose(s) -- one tag: from the better
+   IPPE pose and from the pose with the tag's normal mirrored about the horizontal
+   line of sight, the two-fold ambiguity in the plane.  The lowest score wins (a
+   distinct runner-up is folded into the covariance as in step 4), its reprojection
+   RMS must stay under ``max_rms_px``, and its covariance is the planar
+   ``s^2 (J^T J)^-1``.  What it buys depends on the camera's height above the tag centres:
+   a camera at their height (the default mount, z = 0.22 m = the cube centre) sees
+   the two-fold ambiguity as a pure yaw mirror the planar model cannot remove, and
+   the range comes from the tag's size alone, so yaw and position stay as the
+   6-DOF ones; a camera above (or below) them gets the range from the elevation
+   angle and loses the mirror (0.68 m above: position ~5x, p90 yaw ~2x better at
+   2.5-4 m; tests/unit/test_cubepose.py).  Landmarks stay 6-DOF unless
+   ``planar_landmarks`` (z fixed at the scenario's height).
 
 Cost: the single-camera path is a handful of OpenCV calls per target (IPPE,
-Rodrigues, projectPoints, solve, invert); bench/detect.py measures it against a
-bare AprilTag detect call.
+Rodrigues, projectPoints, solve, invert) plus two or three evaluations of the
+3-parameter planar model (a dozen numpy operations each); bench/detect.py measures
+it against a bare AprilTag detect call.
 """
 
 from __future__ import annotations
@@ -54,7 +73,9 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from agents import planar
 from agents.detect import TagDetection, TagMap, TargetKind
+from agents.planar import PlanarProblem
 from protocol import tags
 from protocol.geometry import Mat, matrix_to_pose3, pose3_to_matrix
 from protocol.messages import CameraImage, RelativeObservation
@@ -78,6 +99,10 @@ _SINGLE_TAG_ITERATIONS: Final = 1
 # a rebuilt mirror starts off the residual minimum and gets a few more steps
 _MIRROR_COS: Final = math.cos(math.radians(20.0))
 _MIRROR_ITERATIONS: Final = 3
+# one-camera planar problems kept per (tags, camera): the part that does not depend on the pixels
+_PLANAR_CACHE_SIZE: Final = 1024
+# the planar covariance's pixel sigma over pixel_sigma_px: see CubePoseEstimator
+_PLANAR_NOISE: Final = 1.35
 
 
 @dataclass(frozen=True)
@@ -145,17 +170,20 @@ class _TagGeom:
     obj: NDArray[np.float64]  # (4, 3) corners in the target frame, contract order
     ippe_obj: NDArray[np.float64]  # (4, 3) corners in the tag's own frame, IPPE order
     T_tag_target: Mat  # (4, 4)
+    centre: NDArray[np.float64]  # (3,) tag centre in the target frame
+    normal: NDArray[np.float64]  # (3,) outward normal in the target frame
 
 
 @dataclass(slots=True)
 class _View:
     """The corners of one target in one camera; ``T_cam_c0`` (4, 4) maps the start
-    camera's optical frame into this camera's."""
+    camera's optical frame into this camera's; ``tag_ids`` in the order of the corners."""
 
     cam: CameraModel
     obj: NDArray[np.float64]  # (M, 3) target frame
     img: NDArray[np.float64]  # (M, 2) pixels
     T_cam_c0: Mat
+    tag_ids: tuple[int, ...]
 
 
 @dataclass(slots=True)
@@ -249,14 +277,29 @@ class CubePoseEstimator:
     them flagged.  ``max_rms_px``, ``z_tol_m`` and ``tilt_tol_rad`` gate the result
     (see :meth:`_plausible`); ``prior_sigma_xy_m``/``prior_sigma_yaw_rad`` weigh a
     caller's prior pose when choosing between the two-fold solutions.
+
+    ``planar`` (default) answers with the planar fit of step 6 of the module
+    docstring, ``planar=False`` with the 6-DOF one; ``planar_landmarks`` extends it
+    to landmarks.  The planar covariance uses ``1.35 * pixel_sigma_px``: render
+    errors are correlated within a tag (a near-vertical edge shifts as a whole,
+    corr ~0.9, so its width and horizontal position scatter ~1.4x what independent
+    corners imply), which the 6-DOF fit partly absorbs into z/roll/pitch and the
+    planar fit cannot.  Measured on the views of tests/unit/test_cubepose.py: NEES
+    of (x, y, yaw) 2.1-3.5 for a camera at the tag's height, 0.4-0.8 (conservative)
+    for one 0.68 m above it, whose corner errors are smaller along the elevation
+    that then fixes the range.
     """
 
     def __init__(self, scenario: Scenario, pixel_sigma_px: float = 0.3, max_rms_px: float = 2.0,
                  z_tol_m: float = 0.08, tilt_tol_rad: float = 0.15, *, choice_sigma_px: float = 0.8,
-                 prior_sigma_xy_m: float = 0.25, prior_sigma_yaw_rad: float = 0.35, max_iterations: int = 10) -> None:
+                 prior_sigma_xy_m: float = 0.25, prior_sigma_yaw_rad: float = 0.35, max_iterations: int = 10,
+                 planar: bool = True, planar_landmarks: bool = False) -> None:
         if pixel_sigma_px <= 0:
             raise ValueError("pixel_sigma_px must be positive")
         self.scenario = scenario
+        self.planar = planar
+        self.planar_landmarks = planar_landmarks
+        self._planar_cache: dict[tuple[tuple[int, ...], bytes, bytes], PlanarProblem] = {}
         self.pixel_sigma_px = pixel_sigma_px
         self.choice_sigma_px = max(choice_sigma_px, pixel_sigma_px)
         self.max_rms_px = max_rms_px
@@ -271,6 +314,8 @@ class CubePoseEstimator:
         # Gauss-Newton has converged once a step would buy less than this (px^2, 0.01 in chi^2: the pose
         # then moves by ~0.1 sigma at most); saves the evaluations that only confirm convergence
         self._tiny_px2 = 1e-2 * pixel_sigma_px**2
+        # the planar fit's last step, below 0.1 in chi^2 (~0.3 sigma), is taken blind (agents.planar.solve)
+        self._planar_tiny_px2 = 1e-1 * pixel_sigma_px**2
         self._geom: dict[int, _TagGeom] = {}
         self._expected_z: dict[tuple[str, int], float] = {}
         r = scenario.robot
@@ -295,7 +340,8 @@ class CubePoseEstimator:
         t_target_tag[:3, 3] = centre
         h = size / 2.0
         ippe = np.array([[-h, h, 0.0], [h, h, 0.0], [h, -h, 0.0], [-h, -h, 0.0]])
-        return _TagGeom(kind, target_id, obj, ippe, np.asarray(np.linalg.inv(t_target_tag), np.float64))
+        return _TagGeom(kind, target_id, obj, ippe, np.asarray(np.linalg.inv(t_target_tag), np.float64),
+                        np.asarray(centre, np.float64), np.asarray(n, np.float64))
 
     def object_points(self, tag_id: int) -> NDArray[np.float64] | None:
         """(4, 3) corners of ``tag_id`` in its target's frame (metres, contract order), or None."""
@@ -343,7 +389,7 @@ class CubePoseEstimator:
             if area < 4.0:
                 # a tag is only decodable from its front: clockwise corners mean a fake or garbled set
                 raise ValueError("implausible" if area < -4.0 else "degenerate")
-            return [_View(views[vi][0], g.obj, c, _EYE4)], g, d
+            return [_View(views[vi][0], g.obj, c, _EYE4, (d.tag_id,))], g, d
         per_cam: dict[int, list[tuple[_TagGeom, TagDetection]]] = {}
         best_area, start = -1.0, members[0]
         for m in members:
@@ -368,10 +414,11 @@ class CubePoseEstimator:
             img = np.ascontiguousarray(np.concatenate([d.corners for _, d in items]), np.float64)
             obj = np.concatenate([g.obj for g, _ in items])
             cam = views[vi][0]
+            ids = tuple(d.tag_id for _, d in items)
             if vi == start[0]:
-                out.insert(0, _View(cam, obj, img, _EYE4))
+                out.insert(0, _View(cam, obj, img, _EYE4, ids))
             else:
-                out.append(_View(cam, obj, img, cam.T_cam_base @ c0.T_base_cam))
+                out.append(_View(cam, obj, img, cam.T_cam_base @ c0.T_base_cam, ids))
         return out, start[1], start[2]
 
     def _estimate_target(self, key: tuple[str, int], members: list[tuple[int, _TagGeom, TagDetection]],
@@ -399,7 +446,12 @@ class CubePoseEstimator:
         starts = [self._candidate(t @ sg.T_tag_target, t_bc, sse, z_exp, prior)
                   for t, sse in zip(t_tags, sse_ippe, strict=True)]
         sols: list[_Solution] = []
-        if n_corners == 4:
+        planar_fit = self.planar and (sg.kind == "robot" or self.planar_landmarks)
+        if n_corners == 4 and planar_fit:
+            # one tag, planar answer: IPPE's poses only gate plausibility and seed the planar fit,
+            # which weighs the tag's mirror itself (see _planar)
+            sols = sorted(starts, key=lambda c: c.cost)
+        elif n_corners == 4:
             mirror = self._mirror_start(vlist, t_tags, sg, z_exp, prior)
             if mirror is not None:
                 starts = [starts[0], mirror]
@@ -442,6 +494,13 @@ class CubePoseEstimator:
         if not plausible:
             self._reject("implausible" if constrained else "degenerate")
             return None
+        tag_ids = (sd.tag_id,) if len(members) == 1 else tuple(sorted({d.tag_id for _, _, d in members}))
+        cameras = (c0.name,) if len(vlist) == 1 else tuple(v.cam.name for v in vlist)
+        if planar_fit:
+            # one tag: the best plausible pose (the mirror comes later); several: the 6-DOF stage has
+            # already dropped or refined the start that throws the other tags off
+            seeds = [s.se2 for s, _ in plausible[:1 if n_corners == 4 else 2]]
+            return self._planar(vlist, seeds, z_exp, prior, sg, tag_ids, cameras, n_corners)
         best, cov_theta = plausible[0]
         rms = math.sqrt(best.sse / n_corners)
         if rms > self.max_rms_px:
@@ -470,9 +529,93 @@ class CubePoseEstimator:
         return PoseEstimate(
             target_kind=sg.kind, target_id=sg.target_id, T_base_target=best.T_base_target,
             x_m=best.se2[0], y_m=best.se2[1], yaw_rad=best.se2[2], cov=cov, reprojection_rms_px=rms,
-            tag_ids=(sd.tag_id,) if len(members) == 1 else tuple(sorted({d.tag_id for _, _, d in members})),
-            cameras=(c0.name,) if len(vlist) == 1 else tuple(v.cam.name for v in vlist),
+            tag_ids=tag_ids, cameras=cameras, n_corners=n_corners, ambiguity=ambiguity)
+
+    def _planar(self, vlist: list[_View], seeds: list[tuple[float, float, float]], z_exp: float,
+                prior: tuple[float, float, float] | None, sg: _TagGeom, tag_ids: tuple[int, ...],
+                cameras: tuple[str, ...], n_corners: int) -> PoseEstimate | None:
+        """The planar answer (step 6 of the module docstring): Gauss-Newton on (x, y, yaw) at the
+        known height from each distinct seed (plausible 6-DOF poses projected onto the floor); one
+        tag: also from its mirror (:func:`agents.planar.mirror`).  The lowest score wins; a distinct
+        runner-up within the ambiguity gap is folded into the covariance as in the 6-DOF path."""
+        pr = self._planar_problem(vlist, z_exp)
+        tiny = self._planar_tiny_px2
+        fits: list[tuple[float, planar.PlanarFit]] = []
+        for seed in seeds:
+            fit = planar.solve(pr, seed, self.max_iterations, tiny)
+            if fit is not None and not any(self._same(fit, f) for _, f in fits):
+                fits.append((self._planar_cost(fit, prior), fit))
+        if not fits:
+            self._reject("degenerate")
+            return None
+        fits.sort(key=lambda cf: cf[0])
+        if n_corners == 4:
+            # one tag: the pose with its normal mirrored about the line of sight may explain the corners
+            # about as well (at the tag's height exactly so) -- weigh it where the cost stands there (yaw
+            # held: from there Gauss-Newton may roll back over the shallow ridge), and where it fits
+            # better than the seed's minimum, that basin is the better one
+            first = fits[0][1]
+            mirrored = planar.mirror(first.p, sg.centre, sg.normal, vlist[0].cam.T_base_cam[:2, 3])
+            # one Gauss-Newton step on (x, y), its SSE as predicted
+            alt = None if mirrored is None else planar.solve(pr, mirrored, 1, math.inf, yaw_fixed=True)
+            if alt is not None:
+                alt_cost = self._planar_cost(alt, prior)
+                if alt_cost < fits[0][0]:
+                    full = planar.solve(pr, (alt.p[0], alt.p[1], alt.p[2]), self.max_iterations, tiny)
+                    if full is not None:
+                        alt, alt_cost = full, self._planar_cost(full, prior)
+                if not self._same(alt, first):
+                    fits = sorted([fits[0], (alt_cost, alt)], key=lambda cf: cf[0])
+        cost, best = fits[0]
+        rms = math.sqrt(best.sse / n_corners)
+        if rms > self.max_rms_px:
+            self._reject("reprojection")
+            return None
+        cov = planar.covariance(best, self.pixel_sigma_px * _PLANAR_NOISE)
+        if cov is None:
+            self._reject("degenerate")
+            return None
+        x, y, yaw = best.p.tolist()
+        ambiguity = 0.0
+        if len(fits) > 1 and fits[1][0] - cost < _AMBIGUITY_GAP:
+            other = fits[1][1].p
+            d = (other[0] - x, other[1] - y, _wrap(other[2] - yaw))
+            ambiguity = 1.0 / (1.0 + math.exp(0.5 * (fits[1][0] - cost)))
+            cov = cov + ambiguity * np.outer(d, d)
+        return PoseEstimate(
+            target_kind=sg.kind, target_id=sg.target_id, T_base_target=planar.matrix(x, y, yaw, z_exp), x_m=x,
+            y_m=y, yaw_rad=yaw, cov=cov, reprojection_rms_px=rms, tag_ids=tag_ids, cameras=cameras,
             n_corners=n_corners, ambiguity=ambiguity)
+
+    @staticmethod
+    def _same(a: planar.PlanarFit, b: planar.PlanarFit) -> bool:
+        """Whether two planar fits found the same minimum (1 mm, 1 mrad)."""
+        return abs(_wrap(a.p[2] - b.p[2])) < 1e-3 and math.hypot(a.p[0] - b.p[0], a.p[1] - b.p[1]) < 1e-3
+
+    def _planar_problem(self, vlist: list[_View], z_exp: float) -> PlanarProblem:
+        """The planar problem of a target's views; in one camera (the common case) the part that
+        only depends on the tags and the camera is reused."""
+        if len(vlist) > 1:
+            return PlanarProblem.make([(v.cam.K, v.cam.T_cam_base, v.obj, v.img) for v in vlist], z_exp)
+        v = vlist[0]
+        key = (v.tag_ids, v.cam.K.tobytes(), v.cam.T_base_cam.tobytes())
+        pr = self._planar_cache.get(key)
+        if pr is None:
+            if len(self._planar_cache) >= _PLANAR_CACHE_SIZE:
+                self._planar_cache.clear()
+            pr = self._planar_cache[key] = PlanarProblem.make([(v.cam.K, v.cam.T_cam_base, v.obj, v.img)],
+                                                                      z_exp)
+        return PlanarProblem(pr.basis, pr.q_z, v.img, pr.dq)
+
+    def _planar_cost(self, fit: planar.PlanarFit, prior: tuple[float, float, float] | None) -> float:
+        """Negative log-likelihood (chi^2 units) of a planar fit: residuals over ``choice_sigma_px``
+        and the caller's prior pose."""
+        cost = fit.sse / self.choice_sigma_px**2
+        if prior is not None:
+            x, y, yaw = fit.p[:3].tolist()
+            cost += ((x - prior[0]) ** 2 + (y - prior[1]) ** 2) / self.prior_sigma_xy_m**2
+            cost += (_wrap(yaw - prior[2]) / self.prior_sigma_yaw_rad) ** 2
+        return cost
 
     def _mirror_start(self, vlist: list[_View], t_tags: list[Mat], sg: _TagGeom, z_exp: float,
                       prior: tuple[float, float, float] | None) -> _Solution | None:

@@ -6,12 +6,14 @@ occluding others) and then, frame by frame in the same loop, timed with
 
 * ``bare``: ``pupil_apriltags.Detector(quad_decimate=1, nthreads=1).detect`` -- the reference;
 * ``full``: :class:`agents.detect.AprilTagDetector` (same settings, filters, corner shift)
-  followed by :meth:`agents.cubepose.CubePoseEstimator.estimate` on its detections.
+  followed by :meth:`agents.cubepose.CubePoseEstimator.estimate` (the default: planar
+  fit of (x, y, yaw)) on its detections.
 
 The target is ``full / bare <= 1.3``.  Pose errors compare every estimate with the
-true relative pose of the robot it names, binned by true distance; NEES is of
-(x, y, yaw) against the estimate's covariance (expected 3).  Writes
-``bench/results/detect.json``.
+true relative pose of the robot it names, binned by true distance, all views and
+single-face views apart; NEES is of (x, y, yaw) against the estimate's covariance
+(expected 3).  The 6-DOF estimator (``planar=False``) runs on the same detections,
+untimed, as the reference (``*_6dof``).  Writes ``bench/results/detect.json``.
 
 Usage: python bench/detect.py [--frames 150] [--repeats 5] [--seed 0]
 """
@@ -92,11 +94,13 @@ def run(width: int, height: int, frames: int, repeats: int, seed: int) -> dict[s
     bare = Detector(families=s.tags.family, quad_decimate=1.0, nthreads=1)
     det = AprilTagDetector(s.tags.family)
     est = CubePoseEstimator(s)
+    est6 = CubePoseEstimator(s, planar=False)
     t_bare = np.zeros(len(imgs))
     t_full = np.zeros(len(imgs))
     t_pose = np.zeros(len(imgs))
     n_targets = 0
     errors: list[tuple[float, float, float, float, float]] = []  # distance, dxy, dyaw, nees, faces
+    errors6: list[tuple[float, float, float, float, float]] = []
     for rep in range(repeats + 1):  # the first pass warms caches and is not counted
         for i, img in enumerate(imgs):
             t0 = time.perf_counter_ns()
@@ -108,17 +112,38 @@ def run(width: int, height: int, frames: int, repeats: int, seed: int) -> dict[s
             t3 = time.perf_counter_ns()
             if rep == 0:
                 n_targets += len(ests)
-                for e in ests:
-                    x, y, yaw = truths[i][e.target_id]
-                    err = np.array([e.x_m - x, e.y_m - y, wrap_angle(e.yaw_rad - yaw)])
-                    errors.append((math.hypot(x, y), math.hypot(err[0], err[1]), abs(err[2]),
-                                   float(err @ np.linalg.solve(e.cov, err)), len(e.tag_ids)))
+                for out, es in ((errors, ests), (errors6, est6.estimate([(model, dets)]))):
+                    for e in es:
+                        x, y, yaw = truths[i][e.target_id]
+                        err = np.array([e.x_m - x, e.y_m - y, wrap_angle(e.yaw_rad - yaw)])
+                        out.append((math.hypot(x, y), math.hypot(err[0], err[1]), abs(err[2]),
+                                    float(err @ np.linalg.solve(e.cov, err)), len(e.tag_ids)))
                 continue
             t_bare[i] += (t1 - t0) / repeats
             t_full[i] += (t3 - t1) / repeats
             t_pose[i] += (t3 - t2) / repeats
     ev = np.array(errors) if errors else np.zeros((0, 5))
-    bins = []
+    ev6 = np.array(errors6) if errors6 else np.zeros((0, 5))
+    ratio = t_full / np.maximum(t_bare, 1.0)
+    return {
+        "width": width, "height": height, "frames": len(imgs), "targets_estimated": n_targets,
+        "rejects": dict(est.rejects),
+        "bare_detect_ms": float(t_bare.mean() / 1e6), "full_ms": float(t_full.mean() / 1e6),
+        "pose_ms_per_frame": float(t_pose.mean() / 1e6),
+        "pose_ms_per_target": float(t_pose.sum() / 1e6 / max(n_targets, 1)),
+        "ratio_total": float(t_full.sum() / t_bare.sum()), "ratio_median_frame": float(np.median(ratio)),
+        "ratio_p90_frame": float(np.percentile(ratio, 90)),
+        "error_bins": error_bins(ev), "mean_nees": float(ev[:, 3].mean()) if len(ev) else None,
+        "yaw_over_10deg_multi_face": int(((ev[:, 2] > math.radians(10)) & (ev[:, 4] > 1)).sum()),
+        "error_bins_single_face": error_bins(ev[ev[:, 4] == 1]),
+        "error_bins_6dof": error_bins(ev6), "mean_nees_6dof": float(ev6[:, 3].mean()) if len(ev6) else None,
+        "error_bins_single_face_6dof": error_bins(ev6[ev6[:, 4] == 1]),
+    }
+
+
+def error_bins(ev: np.ndarray) -> list[dict[str, Any]]:
+    """Errors (rows: distance, dxy, dyaw, NEES, faces) binned by true distance."""
+    bins: list[dict[str, Any]] = []
     for lo, hi in BINS:
         sel = ev[(ev[:, 0] >= lo) & (ev[:, 0] < hi)]
         if len(sel) == 0:
@@ -131,18 +156,7 @@ def run(width: int, height: int, frames: int, repeats: int, seed: int) -> dict[s
                      "p90_yaw_deg": float(np.degrees(np.percentile(sel[:, 2], 90))),
                      "yaw_over_10deg": int((sel[:, 2] > math.radians(10)).sum()),
                      "mean_nees": float(sel[:, 3].mean())})
-    ratio = t_full / np.maximum(t_bare, 1.0)
-    return {
-        "width": width, "height": height, "frames": len(imgs), "targets_estimated": n_targets,
-        "rejects": dict(est.rejects),
-        "bare_detect_ms": float(t_bare.mean() / 1e6), "full_ms": float(t_full.mean() / 1e6),
-        "pose_ms_per_frame": float(t_pose.mean() / 1e6),
-        "pose_ms_per_target": float(t_pose.sum() / 1e6 / max(n_targets, 1)),
-        "ratio_total": float(t_full.sum() / t_bare.sum()), "ratio_median_frame": float(np.median(ratio)),
-        "ratio_p90_frame": float(np.percentile(ratio, 90)),
-        "error_bins": bins, "mean_nees": float(ev[:, 3].mean()) if len(ev) else None,
-        "yaw_over_10deg_multi_face": int(((ev[:, 2] > math.radians(10)) & (ev[:, 4] > 1)).sum()),
-    }
+    return bins
 
 
 def main() -> int:
@@ -167,17 +181,22 @@ def main() -> int:
                   f"{r['bare_detect_ms']:.2f}", f"{r['full_ms']:.2f}", f"{r['pose_ms_per_target']:.3f}",
                   f"{r['ratio_total']:.2f}", f"{r['ratio_p90_frame']:.2f}")
     con.print(t)
-    t = Table(title="relative pose error by true distance (median / p90)")
-    for col in ("res", "distance m", "n", "xy cm", "yaw deg", "yaw>10deg", "NEES"):
-        t.add_column(col)
-    for r in rows:
-        for b in r["error_bins"]:
-            if b["n"]:
-                t.add_row(f"{r['width']}x{r['height']}", f"{b['range_m'][0]}-{b['range_m'][1]}", str(b["n"]),
-                          f"{b['median_xy_cm']:.2f} / {b['p90_xy_cm']:.2f}",
-                          f"{b['median_yaw_deg']:.2f} / {b['p90_yaw_deg']:.2f}", str(b["yaw_over_10deg"]),
-                          f"{b['mean_nees']:.2f}")
-    con.print(t)
+    for key, title in (("error_bins", "all views"), ("error_bins_single_face", "single-face views")):
+        t = Table(title=f"relative pose error by true distance, {title} (median / p90; planar | 6-DOF)")
+        for col in ("res", "distance m", "n", "xy cm", "yaw deg", "yaw>10deg", "NEES"):
+            t.add_column(col)
+        for r in rows:
+            for b, b6 in zip(r[key], r[f"{key}_6dof"], strict=True):
+                if b["n"] and b6["n"]:
+                    t.add_row(f"{r['width']}x{r['height']}", f"{b['range_m'][0]}-{b['range_m'][1]}",
+                              f"{b['n']} | {b6['n']}",
+                              f"{b['median_xy_cm']:.2f} / {b['p90_xy_cm']:.2f} | "
+                              f"{b6['median_xy_cm']:.2f} / {b6['p90_xy_cm']:.2f}",
+                              f"{b['median_yaw_deg']:.2f} / {b['p90_yaw_deg']:.2f} | "
+                              f"{b6['median_yaw_deg']:.2f} / {b6['p90_yaw_deg']:.2f}",
+                              f"{b['yaw_over_10deg']} | {b6['yaw_over_10deg']}",
+                              f"{b['mean_nees']:.2f} | {b6['mean_nees']:.2f}")
+        con.print(t)
     print("wrote", a.out)
     return 0
 

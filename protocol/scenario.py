@@ -91,9 +91,12 @@ class Camera(Spec, frozen=True, kw_only=True, forbid_unknown_fields=True):
     rate_hz: Pos = 10.0
     x_m: float = 0.15
     y_m: float = 0.0
-    z_m: float = 0.22
+    # on a mast above the tag cubes, looking down: from the tags' own height a single
+    # tag's two pose solutions differ by a pure yaw flip that no ground prior can
+    # resolve; from above, the planar (upright, on the floor) model tells them apart
+    z_m: float = 0.6
     yaw_deg: float = 0.0
-    pitch_deg: float = 0.0
+    pitch_deg: float = -15.0
     near_m: Pos = 0.05
     far_m: Pos = 15.0
 

@@ -50,7 +50,8 @@ class FusionParams:
     lag_s: float = 30.0
     huber_k: float = 1.345
     chi2_gate: float = CHI2_3DOF_999
-    gate_floor_m: float = 0.05  # gate tolerance never below this (estimates are never perfect)
+    gate_floor_m: float = 0.05
+    gate_after: int = 8  # observations a robot needs in the graph before the chi² gate applies to it  # gate tolerance never below this (estimates are never perfect)
     origin_sigma: float = 1e-4
     odom_buffer: int = 4096
     max_pending_s: float = 3.0
@@ -76,6 +77,7 @@ class _Robot:
     drift_cov: Cov = field(default_factory=lambda: np.zeros((3, 3)))  # odometry since the last keyframe
     latest_odom: tuple[int, Pose2] | None = None
     last_fix_ns: int = 0
+    accepted: int = 0  # observations involving this robot in the graph
     last_distance: float = 0.0
     reset_hint: Pose2 | None = None
 
@@ -282,7 +284,12 @@ class Fusion:
             return
         po = None if o.estimate is None else se2_compose(o.estimate, se2_between(o.kf_odom, oo))
         pg = None if g.estimate is None else se2_compose(g.estimate, se2_between(g.kf_odom, go))
-        if po is not None and pg is not None:
+        # the gate trusts the current estimate only once a robot is established: right after
+        # its first placement the estimate may be the wrong one of a flip, and gating would then
+        # lock the mistake in (the robust loss still bounds a bad observation's pull)
+        established = all(r.accepted >= self.p.gate_after or rid == self.origin_id
+                          for rid, r in ((observer, o), (target, g)))
+        if po is not None and pg is not None and established:
             d2 = self._gate(se2_between(po, pg), rel, cov + self._rel_cov(o, g))
             if d2 > self.p.chi2_gate:
                 self.counters["rejected_gate"] += 1
@@ -313,6 +320,8 @@ class Fusion:
         self._factors.add(gtsam.BetweenFactorPose2(ko, kg, gtsam.Pose2(*z), self._robust(cov + co + cg)))
         o.last_fix_ns = g.last_fix_ns = stamp_ns
         self.edges[(observer, target)] = stamp_ns
+        o.accepted += 1
+        g.accepted += 1
         self.counters["accepted_observations"] += 1
 
     def _initial_pose(self, rid: int, stamp_ns: int, placed: Pose2, odom_pose: Pose2, trace: float) -> Pose2 | None:

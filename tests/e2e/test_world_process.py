@@ -67,9 +67,11 @@ def test_images_decode_to_the_true_tags_and_reproject(tmp_path: Path) -> None:
             seen[rid].add((target, face))
             uv = project((img.fx_px, img.fy_px, img.cx_px, img.cy_px), t_wc, world_corners(s, target_pose, face))
             errors.extend(np.linalg.norm(d.corners - 0.5 - uv, axis=1))
-    # robot 1 faces robot 0 and vice versa: each sees exactly the other's front tag among its faces
-    assert {f for t, f in seen[0] if t == 1} == {tags.Face.FRONT}
-    assert {f for t, f in seen[1] if t == 0} == {tags.Face.FRONT}
+    # robot 1 faces robot 0 and vice versa: each sees the other's front tag (and, from the mast
+    # camera above the cubes, its top), never a side or the back
+    for a, b in ((0, 1), (1, 0)):
+        faces = {f for t, f in seen[a] if t == b}
+        assert tags.Face.FRONT in faces and faces <= {tags.Face.FRONT, tags.Face.TOP}, faces
     assert sum(len(v) for v in seen.values()) >= 6
     assert len(errors) >= 24
     assert float(np.median(errors)) < 1.0, f"median reprojection error {np.median(errors):.2f} px"

@@ -38,10 +38,11 @@ LANDMARKS = [{"id": 200, "x_m": -4.0, "y_m": 0.6, "z_m": 0.3, "yaw_rad": 0.0},
 
 
 def scenario() -> Scenario:
-    cams: list[dict[str, Any]] = [{"name": "front"},
+    level = {"z_m": 0.22, "pitch_deg": 0.0}  # at the tag centres' height (the hard case for single faces)
+    cams: list[dict[str, Any]] = [{"name": "front", **level},
             {"name": "mast", "x_m": 0.0, "z_m": 0.9, "pitch_deg": -20.0},
-            {"name": "left", "x_m": 0.1, "y_m": 0.12, "yaw_deg": 20.0},
-            {"name": "right", "x_m": 0.1, "y_m": -0.12, "yaw_deg": -20.0}]
+            {"name": "left", "x_m": 0.1, "y_m": 0.12, "yaw_deg": 20.0, **level},
+            {"name": "right", "x_m": 0.1, "y_m": -0.12, "yaw_deg": -20.0, **level}]
     table = {
         "arena": {"size_x_m": 14.0, "size_y_m": 14.0},  # room for 5 m views
         "robot": {"cameras": [{**c, "width": W, "height": H, "hfov_deg": 60.0} for c in cams]},

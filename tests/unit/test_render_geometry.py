@@ -34,7 +34,8 @@ def test_painted_tag_corner_order_matches_contract() -> None:
 
 @pytest.fixture(scope="module")
 def scene():
-    s = load_scenario("paper", ['robot.cameras=[{name="front", width=640, height=480, hfov_deg=60}]',
+    s = load_scenario("paper", ['robot.cameras=[{name="front", width=640, height=480, hfov_deg=60, z_m=0.22, '
+                                'pitch_deg=0.0}]',
                                 "robots.count=2", 'robots.placement="explicit"',
                                 "robots.start=[{x_m=0.0, y_m=0.0}, {x_m=2.0, y_m=0.0}]"])
     with Renderer(s) as r:
@@ -99,7 +100,7 @@ def test_landmark_and_tag16h5_cubes_decode() -> None:
                                 "robots.count=2",
                                 'robots.placement="explicit"', "robots.start=[{x_m=0.0, y_m=0.0}, {x_m=1.2, y_m=0.0}]",
                                 "landmarks=[{id=20, x_m=1.5, y_m=0.6, z_m=0.25, yaw_rad=3.1416, size_m=0.16}]",
-                                'robot.cameras=[{name="front", width=640, height=480}]'])
+                                'robot.cameras=[{name="front", width=640, height=480, z_m=0.22, pitch_deg=0.0}]'])
     with Renderer(s) as r:
         r.set_pose(0, (0, 0, 0), (0, 0, 0, 1))
         r.set_pose(1, (1.2, 0, 0), pb.getQuaternionFromEuler((0, 0, math.pi)))

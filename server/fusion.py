@@ -50,8 +50,8 @@ class FusionParams:
     lag_s: float = 30.0
     huber_k: float = 1.345
     chi2_gate: float = CHI2_3DOF_999
-    gate_floor_m: float = 0.05
-    gate_after: int = 8  # observations a robot needs in the graph before the chi² gate applies to it  # gate tolerance never below this (estimates are never perfect)
+    gate_floor_m: float = 0.05  # gate tolerance never below this (estimates are never perfect)
+    gate_after: int = 8  # observations a robot needs in the graph before the chi² gate applies to it
     origin_sigma: float = 1e-4
     odom_buffer: int = 4096
     max_pending_s: float = 3.0

@@ -157,7 +157,7 @@ def test_killed_participant_does_not_hang_lockstep(tmp_path: Path) -> None:
     ep, run = endpoint(), "kill"
     keys = Keys(run)
     parts = ['clock.participants=["agent/0", "agent/1"]', 'clock.mode="lockstep"', "clock.ack_timeout_s=30",
-             "duration_s=6"]
+             "duration_s=40"]
     helper = [sys.executable, "-m", "tests.participant", "--connect", ep, "--run", run]
     with process(world_argv(ep, run, *parts), tmp_path / "world.log") as world, \
             process([*helper, "--name", "agent/0"]), process([*helper, "--name", "agent/1"]) as victim, \
@@ -174,6 +174,7 @@ def test_killed_participant_does_not_hang_lockstep(tmp_path: Path) -> None:
             return check
 
         assert bus.wait_for(reached(30), 60), f"lockstep world never reached step 30 (at {last})"
+        assert last < 1000  # far from the end (1200 steps): the world must get past the kill by itself
         victim.send_signal(signal.SIGKILL)
         killed_at = last
         # ack timeout is 30 s: only liveliness can unblock the world this fast

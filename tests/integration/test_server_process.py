@@ -72,6 +72,9 @@ def test_map_queryable_and_spoofed_observations(tmp_path: Path) -> None:
             put(keys.observation(7), _obs(7, 1, k, 0.1, 0.1, 0.0))    # robot 7 is not in the roster
             put(keys.observation(0), _obs(0, 9, k, 1.0, 0.0, 0.0))    # target 9 is not in the roster
             put(keys.odometry(1), _odom(0, k, x=3.0))                 # odometry of 0 on 1's key
+        for k in range(40, 46):  # later data moves the server's clock on, so it reports its counters again
+            for rid in (0, 1):
+                put(keys.odometry(rid), _odom(rid, k))
         counters: dict[str, int] = {}
 
         def counted() -> bool:

@@ -62,6 +62,17 @@ def test_bad_input_is_counted_and_a_restarted_agent_resumes_from_the_map(tmp_pat
 
         victim.send_signal(signal.SIGKILL)
         victim.wait(10)
+        # the server notices through liveliness: robot 1 stays in the map, marked not alive
+        maps = bus.subscribe(keys.map())
+        seen: dict[int, bool] = {}
+
+        def marked_dead() -> bool:
+            for it in maps.drain():
+                seen.update({e.robot_id: e.alive for e in codec.decode(m.GlobalMap, it.value).robots})
+            return seen.get(1) is False
+
+        assert bus.wait_for(marked_dead, 5), seen
+        assert seen.get(0) is True
         with process(agent1, tmp_path / "a1b.log"):
             first = _status(bus, keys, 1, lambda c: "resumed_from_map" in c or c.get("corrections", 0) > 0)
             assert first.get("resumed_from_map") == 1, first

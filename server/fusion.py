@@ -98,6 +98,15 @@ def odom_increment_cov(delta: Pose2, p: FusionParams) -> Cov:
     return np.diag([var_s + 1e-8, var_lat + 1e-8, var_th + 1e-8])
 
 
+def tangent_cov(rel: Pose2, cov: Cov) -> Cov:
+    """The agents' (3, 3) covariance of (x, y, yaw) — translation errors along the
+    observer's axes — expressed in GTSAM's tangent space of the Pose2 ``rel``, whose
+    translation part lives in rel's own (the target's) axes."""
+    c, s = math.cos(rel[2]), math.sin(rel[2])
+    j = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
+    return np.asarray(j @ cov @ j.T)
+
+
 def inverse_cov(rel: Pose2, cov: Cov) -> Cov:
     """(3, 3) covariance of rel⁻¹ given that of ``rel`` (first order)."""
     ci, si = math.cos(rel[2]), math.sin(rel[2])
@@ -290,7 +299,7 @@ class Fusion:
         established = all(r.accepted >= self.p.gate_after or rid == self.origin_id
                           for rid, r in ((observer, o), (target, g)))
         if po is not None and pg is not None and established:
-            d2 = self._gate(se2_between(po, pg), rel, cov + self._rel_cov(o, g))
+            d2 = self._gate(se2_between(po, pg), rel, tangent_cov(rel, cov) + self._rel_cov(o, g))
             if d2 > self.p.chi2_gate:
                 self.counters["rejected_gate"] += 1
                 return
@@ -317,7 +326,8 @@ class Fusion:
         # the measurement between the two keyframes: observer's motion since its keyframe, the
         # observation, then back along the target's motion since its keyframe
         z = se2_compose(se2_compose(do, rel), se2_inverse(dg))
-        self._factors.add(gtsam.BetweenFactorPose2(ko, kg, gtsam.Pose2(*z), self._robust(cov + co + cg)))
+        self._factors.add(gtsam.BetweenFactorPose2(ko, kg, gtsam.Pose2(*z),
+                                                   self._robust(tangent_cov(rel, cov) + co + cg)))
         o.last_fix_ns = g.last_fix_ns = stamp_ns
         self.edges[(observer, target)] = stamp_ns
         o.accepted += 1
@@ -371,10 +381,10 @@ class Fusion:
             return
         lm = self.landmarks[landmark]
         pose = se2_compose(lm, se2_inverse(rel))
-        # covariance of L ⊕ rel⁻¹ (first order), rotated into the map frame
-        c, s = math.cos(lm[2]), math.sin(lm[2])
-        rot = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
-        cov_map = rot @ inverse_cov(rel, cov) @ rot.T
+        # L ⊕ (rel ⊕ Exp(e))⁻¹ = (L ⊕ rel⁻¹) ⊕ Exp(-Ad(rel) e): the prior's noise in GTSAM's
+        # tangent space of the robot pose
+        ad = np.asarray(gtsam.Pose2(*rel).AdjointMap())
+        cov_map = ad @ tangent_cov(rel, cov) @ ad.T
         initial = pose
         if r.estimate is not None:
             cur = se2_compose(r.estimate, se2_between(r.kf_odom, oo))

@@ -33,6 +33,7 @@ from protocol.keys import Keys
 from protocol.scenario import arena_to_map
 
 log = logging.getLogger("tagswarm.agent")
+PRIOR_MAX_AGE_NS = 500_000_000  # robots move ~15 cm in 0.5 s: older relative poses mislead more than help
 
 
 class AgentNode:
@@ -62,7 +63,8 @@ class AgentNode:
         self._moved = False
         self._fix = False
         self._next_status_ns = 0
-        self._priors: dict[tuple[str, int], tuple[float, float, float]] = {}
+        # last relative pose of each target and when: a prior for single-face ambiguity, only while fresh
+        self._priors: dict[tuple[str, int], tuple[int, tuple[float, float, float]]] = {}
         self.lockstep = s.clock.mode == "lockstep"
         self.images: dict[str, Inbox[bytes]] = {
             c.name: bus.subscribe(self.keys.image(rid, c.name), newest_only=True) for c in s.robot.cameras}
@@ -196,11 +198,12 @@ class AgentNode:
             self.counters["frames_processed"] += 1
         stamp = max(img.stamp_ns for img in frames)
         self.time_ns = max(self.time_ns, stamp)
-        for est in self.estimator.estimate(views, self._priors):
+        fresh = {k: p for k, (t, p) in self._priors.items() if stamp - t <= PRIOR_MAX_AGE_NS}
+        for est in self.estimator.estimate(views, fresh):
             if np.hypot(est.x_m, est.y_m) > self.s.agent.max_range_m:
                 self.counters["rejected_range"] += 1
                 continue
-            self._priors[(est.target_kind, est.target_id)] = (est.x_m, est.y_m, est.yaw_rad)
+            self._priors[(est.target_kind, est.target_id)] = (stamp, (est.x_m, est.y_m, est.yaw_rad))
             self._publish_observation(est, stamp)
             self._fix = True
 

@@ -30,7 +30,7 @@ from protocol.bus import Bus, Inbox
 from protocol.config import serve_node
 from protocol.geometry import Pose2, se2_compose
 from protocol.keys import Keys
-from protocol.scenario import arena_to_map
+from protocol.layout import arena_to_map
 
 log = logging.getLogger("tagswarm.agent")
 PRIOR_MAX_AGE_NS = 500_000_000  # robots move ~15 cm in 0.5 s: older relative poses mislead more than help

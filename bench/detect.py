@@ -41,7 +41,8 @@ from rich.table import Table  # noqa: E402
 from agents.cubepose import CameraModel, CubePoseEstimator  # noqa: E402
 from agents.detect import AprilTagDetector  # noqa: E402
 from protocol.geometry import se2_matrix, wrap_angle, yaw_quat  # noqa: E402
-from protocol.scenario import Scenario, footprint_radius, load_scenario  # noqa: E402
+from protocol.layout import footprint_radius  # noqa: E402
+from protocol.scenario import Scenario, load_scenario  # noqa: E402
 from world.render import Renderer, image_message  # noqa: E402
 
 BINS = [(0.5, 1.0), (1.0, 2.0), (2.0, 3.0), (3.0, 4.0), (4.0, 5.0)]

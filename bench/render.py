@@ -47,7 +47,7 @@ def overrides(width: int, height: int, robots: int) -> list[str]:
 def _raw_worker(args: tuple[list[str], float, float]) -> int:
     ov, warmup, seconds = args
     from protocol.geometry import se2_matrix
-    from protocol.scenario import start_poses
+    from protocol.layout import start_poses
     from world._pybullet import pb
     from world.render import Renderer
 

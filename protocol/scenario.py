@@ -17,10 +17,8 @@ from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import msgspec
-import numpy as np
 
 from protocol import tags
-from protocol.geometry import se2_inverse
 from protocol.keys import KeyError_, check_name, split_participant
 
 Pos = Annotated[float, msgspec.Meta(gt=0)]
@@ -420,6 +418,8 @@ def validate(s: Scenario) -> None:
             raise ScenarioError(f"missions[{i}]: a {mi.kind} mission needs waypoints")
     if s.map.origin_id not in s.robot_ids:
         raise ScenarioError(f"map.origin_id={s.map.origin_id} is not a robot of this scenario")
+    from protocol.layout import footprint_radius, start_poses  # layout builds on these types
+
     poses = start_poses(s)
     half_x = s.arena.size_x_m / 2 - s.arena.wall_thickness_m / 2
     half_y = s.arena.size_y_m / 2 - s.arena.wall_thickness_m / 2
@@ -456,69 +456,3 @@ def _claim(owner: dict[int, str], tid: int, who: str, fam_n: int, family: str, f
     if tid in owner:
         raise ScenarioError(f"{field}: tag ID {tid} is used twice ({owner[tid]} and {who})")
     owner[tid] = who
-
-
-def footprint_radius(robot: Robot) -> float:
-    """Radius (m) of the circle that holds a robot's chassis and cube."""
-    half = max(robot.chassis_length_m, robot.cube_edge_m) / 2.0
-    return math.hypot(half, max(robot.chassis_width_m, robot.cube_edge_m) / 2.0)
-
-
-def start_poses(s: Scenario) -> list[tuple[float, float, float]]:
-    """Initial (x_m, y_m, yaw_rad) of every robot in the arena frame; deterministic."""
-    n = s.robots.count
-    rng = np.random.default_rng(s.seed + 7919)
-    pl = s.robots.placement
-    if pl == "explicit":
-        return [(p.x_m, p.y_m, p.yaw_rad) for p in s.robots.start]
-    if pl == "ring":
-        out = []
-        for k in range(n):
-            a = 2 * math.pi * k / n
-            rr = s.robots.ring_radius_m
-            out.append((rr * math.cos(a), rr * math.sin(a), _wrap(a + math.pi)))
-        return out
-    margin = footprint_radius(s.robot) + s.arena.wall_thickness_m + 0.3
-    wx, wy = s.arena.size_x_m / 2 - margin, s.arena.size_y_m / 2 - margin
-    if pl == "grid":
-        cols = math.ceil(math.sqrt(n))
-        rows = math.ceil(n / cols)
-        out = []
-        for k in range(n):
-            cx = -wx + 2 * wx * ((k % cols) + 0.5) / cols
-            cy = -wy + 2 * wy * ((k // cols) + 0.5) / rows
-            out.append((cx, cy, float(rng.uniform(-math.pi, math.pi))))
-        return out
-    out = []
-    min_gap = 2 * footprint_radius(s.robot) + 0.1
-    for _ in range(n):
-        for _attempt in range(10_000):
-            x, y = float(rng.uniform(-wx, wx)), float(rng.uniform(-wy, wy))
-            if all(math.dist((x, y), p[:2]) >= min_gap for p in out):
-                break
-        out.append((x, y, float(rng.uniform(-math.pi, math.pi))))
-    return out
-
-
-def _wrap(a: float) -> float:
-    return (a + math.pi) % (2 * math.pi) - math.pi
-
-
-def wall_boxes(a: Arena) -> list[tuple[tuple[float, float, float], tuple[float, float, float]]]:
-    """The four walls as (centre, half extents) boxes in the arena frame, metres."""
-    t, h = a.wall_thickness_m, a.wall_height_m
-    hx, hy = a.size_x_m / 2, a.size_y_m / 2
-    return [
-        ((hx, 0.0, h / 2), (t / 2, hy + t / 2, h / 2)),
-        ((-hx, 0.0, h / 2), (t / 2, hy + t / 2, h / 2)),
-        ((0.0, hy, h / 2), (hx + t / 2, t / 2, h / 2)),
-        ((0.0, -hy, h / 2), (hx + t / 2, t / 2, h / 2)),
-    ]
-
-
-def arena_to_map(s: Scenario) -> tuple[float, float, float]:
-    """T_map_arena as (x_m, y_m, yaw_rad): the map frame is the origin robot's first
-    pose, unless the scenario has landmark tags, which tie the map to the arena."""
-    if s.landmarks:
-        return (0.0, 0.0, 0.0)
-    return se2_inverse(start_poses(s)[s.map.origin_id])

@@ -23,7 +23,8 @@ from protocol import messages as m
 from protocol.bus import Bus
 from protocol.geometry import Pose2, se2_compose
 from protocol.keys import Keys
-from protocol.scenario import Scenario, arena_to_map
+from protocol.layout import arena_to_map
+from protocol.scenario import Scenario
 
 
 def _tum_line(stamp_ns: int, p: Pose2) -> str:

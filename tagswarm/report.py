@@ -15,7 +15,7 @@ Writes into the run folder:
   (like the paper's Fig. 5), subsampled in time.
 
 Everything is drawn in the MAP frame (metres); the arena, given in the arena
-frame by the scenario, is moved there with :func:`protocol.scenario.arena_to_map`.
+frame by the scenario, is moved there with :func:`protocol.layout.arena_to_map`.
 Matplotlib is used through the Agg canvas only (no GUI, no global pyplot state).
 """
 
@@ -37,7 +37,8 @@ from rich.console import Console
 from rich.table import Table
 
 from protocol.config import ConfigError, OneLineParser, parse, run_main
-from protocol.scenario import Scenario, ScenarioError, arena_to_map, convert
+from protocol.layout import arena_to_map
+from protocol.scenario import Scenario, ScenarioError, convert
 from tagswarm.metrics import F64, Evaluation, RunFolderError, evaluate, load_run
 
 PLOTS = ("arena.png", "error_over_time.png", "error_vs_distance.png", "true_vs_measured.png")

@@ -19,8 +19,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from protocol.geometry import Mat, matrix_to_pose3, quat_to_rot, transform
+from protocol.layout import wall_boxes
 from protocol.messages import CameraImage
-from protocol.scenario import Camera, Scenario, wall_boxes
+from protocol.scenario import Camera, Scenario
 from world import assets
 from world._pybullet import pb
 from world.camera import intrinsics, mount_transform, vfov_deg

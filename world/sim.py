@@ -25,7 +25,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from protocol.geometry import wrap_angle
-from protocol.scenario import Scenario, start_poses, wall_boxes
+from protocol.layout import start_poses, wall_boxes
+from protocol.scenario import Scenario
 from world._pybullet import pb
 
 

@@ -24,7 +24,7 @@ from protocol import messages as m
 from protocol.bus import BusConfig, open_bus
 from protocol.geometry import se2_compose
 from protocol.keys import Keys
-from protocol.scenario import arena_to_map
+from protocol.layout import arena_to_map
 from tests.harness import BIN, free_port, script
 from tests.unit.test_compose import ROUTER_ENDPOINT, load_compose, service_env
 from world.config import build_config as world_config

@@ -10,7 +10,8 @@ import msgspec
 import numpy as np
 import pytest
 
-from protocol.scenario import load_scenario, start_poses
+from protocol.layout import start_poses
+from protocol.scenario import load_scenario
 from tagswarm import report
 from tagswarm.metrics import RunFolderError, compute_metrics
 from tests.unit.test_metrics import three_circles

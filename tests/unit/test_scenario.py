@@ -10,6 +10,7 @@ from typing import Any
 import msgspec
 import pytest
 
+from protocol import layout
 from protocol import scenario as sc
 from protocol.scenario import ScenarioError, load_scenario
 
@@ -313,9 +314,9 @@ def test_overrides_do_not_leak_between_loads() -> None:
 
 
 def _inside_and_apart(s: sc.Scenario) -> list[tuple[float, float, float]]:
-    poses = sc.start_poses(s)
+    poses = layout.start_poses(s)
     assert len(poses) == s.robots.count
-    r = sc.footprint_radius(s.robot)
+    r = layout.footprint_radius(s.robot)
     half_x = s.arena.size_x_m / 2 - s.arena.wall_thickness_m / 2
     half_y = s.arena.size_y_m / 2 - s.arena.wall_thickness_m / 2
     for x, y, yaw in poses:
@@ -358,19 +359,20 @@ def test_ring_faces_its_centre() -> None:
 def test_start_poses_are_deterministic_for_a_seed(placement: str) -> None:
     over = [f'robots.placement="{placement}"', "robots.count=6", "seed=42"]
     a, b = load_scenario("paper", over), load_scenario("paper", over)
-    assert sc.start_poses(a) == sc.start_poses(b)
-    assert sc.start_poses(a) == sc.start_poses(a)
+    assert layout.start_poses(a) == layout.start_poses(b)
+    assert layout.start_poses(a) == layout.start_poses(a)
 
 
 @pytest.mark.parametrize("placement", ["grid", "random"])
 def test_seed_changes_seeded_placements(placement: str) -> None:
     a = load_scenario("paper", [f'robots.placement="{placement}"', "robots.count=6", "seed=1"])
     b = load_scenario("paper", [f'robots.placement="{placement}"', "robots.count=6", "seed=2"])
-    assert sc.start_poses(a) != sc.start_poses(b)
+    assert layout.start_poses(a) != layout.start_poses(b)
 
 
 def test_ring_ignores_seed() -> None:
-    assert sc.start_poses(load_scenario("paper", ["seed=1"])) == sc.start_poses(load_scenario("paper", ["seed=2"]))
+    one, two = load_scenario("paper", ["seed=1"]), load_scenario("paper", ["seed=2"])
+    assert layout.start_poses(one) == layout.start_poses(two)
 
 
 def test_too_many_robots_for_the_arena() -> None:
@@ -379,7 +381,7 @@ def test_too_many_robots_for_the_arena() -> None:
 
 
 def test_footprint_radius() -> None:
-    r = sc.footprint_radius(load_scenario("paper").robot)
+    r = layout.footprint_radius(load_scenario("paper").robot)
     assert math.isclose(r, math.hypot(0.15, 0.12))
 
 
@@ -489,7 +491,7 @@ def test_json_round_trip(tmp_path: Path) -> None:
     back = load_scenario(str(path))
     assert back == s
     assert back.robot.cameras[1].width == 160
-    assert sc.start_poses(back) == sc.start_poses(s)
+    assert layout.start_poses(back) == layout.start_poses(s)
 
 
 def test_broken_json(tmp_path: Path) -> None:
@@ -501,7 +503,7 @@ def test_broken_json(tmp_path: Path) -> None:
 
 
 def test_wall_boxes() -> None:
-    walls = sc.wall_boxes(sc.Arena())
+    walls = layout.wall_boxes(sc.Arena())
     assert len(walls) == 4
     centres = sorted(c for c, _ in walls)
     assert centres == sorted([(3.5, 0.0, 0.25), (-3.5, 0.0, 0.25), (0.0, 3.5, 0.25), (0.0, -3.5, 0.25)])

@@ -1,0 +1,77 @@
+"""Where things are: start poses, footprints, walls and the map frame of a
+scenario (pure geometry on top of :mod:`protocol.scenario`)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from protocol.geometry import se2_inverse
+from protocol.scenario import Arena, Robot, Scenario
+
+
+def footprint_radius(robot: Robot) -> float:
+    """Radius (m) of the circle that holds a robot's chassis and cube."""
+    half = max(robot.chassis_length_m, robot.cube_edge_m) / 2.0
+    return math.hypot(half, max(robot.chassis_width_m, robot.cube_edge_m) / 2.0)
+
+
+def start_poses(s: Scenario) -> list[tuple[float, float, float]]:
+    """Initial (x_m, y_m, yaw_rad) of every robot in the arena frame; deterministic."""
+    n = s.robots.count
+    rng = np.random.default_rng(s.seed + 7919)
+    pl = s.robots.placement
+    if pl == "explicit":
+        return [(p.x_m, p.y_m, p.yaw_rad) for p in s.robots.start]
+    if pl == "ring":
+        out = []
+        for k in range(n):
+            a = 2 * math.pi * k / n
+            rr = s.robots.ring_radius_m
+            out.append((rr * math.cos(a), rr * math.sin(a), _wrap(a + math.pi)))
+        return out
+    margin = footprint_radius(s.robot) + s.arena.wall_thickness_m + 0.3
+    wx, wy = s.arena.size_x_m / 2 - margin, s.arena.size_y_m / 2 - margin
+    if pl == "grid":
+        cols = math.ceil(math.sqrt(n))
+        rows = math.ceil(n / cols)
+        out = []
+        for k in range(n):
+            cx = -wx + 2 * wx * ((k % cols) + 0.5) / cols
+            cy = -wy + 2 * wy * ((k // cols) + 0.5) / rows
+            out.append((cx, cy, float(rng.uniform(-math.pi, math.pi))))
+        return out
+    out = []
+    min_gap = 2 * footprint_radius(s.robot) + 0.1
+    for _ in range(n):
+        for _attempt in range(10_000):
+            x, y = float(rng.uniform(-wx, wx)), float(rng.uniform(-wy, wy))
+            if all(math.dist((x, y), p[:2]) >= min_gap for p in out):
+                break
+        out.append((x, y, float(rng.uniform(-math.pi, math.pi))))
+    return out
+
+
+def _wrap(a: float) -> float:
+    return (a + math.pi) % (2 * math.pi) - math.pi
+
+
+def wall_boxes(a: Arena) -> list[tuple[tuple[float, float, float], tuple[float, float, float]]]:
+    """The four walls as (centre, half extents) boxes in the arena frame, metres."""
+    t, h = a.wall_thickness_m, a.wall_height_m
+    hx, hy = a.size_x_m / 2, a.size_y_m / 2
+    return [
+        ((hx, 0.0, h / 2), (t / 2, hy + t / 2, h / 2)),
+        ((-hx, 0.0, h / 2), (t / 2, hy + t / 2, h / 2)),
+        ((0.0, hy, h / 2), (hx + t / 2, t / 2, h / 2)),
+        ((0.0, -hy, h / 2), (hx + t / 2, t / 2, h / 2)),
+    ]
+
+
+def arena_to_map(s: Scenario) -> tuple[float, float, float]:
+    """T_map_arena as (x_m, y_m, yaw_rad): the map frame is the origin robot's first
+    pose, unless the scenario has landmark tags, which tie the map to the arena."""
+    if s.landmarks:
+        return (0.0, 0.0, 0.0)
+    return se2_inverse(start_poses(s)[s.map.origin_id])

@@ -31,7 +31,9 @@ def _frames(argv: list[str], ep: str, run: str, steps: int, log: Path) -> dict[t
             return expected <= set(got)
 
         def on_tick(tick: m.Tick) -> bool:
-            for pair in tick.cameras_rendered:
+            # a worker's first frames can go out before the peer-to-peer link from that worker to
+            # this test's session is up (peers discover each other by gossip); judge from step 3 on
+            for pair in (tick.cameras_rendered if tick.step >= 3 else ()):
                 rid, cam = pair.split("/")
                 expected.add((tick.step, int(rid), cam))
             drain()
@@ -49,8 +51,8 @@ def test_two_workers_render_the_same_frames_as_the_world(tmp_path: Path) -> None
     for o in SCENE:
         tagswarm += ["--set", o]
     remote = _frames(tagswarm, ep2, "workers", 12, tmp_path / "workers.log")
-    # 13 steps (0..12): front at 10 Hz fires 5x (steps 0,3,6,9,12), rear at 5 Hz 3x (0,6,12); 4 robots
-    assert len(local) == 4 * (5 + 3)
+    # steps 3..12: front at 10 Hz fires 4x (steps 3, 6, 9, 12), rear at 5 Hz 2x (6, 12); 4 robots
+    assert len(local) == 4 * (4 + 2)
     assert set(remote) == set(local)
     for key, data in local.items():
         assert remote[key] == data, f"frame {key} differs"

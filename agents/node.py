@@ -115,12 +115,7 @@ class AgentNode:
 
     # ------------------------------------------------------------------ inputs
     def _handle_encoders(self) -> None:
-        for item in self.enc_in.drain():
-            try:
-                enc = codec.decode(m.EncoderTicks, item.value)
-            except codec.DecodeError as exc:
-                self.rejects.reject(exc.kind, f"{item.key}: {exc.detail}")
-                continue
+        for item, enc in self.rejects.decoded(self.enc_in.drain(), m.EncoderTicks):
             if enc.robot_id != self.rid:
                 self.rejects.reject("spoofed", f"{item.key} carries robot_id {enc.robot_id}")
                 continue
@@ -132,12 +127,7 @@ class AgentNode:
             self.time_ns = max(self.time_ns, enc.stamp_ns)
 
     def _handle_corrections(self) -> None:
-        for item in self.corr_in.drain():
-            try:
-                c = codec.decode(m.Correction, item.value)
-            except codec.DecodeError as exc:
-                self.rejects.reject(exc.kind, f"{item.key}: {exc.detail}")
-                continue
+        for item, c in self.rejects.decoded(self.corr_in.drain(), m.Correction):
             if c.robot_id != self.rid:
                 self.rejects.reject("spoofed", f"correction for robot {c.robot_id} on {item.key}")
                 continue
@@ -149,12 +139,7 @@ class AgentNode:
             if c.last_fix_ns > self.last_fix_ns:
                 self.last_fix_ns = c.last_fix_ns
                 self._fix = True
-        for item in self.goal_in.drain():
-            try:
-                g = codec.decode(m.Goal, item.value)
-            except codec.DecodeError as exc:
-                self.rejects.reject(exc.kind, f"{item.key}: {exc.detail}")
-                continue
+        for item, g in self.rejects.decoded(self.goal_in.drain(), m.Goal):
             if g.robot_id != self.rid:
                 self.rejects.reject("spoofed", f"goal for robot {g.robot_id} on {item.key}")
                 continue
@@ -163,12 +148,7 @@ class AgentNode:
 
     def _take_frames(self) -> None:
         for name, inbox in self.images.items():
-            for item in inbox.drain():
-                try:
-                    img = codec.decode(m.CameraImage, item.value)
-                except codec.DecodeError as exc:
-                    self.rejects.reject(exc.kind, f"{item.key}: {exc.detail}")
-                    continue
+            for item, img in self.rejects.decoded(inbox.drain(), m.CameraImage):
                 if img.robot_id != self.rid or img.camera != name:
                     self.rejects.reject("spoofed", f"{item.key} carries robot {img.robot_id}/{img.camera}")
                     continue
@@ -268,12 +248,7 @@ class AgentNode:
 
     def _step_lockstep(self) -> bool:
         ticks = self.tick_in.drain()
-        for item in ticks:
-            try:
-                tick = codec.decode(m.Tick, item.value)
-            except codec.DecodeError as exc:
-                self.rejects.reject(exc.kind, f"{item.key}: {exc.detail}")
-                continue
+        for _, tick in self.rejects.decoded(ticks, m.Tick):
             self.time_ns = max(self.time_ns, tick.stamp_ns)
             mine = {pair.split("/", 1)[1] for pair in tick.cameras_rendered if pair.split("/", 1)[0] == str(self.rid)}
 

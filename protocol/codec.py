@@ -13,6 +13,7 @@ from __future__ import annotations
 import logging
 import math
 from collections import Counter
+from collections.abc import Iterable, Iterator
 from typing import Any, Final, TypeVar
 
 import msgspec
@@ -127,6 +128,15 @@ class RejectCounter:
         if self.counts[kind] == 0:
             self._log.warning("dropping bad payload (%s): %s; further ones are only counted", kind, detail)
         self.counts[kind] += 1
+
+    def decoded(self, items: Iterable[Any], cls: type[T]) -> Iterator[tuple[Any, T]]:
+        """Decode inbox items (``.key``, ``.value``) as ``cls``, yielding (item, message)
+        and counting every payload that fails (the loop body never sees it)."""
+        for item in items:
+            try:
+                yield item, decode(cls, item.value)
+            except DecodeError as exc:
+                self.reject(exc.kind, f"{item.key}: {exc.detail}")
 
     def total(self) -> int:
         """All rejects so far."""

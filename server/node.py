@@ -82,12 +82,7 @@ class ServerNode:
                 else:
                     self.alive.discard(agent)
                     log.info("robot %d's agent is gone; its last pose stays in the map", agent)
-        for item in self.odom_in.drain():
-            try:
-                od = codec.decode(m.OdometryEstimate, item.value)
-            except codec.DecodeError as exc:
-                self.rejects.reject(exc.kind, f"{item.key}: {exc.detail}")
-                continue
+        for item, od in self.rejects.decoded(self.odom_in.drain(), m.OdometryEstimate):
             sender = self._robot_from_key(item.key, od.robot_id)
             if sender is None:
                 continue
@@ -95,12 +90,7 @@ class ServerNode:
             self.fusion.add_odometry(rid, od.stamp_ns, (od.x_m, od.y_m, od.yaw_rad), od.distance_m)
             self.latest_rx[rid] = max(self.latest_rx.get(rid, -1), od.stamp_ns)
             self.counters["odometry"] += 1
-        for item in self.obs_in.drain():
-            try:
-                ob = codec.decode(m.RelativeObservation, item.value)
-            except codec.DecodeError as exc:
-                self.rejects.reject(exc.kind, f"{item.key}: {exc.detail}")
-                continue
+        for item, ob in self.rejects.decoded(self.obs_in.drain(), m.RelativeObservation):
             observer = self._robot_from_key(item.key, ob.robot_id)
             if observer is None:
                 continue
@@ -198,12 +188,7 @@ class ServerNode:
 
     def _step_lockstep(self) -> bool:
         ticks = self.tick_in.drain()
-        for item in ticks:
-            try:
-                tick = codec.decode(m.Tick, item.value)
-            except codec.DecodeError as exc:
-                self.rejects.reject(exc.kind, f"{item.key}: {exc.detail}")
-                continue
+        for _, tick in self.rejects.decoded(ticks, m.Tick):
 
             def caught_up(stamp: int = tick.stamp_ns) -> bool:
                 self._drain()

@@ -81,13 +81,8 @@ class WorldNode:
 
     # ------------------------------------------------------------------ inputs
     def _drain_commands(self) -> None:
-        for item in self.cmd_in.drain():
+        for item, cmd in self.rejects.decoded(self.cmd_in.drain(), m.WheelCommand):
             rid = self.keys.robot_id_of(item.key)
-            try:
-                cmd = codec.decode(m.WheelCommand, item.value)
-            except codec.DecodeError as exc:
-                self.rejects.reject(exc.kind, f"{item.key}: {exc.detail}")
-                continue
             if rid is None or cmd.robot_id != rid:
                 self.rejects.reject("spoofed", f"{item.key} carries robot_id {cmd.robot_id}")
             elif rid not in self.sim.robots:
@@ -103,12 +98,7 @@ class WorldNode:
             tracker = self.workers if who.startswith("render/") else self.participants
             if tracker.set_alive(who, change.value):
                 log.info("lockstep participant %s %s", who, "joined" if change.value else "left")
-        for item in self.ack_in.drain():
-            try:
-                ack = codec.decode(m.TickAck, item.value)
-            except codec.DecodeError as exc:
-                self.rejects.reject(exc.kind, f"{item.key}: {exc.detail}")
-                continue
+        for item, ack in self.rejects.decoded(self.ack_in.drain(), m.TickAck):
             who = self.keys.participant_of(item.key)
             if who is None or ack.participant != who:
                 self.rejects.reject("spoofed", f"{item.key} carries participant {ack.participant!r}")

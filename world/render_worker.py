@@ -86,12 +86,7 @@ class RenderWorkerNode:
     def step(self) -> int:
         """Render every pending request; returns the number of frames published."""
         frames = 0
-        for item in self.req_in.drain():
-            try:
-                req = codec.decode(m.RenderPoses, item.value)
-            except codec.DecodeError as exc:
-                self.rejects.reject(exc.kind, exc.detail)
-                continue
+        for _, req in self.rejects.decoded(self.req_in.drain(), m.RenderPoses):
             frames += self._render(req)
             key = self.keys.ack(self.name)
             self.bus.put(key, codec.encode(m.TickAck(seq=self.seq.next(key), stamp_ns=req.stamp_ns,

@@ -495,3 +495,14 @@ def test_reject_counter_with_real_decode_errors() -> None:
             counter.reject(exc.kind, exc.detail)
     assert ok == 1
     assert counter.counts == {"malformed": 1, "non_finite": 1, "oversized": 1}
+
+
+def test_reject_counter_decoded_yields_good_and_counts_bad() -> None:
+    from protocol.bus import Received
+
+    good = BY_TYPE[m.TickAck]
+    items = [Received("k/1", codec.encode(good)), Received("k/2", b"\xff\x00"), Received("k/3", b"\xc1")]
+    rc = codec.RejectCounter()
+    out = list(rc.decoded(items, m.TickAck))
+    assert [(it.key, msg) for it, msg in out] == [("k/1", good)]
+    assert rc.total() == 2 and rc.counts["malformed"] == 2

@@ -19,7 +19,7 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from agents.behaviour import Behaviour, Mode, wheel_speeds
+from agents.behaviour import Behaviour, wheel_speeds
 from agents.config import AgentConfig, build_config
 from agents.cubepose import CameraModel, CubePoseEstimator, PoseEstimate
 from agents.detect import TagMap, make_detector
@@ -224,10 +224,6 @@ class AgentNode:
         key = self.keys.robot_status(self.rid)
         self._publish(key, m.AgentStatus(seq=self.seq.next(key), stamp_ns=self.time_ns, robot_id=self.rid, role="agent",
                                          mode=str(self.behaviour.mode), counters=self.status_counters()))
-
-    @property
-    def mode(self) -> Mode:
-        return self.behaviour.mode
 
     # ------------------------------------------------------------------ cycle
     def step(self) -> bool:

@@ -54,7 +54,6 @@ class FusionParams:
     gate_after: int = 8  # observations a robot needs in the graph before the chi² gate applies to it
     origin_sigma: float = 1e-4
     odom_buffer: int = 4096
-    max_pending_s: float = 3.0
     cov_period_s: float = 1.0  # marginal covariances are recomputed at most this often (simulated time)
     init_min: int = 3  # agreeing observations needed to place a robot for the first time
     init_agree_m: float = 0.15

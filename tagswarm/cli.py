@@ -30,6 +30,10 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
     "goto": ("send a robot to (X, Y) in the map frame once its agent is alive", "tagswarm.goto", "main"),
     "alive": ("exit 0 if a participant's liveliness token is visible, else 1 (healthchecks)", "tagswarm.alive",
               "main"),
+    "record": ("record every message on matching keys to an MCAP file (opens in Foxglove)", "tagswarm.record",
+               "main"),
+    "replay": ("republish an MCAP recording on Zenoh (1x, a chosen speed, or lockstep)", "tagswarm.replay", "main"),
+    "view": ("serve a live web view of the arena (robots, map, cameras) on 127.0.0.1", "tagswarm.view", "main"),
 }
 
 

@@ -189,6 +189,9 @@ class Agent(Spec, frozen=True, kw_only=True, forbid_unknown_fields=True):
     by rotating in place (the paper's active re-localisation)."""
 
     detector: Literal["apriltag", "aruco"] = "apriltag"
+    # "cube": every visible face of a cube (and every camera) in one estimate;
+    # "single_tag": the largest face alone, as a per-tag PnP would (ablation)
+    pose_method: Literal["cube", "single_tag"] = "cube"
     max_hamming: Annotated[int, msgspec.Meta(ge=0, le=3)] = 0
     min_margin: NonNeg = 20.0
     pixel_sigma_px: Pos = 0.3  # measured corner noise 0.25-0.33 px (agents/cubepose.py)

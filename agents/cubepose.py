@@ -298,6 +298,8 @@ class CubePoseEstimator:
             raise ValueError("pixel_sigma_px must be positive")
         self.scenario = scenario
         self.planar = planar
+        # the ablation of a per-tag PnP: keep only the largest face of each target
+        self.single_tag = scenario.agent.pose_method == "single_tag"
         self.planar_landmarks = planar_landmarks
         self._planar_cache: dict[tuple[tuple[int, ...], bytes, bytes], PlanarProblem] = {}
         self.pixel_sigma_px = pixel_sigma_px
@@ -367,6 +369,8 @@ class CubePoseEstimator:
                     groups.setdefault((g.kind, g.target_id), []).append((vi, g, d))
         out = []
         for key, members in groups.items():
+            if self.single_tag and len(members) > 1:
+                members = [max(members, key=lambda m: _quad_area(m[2].corners))]
             est = self._estimate_target(key, members, views, None if priors is None else priors.get(key))
             if est is not None:
                 out.append(est)

@@ -178,13 +178,16 @@ class ServerNode:
         wm = self._watermark()
         if wm < 0:
             return False
+        # nothing new below the watermark: report idle so run() sleeps until data arrives
+        # instead of spinning a core
+        progressed = wm > self.time_ns
         self.time_ns = max(self.time_ns, wm)
         if self.time_ns >= self._next_update_ns:
             self.fusion.advance(wm)
             self._publish_corrections(all_robots=False)
             self._next_update_ns = self.time_ns + int(1e9 / self.cfg.update_rate_hz)
         self._maybe_publish_map()
-        return True
+        return progressed
 
     def _step_lockstep(self) -> bool:
         ticks = self.tick_in.drain()

@@ -116,8 +116,10 @@ def inverse_cov(rel: Pose2, cov: Cov) -> Cov:
 @dataclass(order=True)
 class _Event:
     stamp_ns: int
-    rank: int  # odometry (0) before observations (1) of the same instant
-    order: int
+    rank: int  # odometry (0) before observations (1, landmarks 2) of the same instant
+    # robot ids, then arrival: events of one instant from different robots arrive in a network-dependent
+    # order, and both the graph and the first placements depend on the order they are applied in
+    order: tuple[int, ...]
     kind: Literal["odom", "obs", "landmark"] = field(compare=False)
     data: tuple = field(compare=False)  # type: ignore[type-arg]
 
@@ -152,7 +154,9 @@ class Fusion:
         if stamp_ns <= self.watermark_ns and kind != "odom":
             self.counters["rejected_late"] += 1
             return
-        heapq.heappush(self._events, _Event(stamp_ns, 0 if kind == "odom" else 1, self._order, kind, data))
+        ids = (data[0],) if kind == "odom" else (data[0], data[1])
+        rank = {"odom": 0, "obs": 1, "landmark": 2}[kind]
+        heapq.heappush(self._events, _Event(stamp_ns, rank, (*ids, self._order), kind, data))
         self._order += 1
 
     def add_odometry(self, rid: int, stamp_ns: int, pose: Pose2, distance_m: float) -> None:

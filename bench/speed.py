@@ -1,0 +1,258 @@
+"""Speed of the whole system in realtime mode: real-time factor, camera-frame
+efficiency against bare ``getCameraImage``, image-to-correction latency and CPU
+per process type.  Writes ``bench/results/speed.json``.
+
+Each point is a real ``tagswarm up --clock realtime`` (world with K render
+workers, server, one agent per robot, as OS processes).  A bench client joins
+the run's Zenoh network and, after a warm-up, measures for ``--seconds``:
+
+- RTF: simulated seconds (from the world's ticks) per wall second.
+- frames: camera frames the agents processed (their status counters), per wall
+  second, next to what the cameras asked for (robots x rate x RTF).
+- latency: for every correction whose ``last_fix_ns`` is new for its robot, the
+  wall time from the first arrival of an image stamped ``last_fix_ns`` (the frame
+  that produced the fix) to the arrival of that correction (p50 / p95 / max).
+  The bench client and the agents sit on the same loopback, so this is what an
+  agent sees.  The bench subscribes to every image for this; its own CPU is
+  reported apart.
+- CPU: cores used per process type (world, render workers, agents, server,
+  ``up`` with its recorder), from psutil over the measurement window.
+
+Efficiency (``--saturate``, on by default): for each resolution, 8 robots with 2
+render workers and a clock sped up so the cameras ask for 1.5x what 2 bare
+``getCameraImage`` processes render on this machine (measured right before, same
+scene and resolution): frames processed by the agents per second over that bare
+rate.  That is the share of the machine's rendering limit the full pipeline
+(render, send, detect, estimate, fuse) delivers.
+
+Usage: python bench/speed.py [--seconds 15] [--quick]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from collections import defaultdict
+from pathlib import Path
+from typing import Any
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "bench"))
+
+import numpy as np  # noqa: E402
+import psutil  # noqa: E402
+from render import raw_rate  # noqa: E402
+from rich.console import Console  # noqa: E402
+from rich.table import Table  # noqa: E402
+
+from protocol import codec  # noqa: E402
+from protocol import messages as m  # noqa: E402
+from protocol.keys import Keys  # noqa: E402
+from tests.harness import client, endpoint  # noqa: E402
+
+TAGSWARM = str(Path(sys.executable).parent / "tagswarm")
+RESOLUTIONS = {"320x240@10Hz": (320, 240, 10.0), "640x480@5Hz": (640, 480, 5.0)}
+
+
+def camera_override(w: int, h: int, hz: float) -> str:
+    return f'robot.cameras=[{{name="front", width={w}, height={h}, hfov_deg=60, rate_hz={hz}}}]'
+
+
+def _kind(proc: psutil.Process) -> str:
+    try:
+        cmd = " ".join(proc.cmdline())
+    except psutil.Error:
+        return "gone"
+    for name in ("render", "world", "agent", "server"):
+        if f"tagswarm-{name}" in cmd or f"world.{name}" in cmd:
+            return "render_worker" if name == "render" else name
+    return "render_worker" if "render_worker" in cmd else "other"
+
+
+def _cpu(procs: dict[int, psutil.Process]) -> dict[int, float]:
+    out = {}
+    for pid, p in procs.items():
+        try:
+            out[pid] = sum(p.cpu_times()[:2])
+        except psutil.Error:
+            out[pid] = float("nan")
+    return out
+
+
+def measure(robots: int, res: str, workers: int, seconds: float, warmup: float, speed: float = 1.0,
+            log_dir: Path | None = None) -> dict[str, Any]:
+    """One realtime run; returns RTF, frame rates, latency and CPU per process type."""
+    w, h, hz = RESOLUTIONS[res]
+    ep, run = endpoint(), f"speed{os.getpid()}"
+    keys = Keys(run)
+    out = Path(tempfile.mkdtemp(prefix="tagswarm-speed-"))
+    argv = [TAGSWARM, "up", "--clock", "realtime", "--listen", ep, "--run", run, "--out", str(out), "--no-live",
+            "--no-report", "--robots", str(robots), "--duration", "100000", "--seed", "0",
+            "--set", camera_override(w, h, hz), "--set", f"render.workers={workers}",
+            "--set", f"clock.speed={speed}"]
+    log = open((log_dir or out) / f"up_{robots}_{res}_{workers}.log", "w")
+    up = subprocess.Popen(argv, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+    try:
+        with client(ep) as bus:
+            ticks = bus.subscribe(keys.tick(), capacity=1_000_000)
+            images = bus.subscribe(keys.images(), capacity=1_000_000)
+            corr = bus.subscribe(keys.correction(), capacity=1_000_000)
+            status = bus.subscribe(keys.robot_status(), capacity=1_000_000)
+            if not bus.wait_for(lambda: len(ticks) > 0, 120):
+                raise RuntimeError(f"no ticks from {argv}; see {log.name}")
+            deadline = time.monotonic() + 120
+            # warm-up: every agent has reported and the world has run `warmup` wall seconds
+            seen: set[int] = set()
+            t_first = time.monotonic()
+            while time.monotonic() < deadline and (len(seen) < robots or time.monotonic() - t_first < warmup):
+                bus.wait(0.2)
+                for _, st in codec.RejectCounter().decoded(status.drain(), m.AgentStatus):
+                    seen.add(st.robot_id)
+            for box in (ticks, images, corr, status):
+                box.drain()
+            procs = {p.pid: p for p in [psutil.Process(up.pid), *psutil.Process(up.pid).children(recursive=True)]}
+            kinds = {pid: "up_and_recorder" if pid == up.pid else _kind(p) for pid, p in procs.items()}
+            me = psutil.Process()
+            cpu0, my0 = _cpu(procs), sum(me.cpu_times()[:2])
+            t0 = time.monotonic()
+            first_image: dict[int, float] = {}
+            last_fix: dict[int, int] = {}
+            latencies: list[float] = []
+            frames: dict[int, list[tuple[float, int]]] = defaultdict(list)
+            sim: list[int] = []
+            n_images = 0
+            rc = codec.RejectCounter()
+            while (now := time.monotonic()) - t0 < seconds:
+                bus.wait(0.05)
+                now = time.monotonic()
+                for _, tk in rc.decoded(ticks.drain(), m.Tick):
+                    sim.append(tk.stamp_ns)
+                for _, im in rc.decoded(images.drain(), m.CameraImage):
+                    first_image.setdefault(im.stamp_ns, now)
+                    n_images += 1
+                for _, c in rc.decoded(corr.drain(), m.Correction):
+                    if c.localised and c.last_fix_ns > last_fix.get(c.robot_id, -1):
+                        if c.robot_id in last_fix and c.last_fix_ns in first_image:
+                            latencies.append(now - first_image[c.last_fix_ns])
+                        last_fix[c.robot_id] = c.last_fix_ns
+                for _, st in rc.decoded(status.drain(), m.AgentStatus):
+                    frames[st.robot_id].append((now, st.counters.get("frames_processed", 0)))
+            wall = time.monotonic() - t0
+            cpu1, my1 = _cpu(procs), sum(me.cpu_times()[:2])
+    finally:
+        up.send_signal(signal.SIGINT)
+        try:
+            up.wait(60)
+        except subprocess.TimeoutExpired:
+            os.killpg(up.pid, signal.SIGKILL)
+            up.wait()
+        log.close()
+    cpu: dict[str, float] = defaultdict(float)
+    count: dict[str, int] = defaultdict(int)
+    for pid in procs:
+        kind = kinds[pid]
+        if np.isfinite(cpu1[pid] - cpu0[pid]):
+            cpu[kind] += (cpu1[pid] - cpu0[pid]) / wall
+            count[kind] += 1
+    processed = 0.0
+    for series in frames.values():
+        if len(series) >= 2 and series[-1][0] > series[0][0]:
+            processed += (series[-1][1] - series[0][1]) / (series[-1][0] - series[0][0])
+    rtf = (sim[-1] - sim[0]) / 1e9 / wall if len(sim) >= 2 else 0.0
+    lat = np.array(latencies) * 1e3
+    return {
+        "robots": robots, "resolution": res, "render_workers": workers, "clock_speed": speed,
+        "wall_s": round(wall, 2), "rtf": round(rtf, 3), "rtf_over_speed": round(rtf / speed, 3),
+        "frames_asked_per_s": round(robots * hz * rtf, 1), "images_delivered_per_s": round(n_images / wall, 1),
+        "frames_processed_per_s": round(processed, 1),
+        "latency_ms": {"n": int(lat.size), "p50": float(np.percentile(lat, 50)) if lat.size else None,
+                       "p95": float(np.percentile(lat, 95)) if lat.size else None,
+                       "max": float(lat.max()) if lat.size else None},
+        "cpu_cores": {k: round(v, 3) for k, v in sorted(cpu.items())},
+        "processes": dict(count), "bench_client_cpu_cores": round((my1 - my0) / wall, 3),
+    }
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--seconds", type=float, default=15.0, help="measurement window per point (wall)")
+    p.add_argument("--warmup", type=float, default=4.0)
+    p.add_argument("--robots", type=int, nargs="+", default=[2, 4, 8, 16])
+    p.add_argument("--quick", action="store_true", help="4 and 8 robots at 320x240 only, 8 s windows")
+    p.add_argument("--no-saturate", action="store_true", help="skip the efficiency (saturated) points")
+    p.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "speed.json")
+    a = p.parse_args()
+    resolutions = list(RESOLUTIONS)
+    if a.quick:
+        a.robots, a.seconds, resolutions = [4, 8], 8.0, ["320x240@10Hz"]
+    console = Console()
+    log_dir = Path(tempfile.mkdtemp(prefix="tagswarm-speed-logs-"))
+    rows = []
+    for res in resolutions:
+        for n in a.robots:
+            for workers in (1, 2):
+                rows.append(measure(n, res, workers, a.seconds, a.warmup, log_dir=log_dir))
+                console.print(rows[-1])
+    efficiency = []
+    if not a.no_saturate:
+        for res in resolutions:
+            w, h, hz = RESOLUTIONS[res]
+            ov = ["robots.count=8", 'robots.placement="ring"', "missions=[]", "robots.ring_radius_m=2.0",
+                  f'robot.cameras=[{{name="front", width={w}, height={h}, rate_hz={hz}}}]']
+            raw = raw_rate(ov, os.cpu_count() or 2, min(a.seconds, 8.0))
+            speed = max(1.0, 1.5 * raw / (8 * hz))
+            row = measure(8, res, 2, a.seconds, a.warmup, speed=speed, log_dir=log_dir)
+            row["bare_getCameraImage_fps"] = round(raw, 1)
+            row["efficiency"] = round(row["frames_processed_per_s"] / raw, 3)
+            efficiency.append(row)
+            console.print(row)
+    import cv2
+    import pybullet  # noqa: F401
+    import zenoh
+
+    result = {
+        "bench": "speed",
+        "machine": {"cpus": os.cpu_count(), "python": platform.python_version(), "platform": platform.platform(),
+                    "processor": platform.processor() or platform.machine(),
+                    "memory_gb": round(psutil.virtual_memory().total / 2**30, 1),
+                    "load_avg_at_end": os.getloadavg()},
+        "versions": {"zenoh": getattr(zenoh, "__version__", "?"), "opencv": cv2.__version__,
+                     "numpy": np.__version__},
+        "seeds": [0], "seconds_per_point": a.seconds, "warmup_s": a.warmup, "rows": rows,
+        "efficiency": efficiency,
+        "targets": {"rtf_8_robots_320x240_10Hz": ">= 1.0", "efficiency": ">= 0.8",
+                    "latency_p95_ms_8_robots": "<= 50"},
+    }
+    a.out.parent.mkdir(parents=True, exist_ok=True)
+    a.out.write_text(json.dumps(result, indent=2))
+    t = Table(title="realtime speed (full system)")
+    for col in ("camera", "robots", "workers", "RTF", "frames asked/s", "processed/s", "latency p50/p95 ms",
+                "CPU cores: world+render / agents / server"):
+        t.add_column(col)
+    for r in rows + efficiency:
+        c = r["cpu_cores"]
+        lat = r["latency_ms"]
+        t.add_row(r["resolution"] + (f" x{r['clock_speed']:.1f}" if r["clock_speed"] != 1.0 else ""),
+                  str(r["robots"]), str(r["render_workers"]), f"{r['rtf']:.2f}", f"{r['frames_asked_per_s']:.0f}",
+                  f"{r['frames_processed_per_s']:.0f}",
+                  f"{lat['p50'] or 0:.0f} / {lat['p95'] or 0:.0f}",
+                  f"{c.get('world', 0) + c.get('render_worker', 0):.2f} / {c.get('agent', 0):.2f} / "
+                  f"{c.get('server', 0):.2f}")
+    console.print(t)
+    for r in efficiency:
+        console.print(f"efficiency {r['resolution']}: {r['frames_processed_per_s']:.0f} processed/s over "
+                      f"{r['bare_getCameraImage_fps']:.0f} bare getCameraImage/s = {r['efficiency']:.2f}")
+    console.print(f"wrote {a.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 from collections.abc import Mapping, Sequence
+from pathlib import Path
 
 import msgspec
 
@@ -22,6 +23,9 @@ class ServerConfig(msgspec.Struct, frozen=True, kw_only=True):
     update_rate_hz: float = 10.0
     lag_s: float = 30.0
     participant: str = "server/0"
+    journal: str | None = None  # write-ahead journal file; replayed at start if it exists
+    journal_sync_every: int = 64  # fsync after this many records ...
+    journal_sync_ms: float = 100.0  # ... or this long after the oldest unsynced one (wall time: I/O only)
 
 
 def parser(prog: str = "tagswarm-server") -> argparse.ArgumentParser:
@@ -35,7 +39,29 @@ def parser(prog: str = "tagswarm-server") -> argparse.ArgumentParser:
                    help="fusion updates per simulated second in realtime mode (default 10; lockstep: every tick)")
     p.add_argument("--lag", type=float, default=30.0, metavar="SECONDS",
                    help="fixed-lag window of the smoother in simulated seconds (default 30)")
+    j = p.add_argument_group("journal (crash recovery)")
+    j.add_argument("--journal", metavar="PATH",
+                   help="append every accepted observation and odometry sample to PATH; if PATH exists, first "
+                        "rebuild the map by replaying it (same run, scenario and fusion settings only) "
+                        "(env TAGSWARM_JOURNAL; default: no journal)")
+    j.add_argument("--journal-sync-every", type=int, default=64, metavar="N",
+                   help="fsync the journal after N records (default 64) ...")
+    j.add_argument("--journal-sync-ms", type=float, default=100.0, metavar="MS",
+                   help="... or MS milliseconds after the oldest record not yet on disk (default 100)")
     return p
+
+
+def _journal_path(args: argparse.Namespace, env: Mapping[str, str]) -> str | None:
+    raw = pick(args, env, "journal", None)
+    if not raw:
+        return None
+    path = Path(raw)
+    if path.is_dir():
+        raise ConfigError(f"--journal: {raw} is a directory, expected a file")
+    parent = path.parent if str(path.parent) else Path(".")
+    if not parent.is_dir():
+        raise ConfigError(f"--journal: folder {parent} does not exist")
+    return str(path)
 
 
 def build_config(argv: Sequence[str] | None = None, environ: Mapping[str, str] | None = None) -> ServerConfig:
@@ -45,8 +71,13 @@ def build_config(argv: Sequence[str] | None = None, environ: Mapping[str, str] |
     for name in ("map_rate", "update_rate", "lag"):
         if getattr(args, name) <= 0:
             raise ConfigError(f"--{name.replace('_', '-')} must be > 0")
+    if args.journal_sync_every < 1:
+        raise ConfigError("--journal-sync-every must be >= 1")
+    if not args.journal_sync_ms >= 0:
+        raise ConfigError("--journal-sync-ms must be >= 0")
     run = pick(args, env, "run", "default")
     Keys(run)
     return ServerConfig(scenario=scenario, bus=bus_from(args, env), run=run,
                         log_level=pick(args, env, "log_level", "INFO"), map_rate_hz=args.map_rate,
-                        update_rate_hz=args.update_rate, lag_s=args.lag)
+                        update_rate_hz=args.update_rate, lag_s=args.lag, journal=_journal_path(args, env),
+                        journal_sync_every=args.journal_sync_every, journal_sync_ms=args.journal_sync_ms)

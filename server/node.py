@@ -4,6 +4,11 @@ Takes every robot's odometry and relative observations, feeds the
 :class:`~server.fusion.Fusion`, publishes each robot's correction after every
 update and the global map at ``map_rate_hz``, and answers map queries (late
 joiners).  Accepts data only from roster robots on their own keys.
+
+With ``--journal PATH`` every accepted input (and every fusion update) is
+written ahead to :mod:`server.journal`; a server started on an existing journal
+first replays it through the same fusion code, so a crashed server comes back
+with the exact graph it had, then declares itself alive and resumes.
 """
 
 from __future__ import annotations
@@ -14,13 +19,12 @@ import time
 from collections import Counter
 from collections.abc import Mapping, Sequence
 
-import numpy as np
-
 from protocol import codec
 from protocol import messages as m
 from protocol.bus import Bus
-from protocol.config import serve_node
+from protocol.config import ConfigError, serve_node
 from protocol.keys import Keys
+from server import journal as jr
 from server.config import ServerConfig, build_config
 from server.fusion import Fusion, FusionParams
 
@@ -59,9 +63,30 @@ class ServerNode:
         self.tick_in = bus.subscribe(self.keys.tick())
         self.alive_in = bus.watch_liveliness(self.keys.alive_role("agent"))
         self.query_in = bus.queryable(self.keys.map())
+        # subscribed before the replay, so what arrives meanwhile waits in the inboxes; alive only after
+        # it, so a lockstep world does not wait for acks from a server still rebuilding its graph
+        self.journal = self._open_journal() if config.journal else None
         bus.declare_token(self.keys.alive(config.participant))
-        log.info("server up: %d robots, origin %d, %s clock, lag %.0f s", len(self.roster), s.map.origin_id,
-                 s.clock.mode, config.lag_s)
+        log.info("server up: %d robots, origin %d, %s clock, lag %.0f s, journal %s", len(self.roster),
+                 s.map.origin_id, s.clock.mode, config.lag_s, config.journal or "off")
+
+    def _open_journal(self) -> jr.Journal:
+        """Open (and replay) the journal; a journal of another map is a config error."""
+        path = str(self.cfg.journal)
+        try:
+            journal = jr.Journal(path, jr.header_for(self.cfg.run, self.fusion), replay=self._replay,
+                                 sync_every=self.cfg.journal_sync_every,
+                                 sync_interval_s=self.cfg.journal_sync_ms / 1e3)
+        except jr.JournalError as exc:
+            raise ConfigError(str(exc)) from None
+        except OSError as exc:
+            raise ConfigError(f"--journal {path}: {exc.strerror or exc}") from None
+        c = journal.counters
+        if c["replayed"]:
+            log.info("replayed %d journal records (%d odometry, %d observations, %d updates) from %s in %.0f ms; "
+                     "map at t=%.2f s, %d robot(s) localised", c["replayed"], c["odometry"], c["observations"],
+                     c["advances"], path, journal.replay_s * 1e3, self.time_ns / 1e9, len(self.fusion.localised()))
+        return journal
 
     def _publish(self, key: str, msg: m.Msg) -> None:
         self.bus.put(key, codec.encode(msg))
@@ -91,28 +116,59 @@ class ServerNode:
             sender = self._robot_from_key(item.key, od.robot_id)
             if sender is None:
                 continue
-            rid = sender
-            self.fusion.add_odometry(rid, od.stamp_ns, (od.x_m, od.y_m, od.yaw_rad), od.distance_m)
-            self.latest_rx[rid] = max(self.latest_rx.get(rid, -1), od.stamp_ns)
+            self._accept(jr.Odometry(robot_id=sender, stamp_ns=od.stamp_ns, x_m=od.x_m, y_m=od.y_m,
+                                     yaw_rad=od.yaw_rad, distance_m=od.distance_m))
             self.counters["odometry"] += 1
         for item, ob in self.rejects.decoded(self.obs_in.drain(), m.RelativeObservation):
             observer = self._robot_from_key(item.key, ob.robot_id)
             if observer is None:
                 continue
-            rid = observer
-            cov = np.asarray(ob.cov, float).reshape(3, 3)
-            if ob.target_kind == "robot":
-                if ob.target_id not in self.roster or ob.target_id == rid:
-                    self.rejects.reject("unknown_robot", f"observation of robot {ob.target_id}")
-                    continue
-                self.fusion.add_observation(rid, ob.target_id, ob.stamp_ns, (ob.x_m, ob.y_m, ob.yaw_rad), cov)
-            else:
-                self.fusion.add_landmark_observation(rid, ob.target_id, ob.stamp_ns, (ob.x_m, ob.y_m, ob.yaw_rad),
-                                                     cov)
+            if ob.target_kind == "robot" and (ob.target_id not in self.roster or ob.target_id == observer):
+                self.rejects.reject("unknown_robot", f"observation of robot {ob.target_id}")
+                continue
+            self._accept(jr.Observation(observer=observer, target_kind=ob.target_kind, target_id=ob.target_id,
+                                        stamp_ns=ob.stamp_ns, x_m=ob.x_m, y_m=ob.y_m, yaw_rad=ob.yaw_rad,
+                                        cov=tuple(float(v) for v in ob.cov)))
             self.counters["observations"] += 1
+        if self.journal is not None:
+            self.journal.flush()  # accepted inputs reach the OS before anything they influence goes out
         for q in self.query_in.drain():
             self.bus.reply(q.value, self.keys.map(), codec.encode(self.global_map()))
             self.counters["map_queries"] += 1
+
+    def _accept(self, record: jr.Odometry | jr.Observation) -> None:
+        """One input that passed every check: journal it first, then fuse it."""
+        if self.journal is not None:
+            self.journal.append(record)
+        self._note(record)
+        jr.apply(self.fusion, record)
+
+    def _advance(self, watermark_ns: int) -> None:
+        """One fusion update (journalled too: the update sequence shapes the iSAM2 state)."""
+        if self.journal is not None:
+            self.journal.append(jr.Advance(watermark_ns=watermark_ns))
+            self.journal.flush()
+        self.fusion.advance(watermark_ns)
+
+    def _note(self, record: jr.Record) -> None:
+        """Node-side bookkeeping of a record, shared by live input and replay."""
+        if isinstance(record, jr.Odometry):
+            self.latest_rx[record.robot_id] = max(self.latest_rx.get(record.robot_id, -1), record.stamp_ns)
+            self.counters["accepted_odometry"] += 1
+        elif isinstance(record, jr.Observation):
+            self.counters["accepted_observations"] += 1
+        elif isinstance(record, jr.Advance):
+            self.time_ns = max(self.time_ns, record.watermark_ns)
+
+    def _replay(self, record: jr.Record) -> None:
+        """Rebuild state from one journal record (its header matched this map)."""
+        rid = record.robot_id if isinstance(record, jr.Odometry) else (
+            record.observer if isinstance(record, jr.Observation) else None)
+        if rid is not None and rid not in self.roster:
+            self.rejects.reject("journal_unknown_robot", f"journal record of robot {rid}")
+            return
+        self._note(record)
+        jr.apply(self.fusion, record)
 
     # ------------------------------------------------------------------ outputs
     def global_map(self) -> m.GlobalMap:
@@ -159,6 +215,9 @@ class ServerNode:
         counters = dict(self.counters)
         counters.update({f"fusion_{k}": v for k, v in self.fusion.counters.items()})
         counters.update(self.rejects.as_counters())
+        counters["accepted"] = counters.get("accepted_odometry", 0) + counters.get("accepted_observations", 0)
+        if self.journal is not None:
+            counters.update(self.journal.as_counters())
         counters["localised"] = len(self.fusion.localised())
         counters["alive"] = len(self.alive)
         key = self.keys.server_status()
@@ -198,7 +257,7 @@ class ServerNode:
             self._obs_pending = False
             self._last_update_wall = wall
             progressed = True
-            self.fusion.advance(wm)
+            self._advance(wm)
             self._publish_corrections(all_robots=False)
             self._next_update_ns = self.time_ns + int(1e9 / self.cfg.update_rate_hz)
         self._maybe_publish_map()
@@ -215,7 +274,7 @@ class ServerNode:
             if not self.bus.wait_for(caught_up, self.s.clock.ack_timeout_s):
                 self.counters["odometry_wait_timeouts"] += 1
             self.time_ns = max(self.time_ns, tick.stamp_ns)
-            self.fusion.advance(tick.stamp_ns)
+            self._advance(tick.stamp_ns)
             self._publish_corrections(all_robots=True)
             self._maybe_publish_map()
             key = self.keys.ack(self.cfg.participant)
@@ -227,11 +286,18 @@ class ServerNode:
         end_ns = int(self.s.duration_s * 1e9)
         while not stop_event.is_set() and self.time_ns < end_ns:
             if not self.step():
+                if self.journal is not None:
+                    self.journal.maybe_sync()
                 self.bus.wait(0.1)
         self._publish_status()
         log.info("server stopping at t=%.2f s: %s", self.time_ns / 1e9,
                  {k: v for k, v in self.fusion.counters.items()})
         return 0
+
+    def close(self) -> None:
+        """Flush and fsync the journal (called on every way out, see serve_node)."""
+        if self.journal is not None:
+            self.journal.close()
 
 
 def main(argv: Sequence[str] | None = None, environ: Mapping[str, str] | None = None) -> int:

@@ -1,0 +1,374 @@
+"""The server's write-ahead journal: an append-only log of every input it accepted.
+
+The fusion state is a deterministic function of the sequence of calls made on
+:class:`~server.fusion.Fusion` (``add_odometry``, ``add_observation``,
+``add_landmark_observation`` and ``advance``), so the journal records exactly
+that sequence: every accepted odometry sample and observation, and every
+``advance(watermark)``.  Replaying it through :func:`apply` (the same function
+the live server uses) rebuilds the graph bit for bit.  Roster, origin, landmark
+poses and fusion parameters come from the scenario; the header record stores
+them so that a journal is never replayed into a different map.
+
+File format (little endian)::
+
+    b"TSWJRNL1"                                   8-byte magic
+    [u32 length][u32 CRC32 of payload][payload]   one frame per record; payload is a
+    ...                                            msgpack-encoded tagged Struct (below)
+
+The first record is a :class:`Header`.  A crash can leave a torn last frame
+(power loss mid-write); a reader stops at the first frame that is short, too
+long, fails its CRC or does not decode, and :class:`Journal` truncates the file
+there before appending again.  Writes go to the OS at every :meth:`Journal.flush`
+(so a SIGKILLed server loses nothing it accepted); ``fsync`` (durability against
+power loss) is batched every ``sync_every`` records or ``sync_interval_s``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import os
+import struct
+import time
+import zlib
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Annotated, Any, Final, Literal
+
+import msgspec
+import numpy as np
+
+from server.fusion import Fusion
+
+log = logging.getLogger("tagswarm.server.journal")
+
+MAGIC: Final = b"TSWJRNL1"
+VERSION: Final = 1
+_FRAME: Final = struct.Struct("<II")  # payload length in bytes, CRC32 of the payload
+MAX_RECORD_BYTES: Final = 1 << 20  # a header with a large roster fits; anything longer is corruption
+
+StampNs = Annotated[int, msgspec.Meta(ge=0)]
+RobotId = Annotated[int, msgspec.Meta(ge=0, le=100_000)]
+
+
+class Header(msgspec.Struct, frozen=True, kw_only=True, tag="header"):
+    """What the journal's records are valid for: the run id, the map (origin,
+    roster, landmark poses ``(x_m, y_m, yaw_rad)`` in the arena frame) and the
+    fusion parameters (``dataclasses.asdict(FusionParams)``)."""
+
+    version: int = VERSION
+    run: str
+    origin_id: int
+    robot_ids: tuple[int, ...]
+    landmarks: dict[int, tuple[float, float, float]]
+    params: dict[str, float]
+
+
+class Odometry(msgspec.Struct, frozen=True, kw_only=True, tag="odom"):
+    """Cumulative odometry of ``robot_id`` (base_link in its odom frame) at ``stamp_ns``."""
+
+    robot_id: RobotId
+    stamp_ns: StampNs
+    x_m: float
+    y_m: float
+    yaw_rad: float
+    distance_m: float
+
+
+class Observation(msgspec.Struct, frozen=True, kw_only=True, tag="obs"):
+    """Target (robot or landmark) in ``observer``'s base frame at ``stamp_ns``;
+    ``cov`` is the row-major (3, 3) covariance of (x_m, y_m, yaw_rad)."""
+
+    observer: RobotId
+    target_kind: Literal["robot", "landmark"]
+    target_id: int
+    stamp_ns: StampNs
+    x_m: float
+    y_m: float
+    yaw_rad: float
+    cov: Annotated[tuple[float, ...], msgspec.Meta(min_length=9, max_length=9)]
+
+
+class Advance(msgspec.Struct, frozen=True, kw_only=True, tag="advance"):
+    """``Fusion.advance(watermark_ns)`` was called here."""
+
+    watermark_ns: int
+
+
+Record = Header | Odometry | Observation | Advance
+Measurement = Odometry | Observation
+
+
+def _enc_hook(obj: Any) -> Any:
+    # numpy scalars (from callers doing maths on poses) are stored as plain numbers
+    if isinstance(obj, np.floating | np.integer):
+        return obj.item()
+    raise NotImplementedError(f"cannot journal {type(obj).__name__}")
+
+
+_ENCODER: Final = msgspec.msgpack.Encoder(enc_hook=_enc_hook)
+_DECODER: Final = msgspec.msgpack.Decoder(Record)  # type: ignore[arg-type]
+
+
+class JournalError(ValueError):
+    """The journal cannot be used (not a journal, or written for another map); one line."""
+
+
+def frame(record: Record) -> bytes:
+    """One record as it is stored: length, CRC32, msgpack payload."""
+    payload = _ENCODER.encode(record)
+    return _FRAME.pack(len(payload), zlib.crc32(payload)) + payload
+
+
+def apply(fusion: Fusion, record: Record) -> None:
+    """Make the :class:`Fusion` call a record stands for (the live server and the
+    replay both go through here, so they cannot diverge)."""
+    if isinstance(record, Odometry):
+        fusion.add_odometry(record.robot_id, record.stamp_ns, (record.x_m, record.y_m, record.yaw_rad),
+                            record.distance_m)
+    elif isinstance(record, Observation):
+        rel = (record.x_m, record.y_m, record.yaw_rad)
+        cov = np.asarray(record.cov, float).reshape(3, 3)
+        if record.target_kind == "robot":
+            fusion.add_observation(record.observer, record.target_id, record.stamp_ns, rel, cov)
+        else:
+            fusion.add_landmark_observation(record.observer, record.target_id, record.stamp_ns, rel, cov)
+    elif isinstance(record, Advance):
+        fusion.advance(record.watermark_ns)
+
+
+class Reader:
+    """Iterates the records of a journal file, stopping at the first bad frame.
+
+    After iteration, ``valid_bytes`` is the length of the good prefix (magic
+    included) and ``problem`` says why reading stopped early (``None`` at a clean
+    end): ``"torn"`` (file ends inside a frame), ``"oversized"``, ``"crc"`` or
+    ``"malformed"`` (CRC fine but the payload is not a record).  ``bad_magic`` is
+    set if the file is not a journal at all (then nothing is yielded).
+    """
+
+    def __init__(self, path: str | os.PathLike[str]) -> None:
+        self.path = Path(path)
+        self.valid_bytes = 0
+        self.file_bytes = 0
+        self.problem: str | None = None
+        self.bad_magic = False
+
+    def __iter__(self) -> Iterator[Record]:
+        with open(self.path, "rb") as f:
+            self.file_bytes = os.fstat(f.fileno()).st_size
+            magic = f.read(len(MAGIC))
+            if magic != MAGIC:
+                # a file cut inside the magic is an empty journal, anything else is not ours
+                self.bad_magic = not MAGIC.startswith(magic)
+                self.problem = None if not magic else ("torn" if not self.bad_magic else "bad_magic")
+                return
+            self.valid_bytes = len(MAGIC)
+            while True:
+                head = f.read(_FRAME.size)
+                if not head:
+                    return
+                if len(head) < _FRAME.size:
+                    self.problem = "torn"
+                    return
+                length, crc = _FRAME.unpack(head)
+                if length > MAX_RECORD_BYTES:
+                    self.problem = "oversized"
+                    return
+                payload = f.read(length)
+                if len(payload) < length:
+                    self.problem = "torn"
+                    return
+                if zlib.crc32(payload) != crc:
+                    self.problem = "crc"
+                    return
+                try:
+                    record: Record = _DECODER.decode(payload)
+                except (msgspec.DecodeError, msgspec.ValidationError):
+                    self.problem = "malformed"
+                    return
+                self.valid_bytes += _FRAME.size + length
+                yield record
+
+
+def read_journal(path: str | os.PathLike[str]) -> tuple[list[Record], Reader]:
+    """Every good record of the journal at ``path`` (header first) and the reader
+    (for ``valid_bytes`` / ``problem``).  Never raises on bad content."""
+    reader = Reader(path)
+    return list(reader), reader
+
+
+def _mismatch(want: Header, got: Header) -> str | None:
+    """First difference between the journal's header and this server's, or None."""
+    if got.version != want.version:
+        return f"format version {got.version} (this server writes {want.version})"
+    for name in ("run", "origin_id", "robot_ids", "landmarks", "params"):
+        a, b = getattr(got, name), getattr(want, name)
+        if a != b:
+            if name == "params":
+                diff = sorted(k for k in set(a) | set(b) if a.get(k) != b.get(k))
+                return f"fusion parameters differ ({', '.join(diff)})"
+            return f"{name} {a!r} (this server: {b!r})"
+    return None
+
+
+class Journal:
+    """An open journal: validates and replays what is there, then appends.
+
+    ``replay`` is called for every record after the header, in order (the
+    server rebuilds its state with it).  Raises :class:`JournalError` if the file
+    is not a journal or belongs to another map; truncates a torn or corrupt tail
+    (counted in ``counters["truncated_bytes"]``).
+    """
+
+    def __init__(self, path: str | os.PathLike[str], header: Header, *,
+                 replay: Callable[[Record], None] | None = None, sync_every: int = 64,
+                 sync_interval_s: float = 0.1) -> None:
+        self.path = Path(path)
+        self.header = header
+        self.sync_every = max(1, sync_every)
+        self.sync_interval_s = sync_interval_s
+        self.counters: dict[str, int] = dict.fromkeys(
+            ("records", "odometry", "observations", "advances", "replayed", "fsyncs", "bytes", "truncated_bytes"), 0)
+        self.sync_s_total = 0.0  # wall time spent in fsync (bench/report only, never logic)
+        self._buffer = bytearray()
+        self._unsynced = 0
+        self._unsynced_since = 0.0
+        self.replay_s = 0.0
+        keep = self._open_existing(replay) if self.path.exists() else 0
+        self.counters["bytes"] = keep
+        self._fd = os.open(self.path, os.O_WRONLY | os.O_CREAT, 0o644)
+        try:
+            if os.fstat(self._fd).st_size != keep:
+                os.ftruncate(self._fd, keep)
+            os.lseek(self._fd, keep, os.SEEK_SET)
+            if keep == 0:
+                # a new journal: the header goes to disk (and the file's directory entry) at once
+                data = MAGIC + frame(header)
+                os.write(self._fd, data)
+                self.counters["bytes"] = len(data)
+                self._fsync()
+                _fsync_dir(self.path.parent)
+        except OSError:
+            os.close(self._fd)
+            raise
+
+    def _open_existing(self, replay: Callable[[Record], None] | None) -> int:
+        """Check the header, replay the records; returns the length of the good prefix."""
+        reader = Reader(self.path)
+        t0 = time.perf_counter()
+        it = iter(reader)
+        first = next(it, None)
+        if reader.bad_magic:
+            raise JournalError(f"journal {self.path} is not a tagswarm journal; refusing to overwrite it")
+        if first is None:  # empty, or torn before the header was complete: start afresh
+            if reader.file_bytes:
+                self.counters["truncated_bytes"] = reader.file_bytes
+                log.warning("journal %s holds no complete header (%d bytes); starting a new one", self.path,
+                            reader.file_bytes)
+            return 0
+        if not isinstance(first, Header):
+            raise JournalError(f"journal {self.path} does not start with a header")
+        why = _mismatch(self.header, first)
+        if why is not None:
+            raise JournalError(f"journal {self.path} was written for another map: {why}")
+        for record in it:
+            if isinstance(record, Header):  # only ever the first record
+                reader.problem = "malformed"
+                break
+            self._count(record)
+            self.counters["replayed"] += 1
+            if replay is not None:
+                replay(record)
+        self.replay_s = time.perf_counter() - t0
+        if reader.problem is not None:
+            lost = reader.file_bytes - reader.valid_bytes
+            self.counters["truncated_bytes"] = lost
+            log.warning("journal %s: %s record after %d good ones; truncating %d bytes", self.path, reader.problem,
+                        self.counters["replayed"], lost)
+        return reader.valid_bytes
+
+    def _count(self, record: Record) -> None:
+        if isinstance(record, Advance):
+            self.counters["advances"] += 1
+            return
+        self.counters["records"] += 1
+        self.counters["odometry" if isinstance(record, Odometry) else "observations"] += 1
+
+    # ------------------------------------------------------------------ writing
+    def append(self, record: Odometry | Observation | Advance) -> None:
+        """Queue one record; it reaches the OS at the next :meth:`flush`."""
+        data = frame(record)
+        self._buffer += data
+        self._count(record)
+        if not self._unsynced:
+            self._unsynced_since = time.monotonic()
+        self._unsynced += 1
+
+    def flush(self) -> None:
+        """Hand queued records to the OS (they survive a killed process from here
+        on) and fsync if a batch is due."""
+        if self._buffer:
+            data = bytes(self._buffer)
+            self._buffer.clear()
+            done = 0
+            while done < len(data):  # os.write may write less than asked
+                done += os.write(self._fd, data[done:])
+            self.counters["bytes"] += len(data)
+        self.maybe_sync()
+
+    def maybe_sync(self) -> None:
+        """fsync if ``sync_every`` records or ``sync_interval_s`` have passed since
+        the oldest record not yet on disk (call it from the loop, also when idle)."""
+        if self._unsynced and not self._buffer and (
+                self._unsynced >= self.sync_every
+                or time.monotonic() - self._unsynced_since >= self.sync_interval_s):
+            self._fsync()
+
+    def _fsync(self) -> None:
+        t0 = time.perf_counter()
+        os.fsync(self._fd)
+        self.sync_s_total += time.perf_counter() - t0
+        self.counters["fsyncs"] += 1
+        self._unsynced = 0
+
+    def close(self) -> None:
+        """Flush, fsync and close (idempotent)."""
+        if self._fd < 0:
+            return
+        try:
+            self.flush()
+            if self._unsynced:
+                self._fsync()
+        finally:
+            os.close(self._fd)
+            self._fd = -1
+
+    def as_counters(self, prefix: str = "journal_") -> dict[str, int]:
+        """Counters for the server's status (``journal_records`` = measurements in the
+        file, replayed ones included)."""
+        out = {prefix + k: v for k, v in self.counters.items()}
+        out[prefix + "replay_ms"] = round(self.replay_s * 1e3)
+        return out
+
+
+def _fsync_dir(folder: Path) -> None:
+    """Make a new file's directory entry durable (POSIX; a no-op where unsupported)."""
+    try:
+        fd = os.open(folder, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+def header_for(run: str, fusion: Fusion) -> Header:
+    """The header a server with this ``fusion`` writes (and expects)."""
+    params: dict[str, Any] = {k: float(v) for k, v in dataclasses.asdict(fusion.p).items()}
+    return Header(run=run, origin_id=fusion.origin_id, robot_ids=tuple(sorted(fusion.robots)),
+                  landmarks={k: (float(v[0]), float(v[1]), float(v[2])) for k, v in fusion.landmarks.items()},
+                  params=params)

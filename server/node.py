@@ -34,6 +34,16 @@ EDGE_MEMORY_NS = 5_000_000_000
 EAGER_UPDATE_MIN_S = 0.02
 
 
+def make_fusion(config: ServerConfig) -> Fusion:
+    """The (empty) fusion a server with ``config`` runs; a journal replayed into it
+    rebuilds that server's graph (tools and tests use this too)."""
+    s = config.scenario
+    params = FusionParams(wheel_base_m=s.robot.wheel_base_m, odom_wheel_sigma=s.agent.odom_wheel_sigma,
+                          lag_s=config.lag_s)
+    landmarks = {lm.id: (lm.x_m, lm.y_m, lm.yaw_rad) for lm in s.landmarks}
+    return Fusion(params, s.map.origin_id, s.robot_ids, landmarks)
+
+
 class ServerNode:
     """See the module docstring."""
 
@@ -43,10 +53,7 @@ class ServerNode:
         self.bus = bus
         self.keys = Keys(config.run)
         self.roster = set(s.robot_ids)
-        params = FusionParams(wheel_base_m=s.robot.wheel_base_m, odom_wheel_sigma=s.agent.odom_wheel_sigma,
-                              lag_s=config.lag_s)
-        landmarks = {lm.id: (lm.x_m, lm.y_m, lm.yaw_rad) for lm in s.landmarks}
-        self.fusion = Fusion(params, s.map.origin_id, s.robot_ids, landmarks)
+        self.fusion = make_fusion(config)
         self.rejects = codec.RejectCounter(log)
         self.counters: Counter[str] = Counter()
         self.seq = codec.Sequencer()

@@ -296,6 +296,7 @@ def main() -> int:
     if a.quick:
         a.trials, a.duration, a.seeds, a.variant_seeds, a.ablation_duration = 5, 60.0, 1, 1, 60.0
     console = Console()
+    a.out.parent.mkdir(parents=True, exist_ok=True)
     result: dict[str, Any] = {
         "bench": "accuracy", "machine": machine(),
         "settings": {"trials": a.trials, "duration_s": a.duration, "seeds": list(range(a.seeds)),

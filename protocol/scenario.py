@@ -207,6 +207,8 @@ class Agent(Spec, frozen=True, kw_only=True, forbid_unknown_fields=True):
     goal_tolerance_m: Pos = 0.1
     status_period_s: Pos = 1.0
     frame_wait_s: Pos = 2.0
+    # fault injection: extra wall seconds spent on every camera frame (a deliberately slow detector)
+    inject_frame_delay_s: NonNeg = 0.0
 
 
 class Mission(Spec, frozen=True, kw_only=True, forbid_unknown_fields=True):

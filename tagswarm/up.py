@@ -55,6 +55,11 @@ def parser() -> OneLineParser:
     p.add_argument("--out", type=Path, help="run folder (default runs/<timestamp>)")
     p.add_argument("--no-live", action="store_true", help="plain log lines instead of the live table")
     p.add_argument("--no-report", action="store_true", help="do not compute metrics and plots at the end")
+    p.add_argument("--record", type=Path, metavar="FILE.mcap",
+                   help="also record every message of the run to an MCAP file (as tagswarm record does)")
+    p.add_argument("--replay", type=Path, metavar="FILE.mcap",
+                   help="no world: replay a recording's world streams in lockstep into fresh agents and server "
+                        "(scenario: the recorded one unless --scenario)")
     return p
 
 
@@ -107,7 +112,7 @@ def _table(rec: Recorder, scenario: Scenario, wall_s: float, out: Path, endpoint
 
 
 def run_up(scenario: Scenario, out: Path, endpoint: str, run: str, *, live: bool, report: bool,
-           stop: threading.Event, console: Console) -> int:
+           stop: threading.Event, console: Console, record: Path | None = None, replay: Path | None = None) -> int:
     """Start everything, record until the world ends or ``stop``, write the run folder."""
     out.mkdir(parents=True, exist_ok=True)
     logs = out / "logs"
@@ -119,18 +124,25 @@ def run_up(scenario: Scenario, out: Path, endpoint: str, run: str, *, live: bool
     failure: str | None = None
     may_die = {f"agent/{r}" for r in scenario.robots.may_die}
     t0 = time.monotonic()
+    recording = None
     try:
         children.append(Child("server", [*_script("tagswarm-server"), *common, "--connect", endpoint],
                               logs / "server.log"))
         for rid in scenario.robot_ids:
             children.append(Child(f"agent/{rid}", [*_script("tagswarm-agent"), *common, "--connect", endpoint,
                                                    "--robot-id", str(rid)], logs / f"agent{rid}.log"))
-        world = Child("world", [*_script("tagswarm-world"), *common, "--listen", endpoint], logs / "world.log")
+        world_cmd = [sys.executable, "-m", "tagswarm.replay", str(replay), "--lockstep"] if replay else \
+            _script("tagswarm-world")
+        world = Child("world", [*world_cmd, *common, "--listen", endpoint], logs / "world.log")
         children.append(world)
         console.print(f"[bold]tagswarm up[/]: {len(scenario.robot_ids)} robots, {scenario.clock.mode} clock, "
                       f"Zenoh endpoint [cyan]{endpoint}[/] (join with --connect {endpoint}), run id {run!r}")
         with open_bus(BusConfig(connect=(endpoint,))) as bus:
             rec = Recorder(bus, Keys(run), scenario)
+            if record is not None:
+                from tagswarm.record import start_recording
+
+                recording = start_recording(bus, Keys(run), record, scenario)
             with Live(console=console, refresh_per_second=2, transient=False) if live else _Null() as display:
                 last_print = 0.0
                 while not stop.is_set():
@@ -161,6 +173,8 @@ def run_up(scenario: Scenario, out: Path, endpoint: str, run: str, *, live: bool
     finally:
         for c in children:
             c.stop()
+        if recording is not None:
+            recording.stop()
     wall = time.monotonic() - t0
     if failure:
         console.print(f"[red]run failed: {failure}[/]")
@@ -214,7 +228,14 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise ConfigError("--duration must be > 0")
         if args.robots is not None and args.robots < 1:
             raise ConfigError("--robots must be >= 1")
-        scenario = resolve(args, env)
+        if args.record is not None and not args.record.parent.is_dir():
+            raise ConfigError(f"--record: no such directory {str(args.record.parent)!r}")
+        if args.replay is not None:
+            from tagswarm.replay import scenario_for_replay
+
+            scenario = scenario_for_replay(args.replay, args, env, resolve)
+        else:
+            scenario = resolve(args, env)
         run = pick(args, env, "run", f"up{int(time.time()) % 100000}")
         Keys(run)
         out = args.out or Path("runs") / datetime.now().strftime("%Y%m%d-%H%M%S")
@@ -224,7 +245,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         signal.signal(signal.SIGTERM, lambda *_: stop.set())
         try:
             return run_up(scenario, out, endpoint, run, live=not args.no_live and sys.stdout.isatty(),
-                          report=not args.no_report, stop=stop, console=Console())
+                          report=not args.no_report, stop=stop, console=Console(), record=args.record,
+                          replay=args.replay)
         finally:
             signal.signal(signal.SIGINT, previous)
 

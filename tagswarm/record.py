@@ -1,0 +1,306 @@
+"""``tagswarm record [KEYEXPR] --out FILE.mcap``: record a running system to MCAP.
+
+A read-only Zenoh client (like ``tagswarm spy``: no liveliness token, never part of a
+lockstep) that writes every message on keys matching KEYEXPR (default: every key of the
+run, ``tagswarm/<run>/**``) to an MCAP file that Foxglove opens:
+
+- one raw channel per key holding the payload bytes exactly as received (msgpack, with the
+  message type's JSON schema), so ``tagswarm replay`` is byte-exact; log time is the
+  message's simulation time, publish time the wall clock at reception;
+- Foxglove views beside them (poses, frames, the map, camera images; see
+  :mod:`tagswarm.foxglove_views`), unless ``--no-foxglove``;
+- camera images optionally downsampled (``--image-scale 0.5``: area-averaged, intrinsics
+  scaled; such raw images are re-encoded, so a replay of them is no longer byte-exact) or
+  skipped (``--no-images``).
+
+Payloads that do not decode are still recorded raw, and counted.  Recording stops on
+SIGINT/SIGTERM, after ``--duration`` simulated seconds, or when the world's liveliness
+token goes away (its run ended); the file is always closed with its summary.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import math
+import sys
+import threading
+import time
+from collections import Counter
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Literal
+
+import cv2
+import msgspec
+import numpy as np
+
+from protocol import codec
+from protocol import messages as m
+from protocol.bus import Bus, open_bus
+from protocol.config import (
+    ConfigError,
+    OneLineParser,
+    add_common_args,
+    bus_from,
+    env_of,
+    install_stop_signals,
+    pick,
+    run_main,
+    scenario_from,
+    setup_logging,
+)
+from protocol.keys import Keys
+from protocol.layout import arena_to_map
+from protocol.scenario import Scenario
+from tagswarm.foxglove_views import FoxgloveViews
+from tagswarm.mcapio import META_RUN, META_STATS, McapSink
+
+PROG = "tagswarm record"
+INBOX_CAPACITY = 200_000  # a safety net: the writer keeps up with the world by a wide margin (see README)
+QUIET_AFTER_WORLD_S = 1.0  # after the world left, wait this long without traffic before closing
+log = logging.getLogger("tagswarm.record")
+
+
+class RecordOptions(msgspec.Struct, frozen=True, kw_only=True):
+    """What to write besides the raw payloads."""
+
+    images: bool = True
+    image_scale: float = 1.0
+    foxglove: bool = True
+    compression: Literal["zstd", "lz4", "none"] = "zstd"
+
+
+def scale_image(img: m.CameraImage, scale: float) -> m.CameraImage:
+    """``img`` resized by ``scale`` (0 < scale <= 1) with area averaging; intrinsics follow
+    (OpenCV pixel-centre convention: c' = (c + 0.5) * s - 0.5)."""
+    w, h = max(1, round(img.width * scale)), max(1, round(img.height * scale))
+    if (w, h) == (img.width, img.height):
+        return img
+    gray = np.frombuffer(img.data, np.uint8).reshape(img.height, img.width)
+    small = cv2.resize(gray, (w, h), interpolation=cv2.INTER_AREA)
+    sx, sy = w / img.width, h / img.height
+    return msgspec.structs.replace(img, width=w, height=h, fx_px=img.fx_px * sx, fy_px=img.fy_px * sy,
+                                   cx_px=(img.cx_px + 0.5) * sx - 0.5, cy_px=(img.cy_px + 0.5) * sy - 0.5,
+                                   data=small.tobytes())
+
+
+class McapRecording:
+    """The pure part of a recorder: payloads in (key, bytes, wall time of reception),
+    MCAP out.  Never raises on bad payloads: they are written raw and counted."""
+
+    def __init__(self, path: Path, options: RecordOptions, *, run: str, keyexpr: str,
+                 scenario: Scenario | None = None) -> None:
+        if not (0 < options.image_scale <= 1) or not math.isfinite(options.image_scale):
+            raise ConfigError("--image-scale must be in (0, 1]")
+        self.options = options
+        self.sink = McapSink(path, compression=options.compression)
+        views = None
+        if options.foxglove:
+            a2m = arena_to_map(scenario) if scenario is not None else None
+            views = FoxgloveViews(a2m, scenario.robot.cube_edge_m if scenario is not None else 0.2)
+        self.views = views
+        self.rejects = codec.RejectCounter(log)
+        self.kinds: Counter[str] = Counter()  # messages written per tagswarm type
+        self.skipped_images = 0
+        self.first_ns: int | None = None
+        self.last_ns = 0
+        meta = {"run": run, "keyexpr": keyexpr, "images": str(options.images).lower(),
+                "image_scale": repr(options.image_scale), "foxglove": str(options.foxglove).lower(),
+                "recorder": PROG, "started_wall_ns": str(time.time_ns())}
+        if scenario is not None:
+            meta["scenario"] = msgspec.json.encode(scenario).decode()
+        self.sink.metadata(META_RUN, meta)
+
+    @property
+    def sim_span_s(self) -> float:
+        """Simulated seconds between the first and the newest message."""
+        return 0.0 if self.first_ns is None else (self.last_ns - self.first_ns) / 1e9
+
+    def add(self, key: str, payload: bytes, received_ns: int) -> None:
+        """Record one payload received on ``key`` at wall time ``received_ns``."""
+        try:
+            msg: m.Msg = codec.decode_any(payload)
+        except codec.DecodeError as exc:
+            self.rejects.reject(exc.kind, f"{key}: {exc.detail}")
+            # still on the record, at the newest simulation time seen (it carries none we trust)
+            self.sink.write(self.sink.raw_channel(key), payload, log_time_ns=self.last_ns,
+                            publish_time_ns=received_ns)
+            self.kinds["undecodable"] += 1
+            return
+        if isinstance(msg, m.CameraImage):
+            if not self.options.images:
+                self.skipped_images += 1
+                return
+            if self.options.image_scale != 1.0:
+                msg = scale_image(msg, self.options.image_scale)
+                payload = codec.encode(msg)
+        stamp = msg.stamp_ns
+        self.first_ns = stamp if self.first_ns is None else min(self.first_ns, stamp)
+        self.last_ns = max(self.last_ns, stamp)
+        self.sink.write(self.sink.raw_channel(key), payload, log_time_ns=stamp, publish_time_ns=received_ns,
+                        sequence=msg.seq)
+        self.kinds[type(msg).__name__] += 1
+        if self.views is not None:
+            try:
+                views = self.views.views(key, msg)
+            except Exception as exc:  # a view is a convenience: never lose the recording over one
+                self.rejects.reject("foxglove_view", f"{key}: {type(exc).__name__}: {exc}")
+                return
+            for topic, schema, data in views:
+                self.sink.write(self.sink.foxglove_channel(topic, schema), data, log_time_ns=stamp,
+                                publish_time_ns=received_ns)
+
+    def stats(self) -> dict[str, int]:
+        """Counters: messages per type, rejects per kind, skipped images, totals."""
+        out = {f"messages_{k}": v for k, v in sorted(self.kinds.items())}
+        out.update(self.rejects.as_counters())
+        out.update(skipped_images=self.skipped_images, mcap_messages=self.sink.messages,
+                   mcap_payload_bytes=self.sink.bytes)
+        return out
+
+    def close(self, extra: dict[str, int] | None = None) -> dict[str, int]:
+        """Write the stats metadata and the summary; returns the stats."""
+        stats = self.stats() | (extra or {})
+        try:
+            self.sink.metadata(META_STATS, {k: str(v) for k, v in stats.items()})
+        finally:
+            self.sink.close()
+        return stats
+
+
+class Recorder:
+    """Feeds a :class:`McapRecording` from the bus: one subscription to ``keyexpr`` plus
+    the world's liveliness (to notice that its run ended)."""
+
+    def __init__(self, bus: Bus, keyexpr: str, recording: McapRecording, world_alive_key: str | None) -> None:
+        self.recording = recording
+        try:
+            self.inbox = bus.subscribe(keyexpr, capacity=INBOX_CAPACITY)
+        except Exception as exc:  # zenoh rejects malformed key expressions when declaring
+            reason = " ".join(str(exc).split()).split(" at /", 1)[0]
+            raise ConfigError(f"bad key expression {keyexpr!r}: {reason}") from None
+        self.world_in = bus.watch_liveliness(world_alive_key) if world_alive_key else None
+        self.world_seen = False
+        self.world_gone = False
+        self.last_rx = time.monotonic()
+
+    def poll(self) -> int:
+        """Write everything that arrived; returns how many payloads."""
+        if self.world_in is not None:
+            for change in self.world_in.drain():
+                self.world_seen = self.world_seen or change.value
+                self.world_gone = self.world_seen and not change.value
+        items = self.inbox.drain()
+        now_ns = time.time_ns()  # reception ~ now: the inbox is drained every few ms
+        for item in items:
+            self.recording.add(item.key, item.value, now_ns)
+        if items:
+            self.last_rx = time.monotonic()
+        return len(items)
+
+    def close(self) -> dict[str, int]:
+        self.poll()
+        return self.recording.close({"inbox_overflow": self.inbox.overflow})
+
+
+class BackgroundRecording:
+    """A :class:`Recorder` on its own thread sharing a process's bus (``tagswarm up --record``)."""
+
+    def __init__(self, recorder: Recorder, bus: Bus) -> None:
+        self.recorder = recorder
+        self._stop = threading.Event()
+        self._bus = bus
+        self._thread = threading.Thread(target=self._loop, name="mcap-record", daemon=True)
+        self._thread.start()
+
+    def _loop(self) -> None:
+        while not self._stop.is_set():
+            self._bus.wait(0.05)
+            self.recorder.poll()
+
+    def stop(self) -> dict[str, int]:
+        """Stop the thread, write what is left and close the file (safe after the bus
+        closed: the inbox is plain memory)."""
+        self._stop.set()
+        self._thread.join()
+        return self.recorder.close()
+
+
+def start_recording(bus: Bus, keys: Keys, path: Path, scenario: Scenario | None = None,
+                    options: RecordOptions | None = None) -> BackgroundRecording:
+    """Record every key of ``keys``' run to ``path`` on a background thread."""
+    rec = McapRecording(path, options or RecordOptions(), run=keys.run, keyexpr=keys.all(), scenario=scenario)
+    return BackgroundRecording(Recorder(bus, keys.all(), rec, None), bus)
+
+
+def parser() -> OneLineParser:
+    p = OneLineParser(prog=PROG, description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("keyexpr", nargs="?", metavar="KEYEXPR",
+                   help="Zenoh key expression to record (default: every key of the run, tagswarm/<run>/**)")
+    p.add_argument("--out", "-o", type=Path, required=True, metavar="FILE.mcap", help="MCAP file to write")
+    p.add_argument("--image-scale", type=float, default=1.0, metavar="S",
+                   help="downsample camera images by S in (0, 1] (e.g. 0.5 = half width and height)")
+    p.add_argument("--no-images", action="store_true", help="do not record camera images")
+    p.add_argument("--no-foxglove", action="store_true", help="raw channels only, no Foxglove views")
+    p.add_argument("--compression", choices=("zstd", "lz4", "none"), default="zstd",
+                   help="MCAP chunk compression (default zstd)")
+    add_common_args(p)
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Console entry for ``tagswarm record``."""
+
+    def body() -> int:
+        args = parser().parse_args(list(argv) if argv is not None else None)
+        env = env_of()
+        setup_logging(pick(args, env, "log_level", "INFO"), "record")
+        keys = Keys(pick(args, env, "run", "default"))
+        keyexpr = args.keyexpr if args.keyexpr is not None else keys.all()
+        if not keyexpr.strip():
+            raise ConfigError("KEYEXPR must not be empty")
+        duration = pick(args, env, "duration")
+        duration_s = float(duration) if duration is not None else math.inf
+        if not duration_s > 0:
+            raise ConfigError("--duration must be > 0")
+        # the scenario only tells the Foxglove views where the map frame is: use it when named
+        given = args.scenario is not None or "TAGSWARM_SCENARIO" in env
+        scenario = scenario_from(args, env) if given else None
+        options = RecordOptions(images=not args.no_images, image_scale=args.image_scale,
+                                foxglove=not args.no_foxglove, compression=args.compression)
+        if not args.out.parent.is_dir():
+            raise ConfigError(f"--out: no such directory {str(args.out.parent)!r}")
+        bus_cfg = bus_from(args, env)
+        recording = McapRecording(args.out, options, run=keys.run, keyexpr=keyexpr, scenario=scenario)
+        stop = threading.Event()
+        install_stop_signals(stop)
+        stats: dict[str, int] = {}
+        try:
+            with open_bus(bus_cfg) as bus:
+                rec = Recorder(bus, keyexpr, recording, keys.alive("world/0"))
+                log.info("recording %s to %s", keyexpr, args.out)
+                while not stop.is_set():
+                    bus.wait(0.05)
+                    rec.poll()
+                    if recording.sim_span_s >= duration_s:
+                        log.info("recorded %.1f simulated seconds", recording.sim_span_s)
+                        break
+                    if rec.world_gone and time.monotonic() - rec.last_rx > QUIET_AFTER_WORLD_S:
+                        log.info("the world left: its run ended")
+                        break
+                stats = rec.close()
+        finally:
+            recording.sink.close()  # a no-op after rec.close(); closes the file on any error
+        size_mb = args.out.stat().st_size / 1e6
+        sys.stderr.write(f"{PROG}: {stats.get('mcap_messages', 0)} messages, {recording.sim_span_s:.1f} simulated s, "
+                         f"{size_mb:.1f} MB -> {args.out}"
+                         + (f"; {recording.rejects.total()} undecodable" if recording.rejects.total() else "")
+                         + "\n")
+        return 0
+
+    return run_main(PROG, body)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -6,6 +6,12 @@ loop (on Zenoh's own receive thread, so arrival order across keys is kept);
 sessions are opened in a ``with`` block (:func:`open_bus`) and always
 closed; large frames go out with DROP congestion control into newest-only
 inboxes, small must-arrive messages with BLOCK into FIFO inboxes.
+
+Security (docs/security.md): a client presents a Zenoh user/password
+(``user`` + ``password_file``); a router checks them against a dictionary file
+(``users_file``) and may enforce an ACL (``access_control``).  Fault injection
+(``loss``, ``delay_ms`` on ``fault_keys``) impairs what this process receives;
+see :mod:`protocol.netfaults`.
 """
 
 from __future__ import annotations
@@ -19,13 +25,17 @@ from collections import deque
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
-from typing import Any, Generic, Literal, TypeVar
+from typing import Annotated, Any, Generic, Literal, TypeVar
 
 import msgspec
 import zenoh
 
+from protocol.keys import ROOT, Keys
+from protocol.netfaults import NetFaults
+
 log = logging.getLogger(__name__)
 T = TypeVar("T")
+MAX_DELAY_MS = 60_000.0
 
 
 class BusError(Exception):
@@ -40,6 +50,18 @@ class BusConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields
     session in ~1 ms instead of ~0.5 s and keep test runs isolated.
     ``config_file`` (or the ``ZENOH_CONFIG`` environment variable) names a Zenoh
     JSON5 config that is loaded first; the fields here are applied on top.
+
+    Authentication: ``user`` and ``password_file`` (a file holding the password,
+    so it never shows in a config dump or ``ps``) are presented to the router;
+    a router given ``users_file`` (Zenoh's ``user:password`` dictionary) admits
+    only sessions that present one of its entries, and ``access_control`` (the JSON
+    of a Zenoh ``access_control`` block, see tagswarm/acl.py) limits what each user
+    may publish, subscribe, query and declare.
+
+    Fault injection (receive side, see :mod:`protocol.netfaults`): samples that
+    arrive on keys matching ``fault_keys`` (key expressions; empty = the
+    :func:`default_fault_keys`) are lost with probability ``loss`` (0..1) and
+    delivered ``delay_ms`` milliseconds late; ``fault_seed`` fixes the pattern.
     """
 
     mode: Literal["peer", "client", "router"] = "peer"
@@ -47,6 +69,54 @@ class BusConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields
     connect: tuple[str, ...] = ()
     multicast_scouting: bool = False
     config_file: str | None = None
+    user: str | None = None
+    password_file: str | None = None
+    users_file: str | None = None
+    access_control: str | None = None
+    loss: Annotated[float, msgspec.Meta(ge=0.0, le=1.0)] = 0.0
+    delay_ms: Annotated[float, msgspec.Meta(ge=0.0, le=MAX_DELAY_MS)] = 0.0
+    fault_keys: tuple[str, ...] = ()
+    fault_seed: int = 0
+
+
+def default_fault_keys() -> tuple[str, ...]:
+    """Key expressions (any run) that faults apply to unless told otherwise: the small
+    must-arrive data of the robots and the map (encoders, wheel commands, goals,
+    observations, odometry, corrections, map).  Left out on purpose: the lockstep
+    clock (tick, acks, render requests: losing one would stall the run), camera
+    images (already DROP / newest-only), ground truth and statuses (evaluation and
+    monitoring, not the system under test)."""
+    k = Keys("any")
+    data = (k.encoders(), k.cmd(), k.goal(), k.observation(), k.odometry(), k.correction(), k.map())
+    return tuple(f"{ROOT}/*/{key[len(k.prefix) + 1:]}" for key in data)
+
+
+def check_key_expr(expr: str) -> str:
+    """``expr`` if it is a valid Zenoh key expression, else :class:`BusError`."""
+    try:
+        zenoh.KeyExpr(expr)
+    except Exception as exc:  # "Invalid Key Expr `x`: why at <rust source path>"
+        why = str(exc).split(" at /", 1)[0]
+        raise BusError(f"{expr!r} is not a valid Zenoh key expression: {why}") from None
+    return expr
+
+
+def key_matches(pattern: str, key: str) -> bool:
+    """Whether the key expression ``pattern`` matches every key of ``key`` (for a
+    concrete ``key``: whether it matches that key)."""
+    return bool(zenoh.KeyExpr(pattern).includes(zenoh.KeyExpr(key)))
+
+
+def read_password(path: str) -> str:
+    """The password in ``path`` without its trailing newline; :class:`BusError` if unreadable or empty."""
+    try:
+        with open(path, encoding="utf-8") as fh:
+            password = fh.read().rstrip("\r\n")
+    except OSError as exc:
+        raise BusError(f"cannot read password file {path}: {exc.strerror}") from None
+    if not password or "\n" in password:
+        raise BusError(f"password file {path} must hold one non-empty line")
+    return password
 
 
 def zenoh_config(cfg: BusConfig) -> zenoh.Config:
@@ -62,7 +132,38 @@ def zenoh_config(cfg: BusConfig) -> zenoh.Config:
         conf.insert_json5("scouting/multicast/enabled", json.dumps(cfg.multicast_scouting))
     except Exception as exc:  # zenoh raises ZError with a readable message
         raise BusError(f"bad Zenoh configuration: {exc}") from None
+    if (cfg.user is None) != (cfg.password_file is None):
+        raise BusError("a Zenoh user needs a password file and a password file needs a user")
+    # field by field, so a config file may set the others (e.g. a TLS block)
+    auth: dict[str, str] = {}
+    if cfg.user is not None and cfg.password_file is not None:
+        auth = {"user": cfg.user, "password": read_password(cfg.password_file)}
+    if cfg.users_file is not None:
+        if not os.path.isfile(cfg.users_file):
+            raise BusError(f"no such users file {cfg.users_file}")
+        auth["dictionary_file"] = cfg.users_file
+    try:
+        for field, value in auth.items():
+            conf.insert_json5(f"transport/auth/usrpwd/{field}", json.dumps(value))
+        if cfg.access_control is not None:
+            conf.insert_json5("access_control", cfg.access_control)
+    except Exception as exc:
+        raise BusError(f"bad Zenoh security configuration: {exc}") from None
     return conf
+
+
+def net_faults(cfg: BusConfig) -> NetFaults:
+    """The receive-side fault injector for ``cfg`` (inactive when loss and delay are 0)."""
+    patterns = [zenoh.KeyExpr(check_key_expr(k)) for k in (cfg.fault_keys or default_fault_keys())]
+
+    def matches(key: str) -> bool:
+        ke = zenoh.KeyExpr(key)
+        return any(p.intersects(ke) for p in patterns)
+
+    try:
+        return NetFaults(loss=cfg.loss, delay_s=cfg.delay_ms / 1000.0, seed=cfg.fault_seed, matches=matches)
+    except ValueError as exc:
+        raise BusError(f"network faults: {exc}") from None
 
 
 @dataclass
@@ -80,6 +181,7 @@ class Inbox(Generic[T]):
     camera frames so that a slow consumer skips frames instead of queueing them.
     Otherwise it is a FIFO of ``capacity`` items; items beyond that are dropped
     and counted in ``overflow`` (a safety net, not a flow-control mechanism).
+    ``fault_dropped`` counts the samples lost to injected network faults.
     """
 
     def __init__(self, wake: threading.Condition, *, newest_only: bool, capacity: int) -> None:
@@ -87,6 +189,7 @@ class Inbox(Generic[T]):
         self._wake = wake
         self.received = 0
         self.overflow = 0
+        self.fault_dropped = 0
         self._newest_only = newest_only
 
     def put(self, key: str, value: T) -> None:
@@ -97,6 +200,11 @@ class Inbox(Generic[T]):
             self._items.append(Received(key, value))
             self.received += 1
             self._wake.notify_all()
+
+    def count_fault_drop(self) -> None:
+        """Called from Zenoh threads for a sample the fault injector discarded."""
+        with self._wake:
+            self.fault_dropped += 1
 
     def drain(self) -> list[Received[T]]:
         """Everything queued so far, oldest first."""
@@ -122,8 +230,9 @@ class Publisher:
 class Bus:
     """A thin façade over one open Zenoh session (use :func:`open_bus`)."""
 
-    def __init__(self, session: zenoh.Session) -> None:
+    def __init__(self, session: zenoh.Session, faults: NetFaults | None = None) -> None:
         self._session = session
+        self._faults = faults if faults is not None and faults.active else None
         self._wake = threading.Condition()
         self._publishers: dict[tuple[str, bool], Publisher] = {}
         self._keep: list[Any] = []  # declared entities live as long as the bus
@@ -147,14 +256,36 @@ class Bus:
         self.publisher(key, drop=drop).put(payload)
 
     def subscribe(self, key: str, *, newest_only: bool = False, capacity: int = 65536) -> Inbox[bytes]:
-        """Subscribe to ``key`` (may contain wildcards); payloads arrive as bytes."""
+        """Subscribe to ``key`` (may contain wildcards); payloads arrive as bytes.
+        With network faults configured, matching samples may be lost or delayed."""
         inbox: Inbox[bytes] = Inbox(self._wake, newest_only=newest_only, capacity=capacity)
+        faults = self._faults
 
         def on_sample(sample: zenoh.Sample) -> None:
             inbox.put(str(sample.key_expr), sample.payload.to_bytes())
 
-        self._keep.append(self._session.declare_subscriber(key, _direct(on_sample)))
+        def on_faulty_sample(sample: zenoh.Sample) -> None:
+            assert faults is not None
+            got = str(sample.key_expr)
+            if not faults.admit(key, got):
+                inbox.count_fault_drop()
+                return
+            payload = sample.payload.to_bytes()  # copied now: the sample is not ours after the callback
+            faults.hold(got, lambda: inbox.put(got, payload))
+
+        faulty = faults is not None and faults.matches(key)
+        self._keep.append(self._session.declare_subscriber(key, _direct(on_faulty_sample if faulty else on_sample)))
         return inbox
+
+    def fault_stats(self) -> dict[str, int]:
+        """Samples lost to / delayed by injected network faults so far (for statuses)."""
+        f = self._faults
+        return {"net_dropped": 0 if f is None else f.dropped, "net_delayed": 0 if f is None else f.delayed}
+
+    def close(self) -> None:
+        """Stop the fault injector's timer (the session itself is closed by :func:`open_bus`)."""
+        if self._faults is not None:
+            self._faults.close()
 
     def declare_token(self, key: str) -> None:
         """Declare a liveliness token that lives as long as the session."""
@@ -230,10 +361,19 @@ def _direct(fn: Any) -> Any:
 def open_bus(cfg: BusConfig) -> Iterator[Bus]:
     """Open a Zenoh session for ``cfg`` and close it on exit, whatever happens."""
     conf = zenoh_config(cfg)
+    faults = net_faults(cfg)
     try:
         session = zenoh.open(conf)
     except Exception as exc:
+        who = f", user {cfg.user!r}" if cfg.user else ""
         raise BusError(f"cannot open Zenoh session ({cfg.mode}, listen={list(cfg.listen)}, "
-                       f"connect={list(cfg.connect)}): {exc}") from None
+                       f"connect={list(cfg.connect)}{who}): {exc}") from None
+    if faults.active:
+        log.warning("injecting network faults on receive: loss %.3g, delay %.3g ms, seed %d, keys %s",
+                    cfg.loss, cfg.delay_ms, cfg.fault_seed, ", ".join(cfg.fault_keys or default_fault_keys()))
     with session:
-        yield Bus(session)
+        bus = Bus(session, faults)
+        try:
+            yield bus
+        finally:
+            bus.close()

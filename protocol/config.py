@@ -19,7 +19,7 @@ import threading
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any, NoReturn, Protocol, TypeVar
 
-from protocol.bus import Bus, BusConfig, BusError, open_bus
+from protocol.bus import MAX_DELAY_MS, Bus, BusConfig, BusError, check_key_expr, open_bus
 from protocol.keys import KeyError_
 from protocol.scenario import Scenario, ScenarioError, convert, load_scenario
 
@@ -60,6 +60,19 @@ def add_common_args(p: argparse.ArgumentParser) -> None:
     n.add_argument("--multicast-scouting", action="store_true", default=None,
                    help="enable Zenoh multicast scouting (off by default)")
     n.add_argument("--zenoh-config", metavar="FILE", help="Zenoh JSON5 config file (also ZENOH_CONFIG)")
+    n.add_argument("--zenoh-user", metavar="NAME",
+                   help="Zenoh user presented to the router (env TAGSWARM_ZENOH_USER; see docs/security.md)")
+    n.add_argument("--zenoh-password-file", metavar="FILE",
+                   help="file holding that user's password (env TAGSWARM_ZENOH_PASSWORD_FILE)")
+    f = p.add_argument_group("network fault injection (on what this process receives; for tests and demos)")
+    f.add_argument("--net-loss", metavar="SHARE", help="share of matching messages lost, 0..1 (env TAGSWARM_NET_LOSS)")
+    f.add_argument("--net-delay-ms", metavar="MS", help="delay added to matching messages in milliseconds "
+                                                       "(env TAGSWARM_NET_DELAY_MS)")
+    f.add_argument("--net-fault-keys", action="append", metavar="KEYEXPR",
+                   help="key expression the faults apply to (repeatable; env TAGSWARM_NET_FAULT_KEYS, comma-separated; "
+                        "default: encoders, commands, goals, observations, odometry, corrections and the map, "
+                        "never the clock or images)")
+    f.add_argument("--net-seed", metavar="N", help="seed of the loss pattern (env TAGSWARM_NET_SEED; default 0)")
     p.add_argument("--log-level", default=None, help="DEBUG, INFO, WARNING... (env TAGSWARM_LOG_LEVEL; default INFO)")
 
 
@@ -112,11 +125,65 @@ def bus_from(args: argparse.Namespace, env: Mapping[str, str]) -> BusConfig:
         if not os.path.exists(cfg_file):
             raise ConfigError(f"--zenoh-config: no such file {cfg_file!r}")
         table["config_file"] = cfg_file
+    table.update(_credentials(args, env))
+    table.update(_faults(args, env))
     try:
         bus: BusConfig = convert(table, BusConfig, "network")
     except ScenarioError as exc:
         raise ConfigError(str(exc)) from None
     return bus
+
+
+def _credentials(args: argparse.Namespace, env: Mapping[str, str]) -> dict[str, Any]:
+    """``user`` and ``password_file`` (both or neither; the file must be readable)."""
+    user = pick(args, env, "zenoh_user") or None
+    pw_file = pick(args, env, "zenoh_password_file") or None
+    if user is None and pw_file is None:
+        return {}
+    if user is None or pw_file is None:
+        raise ConfigError("--zenoh-user and --zenoh-password-file go together (env TAGSWARM_ZENOH_USER, "
+                          "TAGSWARM_ZENOH_PASSWORD_FILE)")
+    if ":" in user or not user.strip() or user != user.strip():
+        raise ConfigError(f"--zenoh-user {user!r}: a user name has no ':' and no surrounding blanks")
+    if not os.path.isfile(pw_file) or not os.access(pw_file, os.R_OK):
+        raise ConfigError(f"--zenoh-password-file: cannot read {pw_file!r}")
+    return {"user": user, "password_file": pw_file}
+
+
+def _faults(args: argparse.Namespace, env: Mapping[str, str]) -> dict[str, Any]:
+    """``loss``, ``delay_ms``, ``fault_keys`` and ``fault_seed``, validated with the flag's name."""
+    out: dict[str, Any] = {}
+    loss = pick(args, env, "net_loss")
+    if loss is not None:
+        out["loss"] = _number(loss, "--net-loss", 0.0, 1.0, "a share between 0 and 1")
+    delay = pick(args, env, "net_delay_ms")
+    if delay is not None:
+        out["delay_ms"] = _number(delay, "--net-delay-ms", 0.0, MAX_DELAY_MS, f"milliseconds, 0..{MAX_DELAY_MS:g}")
+    keys = list(args.net_fault_keys or _env_list(env, "NET_FAULT_KEYS")) if hasattr(args, "net_fault_keys") else []
+    for k in keys:
+        try:
+            check_key_expr(k)
+        except BusError as exc:
+            raise ConfigError(f"--net-fault-keys: {exc}") from None
+    if keys:
+        out["fault_keys"] = keys
+    seed = pick(args, env, "net_seed")
+    if seed is not None:
+        try:
+            out["fault_seed"] = int(seed)
+        except ValueError:
+            raise ConfigError(f"--net-seed {seed!r}: must be an integer") from None
+    return out
+
+
+def _number(raw: Any, flag: str, low: float, high: float, what: str) -> float:
+    try:
+        value = float(raw)
+    except (TypeError, ValueError):
+        value = float("nan")
+    if not low <= value <= high:  # also rejects nan
+        raise ConfigError(f"{flag} {raw}: must be {what}")
+    return value
 
 
 def setup_logging(level: str | None, role: str) -> None:

@@ -11,12 +11,27 @@ unless asked for.  The router always runs in Zenoh's router mode (the
 the liveliness token ``tagswarm/<run>/alive/router/0`` and runs until SIGTERM
 or SIGINT (exit 0).  With ``--heartbeat PATH`` it touches PATH every second
 (for ``tagswarm alive --heartbeat PATH`` healthchecks) and removes it on exit.
+
+Security (docs/security.md):
+
+    tagswarm router --make-secrets deploy/secrets          # one password per role + users.txt
+    tagswarm router --users deploy/secrets/users.txt --acl # authenticate, then enforce the ACL
+    tagswarm router --users FILE --acl --print-config      # the same as a Zenoh JSON5 config
+
+``--users FILE`` (Zenoh's ``user:password`` dictionary) admits only clients that
+log in with one of its entries (``--zenoh-user``, ``--zenoh-password-file``);
+``--acl`` adds the access control of tagswarm/acl.py for the run (``--run``) and
+the scenario's robots (``--scenario``, ``--robots``): each role may publish,
+subscribe, query and declare only its own keys.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import logging
+import os
+import sys
 import threading
 from collections.abc import Sequence
 from pathlib import Path
@@ -33,9 +48,11 @@ from protocol.config import (
     install_stop_signals,
     pick,
     run_main,
+    scenario_from,
     setup_logging,
 )
 from protocol.keys import Keys
+from tagswarm import acl
 
 PROG = "tagswarm router"
 DEFAULT_LISTEN = "tcp/0.0.0.0:7447"
@@ -48,16 +65,55 @@ log = logging.getLogger("tagswarm.router")
 def parser() -> OneLineParser:
     p = OneLineParser(prog=PROG, description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--heartbeat", metavar="PATH", help="touch PATH every second while the router runs")
+    s = p.add_argument_group("security (docs/security.md)")
+    s.add_argument("--users", metavar="FILE", help="Zenoh user:password dictionary: only clients that log in "
+                   "with one of its entries may connect (env TAGSWARM_ZENOH_USERS_FILE)")
+    s.add_argument("--acl", action="store_true", help="enforce tagswarm's access control (needs --users): each "
+                   "role may use only its own keys of this run and the scenario's robots")
+    s.add_argument("--print-config", action="store_true",
+                   help="print the router's Zenoh JSON5 config (listen, auth, ACL) and exit")
+    s.add_argument("--make-secrets", metavar="DIR", help="write a password file per role of the scenario's "
+                   "robots (kept if present) and the users.txt dictionary into DIR, then exit")
     add_common_args(p)
     return p
 
 
 def router_config(args: argparse.Namespace, env: dict[str, str]) -> BusConfig:
-    """The router's bus settings: the common network flags, forced into router mode."""
+    """The router's bus settings: the common network flags, forced into router mode,
+    with authentication (``--users``) and the ACL (``--acl``) if asked for."""
     if args.zenoh_mode not in (None, "router"):
         raise ConfigError(f"--zenoh-mode {args.zenoh_mode}: a router runs in router mode")
-    base = bus_from(args, {k: v for k, v in env.items() if k != "TAGSWARM_ZENOH_MODE"})
-    return msgspec.structs.replace(base, mode="router", listen=base.listen or (DEFAULT_LISTEN,))
+    # a compose-wide environment may carry a client's mode and credentials: not the router's
+    ignored = ("TAGSWARM_ZENOH_MODE", "TAGSWARM_ZENOH_USER", "TAGSWARM_ZENOH_PASSWORD_FILE")
+    base = bus_from(args, {k: v for k, v in env.items() if k not in ignored})
+    users_file = args.users or env.get("TAGSWARM_ZENOH_USERS_FILE") or None
+    if users_file is not None and not os.path.isfile(users_file):
+        raise ConfigError(f"--users: no such file {users_file!r}")
+    if args.acl and users_file is None:
+        raise ConfigError("--acl needs --users: the ACL grants rights to authenticated user names")
+    rules = None
+    if args.acl:
+        rules = json.dumps(acl.access_control(Keys(pick(args, env, "run", "default")), robot_ids(args, env)))
+    return msgspec.structs.replace(base, mode="router", listen=base.listen or (DEFAULT_LISTEN,),
+                                   users_file=users_file, access_control=rules)
+
+
+def robot_ids(args: argparse.Namespace, env: dict[str, str]) -> tuple[int, ...]:
+    """The robots of the scenario (``--scenario``, ``--robots``, TAGSWARM_* variables)."""
+    return scenario_from(args, env).robot_ids
+
+
+def print_config(cfg: BusConfig, keys: Keys, robots: Sequence[int]) -> str:
+    """The router's Zenoh config as JSON5 text (what ``--print-config`` prints)."""
+    config = acl.router_config(keys, robots, listen=cfg.listen, users_file=cfg.users_file or "users.txt")
+    if cfg.access_control is None:
+        del config["access_control"]
+    if cfg.users_file is None:
+        del config["transport"]
+    header = (f"Zenoh router config for tagswarm run {keys.run!r}, robots {list(robots)}.\n"
+              "Generated by `tagswarm router --print-config` from protocol/keys.py: do not edit, regenerate.\n"
+              "Use: zenohd -c FILE, or tagswarm router --zenoh-config FILE.  See docs/security.md.")
+    return acl.render_config(config, header)
 
 
 class Heartbeat:
@@ -77,8 +133,10 @@ def serve(cfg: BusConfig, keys: Keys, stop: threading.Event, heartbeat: Heartbea
     """Run the router until ``stop``; returns 0."""
     with open_bus(cfg) as bus:
         bus.declare_token(keys.alive(PARTICIPANT))
-        log.info("Zenoh router %s listening on %s%s (run %r)", bus.zid, ", ".join(cfg.listen),
-                 f", connected to {', '.join(cfg.connect)}" if cfg.connect else "", keys.run)
+        security = ("ACL on, users from " if cfg.access_control else "users from ") + str(cfg.users_file) \
+            if cfg.users_file else "no authentication"
+        log.info("Zenoh router %s listening on %s%s (run %r, %s)", bus.zid, ", ".join(cfg.listen),
+                 f", connected to {', '.join(cfg.connect)}" if cfg.connect else "", keys.run, security)
         try:
             while not stop.is_set():
                 if heartbeat is not None:
@@ -100,8 +158,19 @@ def main(argv: Sequence[str] | None = None) -> int:
     def body() -> int:
         args = parser().parse_args(list(argv) if argv is not None else None)
         env = env_of()
-        cfg = router_config(args, env)
         keys = Keys(pick(args, env, "run", "default"))
+        if args.make_secrets:
+            folder = Path(args.make_secrets)
+            try:
+                written = acl.make_secrets(folder, acl.users(robot_ids(args, env)))
+            except OSError as exc:
+                raise ConfigError(f"--make-secrets: cannot write {folder}: {exc.strerror}") from None
+            print(f"{len(written) - 1} new password file(s) and {folder / acl.USERS_FILE} written")
+            return 0
+        cfg = router_config(args, env)
+        if args.print_config:
+            sys.stdout.write(print_config(cfg, keys, robot_ids(args, env)))
+            return 0
         setup_logging(pick(args, env, "log_level", "INFO"), "router")
         heartbeat = Heartbeat(args.heartbeat) if args.heartbeat else None
         if heartbeat is not None:

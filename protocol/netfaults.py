@@ -1,0 +1,132 @@
+"""Receive-side network fault injection: message loss and added delay (tests, demos).
+
+Pure logic, no Zenoh: :mod:`protocol.bus` asks :meth:`NetFaults.admit` for every
+sample that arrives on a subscription whose key matches the fault keys, drops it
+if told so, and hands the rest to :meth:`NetFaults.hold`, which delivers them
+``delay_s`` later from one timer thread (the Zenoh callback never sleeps).
+
+Why the receive side: faults then belong to one process (one faulty agent can be
+simulated without touching the others), the sender's congestion control is
+unchanged, and each subscriber sees its own lossy link, as on a real network.
+
+Reproducibility: the drop decision for the n-th sample on key K of subscription S
+comes from a random stream seeded with ``(seed, S, K)``.  Samples of one key come
+from one publisher in order, so the drop pattern of every key is the same on every
+run with the same seed, whatever the interleaving between keys (lockstep runs stay
+repeatable).
+"""
+
+from __future__ import annotations
+
+import heapq
+import itertools
+import random
+import threading
+import time
+from collections.abc import Callable
+
+#: A sample whose delivery has been postponed: called when it is due.
+Deliver = Callable[[], None]
+
+
+class NetFaults:
+    """Loss share ``loss`` (0..1) and added delay ``delay_s`` (seconds) for the keys
+    that ``matches`` accepts (concrete sample keys), seeded with ``seed``."""
+
+    def __init__(self, *, loss: float, delay_s: float, seed: int, matches: Callable[[str], bool]) -> None:
+        if not 0.0 <= loss <= 1.0:
+            raise ValueError(f"loss {loss!r} must be a share between 0 and 1")
+        if not delay_s >= 0.0:
+            raise ValueError(f"delay {delay_s!r} s must be >= 0")
+        self.loss = loss
+        self.delay_s = delay_s
+        self.seed = seed
+        self._matches = matches
+        self._lock = threading.Lock()
+        self._streams: dict[tuple[str, str], random.Random] = {}
+        self._match_cache: dict[str, bool] = {}
+        self.dropped = 0
+        self.delayed = 0
+        self._line: _DelayLine | None = None
+
+    @property
+    def active(self) -> bool:
+        return self.loss > 0.0 or self.delay_s > 0.0
+
+    def matches(self, key: str) -> bool:
+        """Whether faults apply to samples on the concrete ``key`` (cached: keys are few)."""
+        hit = self._match_cache.get(key)
+        if hit is None:
+            hit = self._matches(key)
+            if len(self._match_cache) < 65536:  # bounded even if a peer invents keys
+                self._match_cache[key] = hit
+        return hit
+
+    def admit(self, sub_key: str, key: str) -> bool:
+        """False if the sample on ``key`` received by subscription ``sub_key`` is lost."""
+        if self.loss <= 0.0 or not self.matches(key):
+            return True
+        with self._lock:  # several Zenoh receive threads may call in (one per link)
+            stream = self._streams.get((sub_key, key))
+            if stream is None:
+                stream = self._streams[(sub_key, key)] = random.Random(f"{self.seed}/{sub_key}/{key}")
+            lost = stream.random() < self.loss
+            if lost:
+                self.dropped += 1
+        return not lost
+
+    def hold(self, key: str, deliver: Deliver) -> None:
+        """Deliver now, or ``delay_s`` from now if faults apply to ``key``."""
+        if self.delay_s <= 0.0 or not self.matches(key):
+            deliver()
+            return
+        with self._lock:
+            if self._line is None:
+                self._line = _DelayLine()
+            line = self._line
+            self.delayed += 1
+        line.push(time.monotonic() + self.delay_s, deliver)
+
+    def close(self) -> None:
+        """Stop the timer thread; samples still held are discarded."""
+        with self._lock:
+            line, self._line = self._line, None
+        if line is not None:
+            line.close()
+
+
+class _DelayLine:
+    """Holds deliveries until due and runs them, in due order, on one thread."""
+
+    def __init__(self) -> None:
+        self._heap: list[tuple[float, int, Deliver]] = []
+        self._order = itertools.count()  # ties (same due time) keep arrival order
+        self._cv = threading.Condition()
+        self._stopped = False
+        self._thread = threading.Thread(target=self._run, name="tagswarm-net-delay", daemon=True)
+        self._thread.start()
+
+    def push(self, due: float, deliver: Deliver) -> None:
+        with self._cv:
+            if self._stopped:
+                return
+            heapq.heappush(self._heap, (due, next(self._order), deliver))
+            self._cv.notify()
+
+    def _run(self) -> None:
+        with self._cv:
+            while not self._stopped:
+                now = time.monotonic()
+                if self._heap and self._heap[0][0] <= now:
+                    _, _, deliver = heapq.heappop(self._heap)
+                    # inbox.put only takes its own bus lock, never this one: no lock-order cycle
+                    deliver()
+                    continue
+                self._cv.wait(self._heap[0][0] - now if self._heap else None)
+
+    def close(self) -> None:
+        with self._cv:
+            self._stopped = True
+            self._heap.clear()
+            self._cv.notify()
+        self._thread.join(timeout=2.0)

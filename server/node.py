@@ -69,6 +69,9 @@ class ServerNode:
         self.odom_in = bus.subscribe(self.keys.odometry())
         self.tick_in = bus.subscribe(self.keys.tick())
         self.alive_in = bus.watch_liveliness(self.keys.alive_role("agent"))
+        self.world_alive_in = bus.watch_liveliness(self.keys.alive_role("world"))
+        self.run_id: str | None = None  # the world instance whose ticks we follow
+        self._world_left = False  # its liveliness token vanished since: a new run_id may start
         self.query_in = bus.queryable(self.keys.map())
         # subscribed before the replay, so what arrives meanwhile waits in the inboxes; alive only after
         # it, so a lockstep world does not wait for acks from a server still rebuilding its graph
@@ -142,6 +145,26 @@ class ServerNode:
         for q in self.query_in.drain():
             self.bus.reply(q.value, self.keys.map(), codec.encode(self.global_map()))
             self.counters["map_queries"] += 1
+
+    def _accept_tick(self, tick: m.Tick) -> bool:
+        """Whether ``tick`` belongs to the world run we follow.  A new run_id after the
+        world's liveliness token vanished is a restarted world (clock back at 0): start
+        a fresh map.  A new run_id while the world is alive is foreign: rejected."""
+        for change in self.world_alive_in.drain():
+            self._world_left = self._world_left or not change.value
+        if tick.run_id == self.run_id:
+            return True
+        if self.run_id is not None and not self._world_left:
+            self.rejects.reject("foreign_run", f"tick of run {tick.run_id!r} while {self.run_id!r} is live")
+            return False
+        if self.run_id is not None:
+            log.warning("the world restarted (new run %s): starting a fresh map", tick.run_id)
+            self.counters["world_restarts"] += 1
+            self.fusion = make_fusion(self.cfg)
+            self.latest_rx.clear()
+            self.time_ns = self._next_map_ns = self._next_update_ns = 0
+        self.run_id, self._world_left = tick.run_id, False
+        return True
 
     def _accept(self, record: jr.Odometry | jr.Observation) -> None:
         """One input that passed every check: journal it first, then fuse it."""
@@ -244,9 +267,11 @@ class ServerNode:
     def step(self) -> bool:
         """Handle what has arrived; in lockstep, one fusion update per world tick."""
         obs_before = self.counters["observations"]
+        # ticks first: a restarted world's first tick must reset the map before its data is fused
+        ticks = [t for _, t in self.rejects.decoded(self.tick_in.drain(), m.Tick) if self._accept_tick(t)]
         self._drain()
         if self.lockstep:
-            return self._step_lockstep()
+            return self._step_lockstep(ticks)
         self._obs_pending |= self.counters["observations"] > obs_before
         wm = self._watermark()
         if wm < 0:
@@ -270,9 +295,8 @@ class ServerNode:
         self._maybe_publish_map()
         return progressed
 
-    def _step_lockstep(self) -> bool:
-        ticks = self.tick_in.drain()
-        for _, tick in self.rejects.decoded(ticks, m.Tick):
+    def _step_lockstep(self, ticks: list[m.Tick]) -> bool:
+        for tick in ticks:
 
             def caught_up(stamp: int = tick.stamp_ns) -> bool:
                 self._drain()

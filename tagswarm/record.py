@@ -16,6 +16,12 @@ run, ``tagswarm/<run>/**``) to an MCAP file that Foxglove opens:
 Payloads that do not decode are still recorded raw, and counted.  Recording stops on
 SIGINT/SIGTERM, after ``--duration`` simulated seconds, or when the world's liveliness
 token goes away (its run ended); the file is always closed with its summary.
+
+A recorder that joins a system already running misses what came before, and a passive one
+cannot slow a lockstep world down.  ``--participant record/0`` (with ``record/0`` added to
+``clock.participants``; ``tagswarm up --record`` does both) makes it a lockstep participant
+instead: the world waits for it before the first tick and until it has written each step,
+so the recording holds every message from step 0 on.
 """
 
 from __future__ import annotations
@@ -50,13 +56,14 @@ from protocol.config import (
     scenario_from,
     setup_logging,
 )
-from protocol.keys import Keys
+from protocol.keys import Keys, split_participant
 from protocol.layout import arena_to_map
 from protocol.scenario import Scenario
 from tagswarm.foxglove_views import FoxgloveViews
 from tagswarm.mcapio import META_RUN, META_STATS, McapSink
 
 PROG = "tagswarm record"
+RECORD_PARTICIPANT = "record/0"
 INBOX_CAPACITY = 200_000  # a safety net: the writer keeps up with the world by a wide margin (see README)
 QUIET_AFTER_WORLD_S = 1.0  # after the world left, wait this long without traffic before closing
 log = logging.getLogger("tagswarm.record")
@@ -69,6 +76,24 @@ class RecordOptions(msgspec.Struct, frozen=True, kw_only=True):
     image_scale: float = 1.0
     foxglove: bool = True
     compression: Literal["zstd", "lz4", "none"] = "zstd"
+
+
+def with_recorder(scenario: Scenario, participant: str = RECORD_PARTICIPANT) -> Scenario:
+    """``scenario`` with ``participant`` added to a lockstep run's participants (unchanged
+    in realtime, where the world waits for nobody)."""
+    c = scenario.clock
+    if c.mode != "lockstep" or participant in c.participants:
+        return scenario
+    return msgspec.structs.replace(scenario, clock=msgspec.structs.replace(c, participants=(*c.participants,
+                                                                                              participant)))
+
+
+def without_recorders(scenario: Scenario) -> Scenario:
+    """``scenario`` without ``record/*`` participants: the run as it is to be reproduced
+    (a replay must not wait for the original run's recorder)."""
+    c = scenario.clock
+    kept = tuple(p for p in c.participants if not p.startswith("record/"))
+    return msgspec.structs.replace(scenario, clock=msgspec.structs.replace(c, participants=kept))
 
 
 def scale_image(img: m.CameraImage, scale: float) -> m.CameraImage:
@@ -109,7 +134,7 @@ class McapRecording:
                 "image_scale": repr(options.image_scale), "foxglove": str(options.foxglove).lower(),
                 "recorder": PROG, "started_wall_ns": str(time.time_ns())}
         if scenario is not None:
-            meta["scenario"] = msgspec.json.encode(scenario).decode()
+            meta["scenario"] = msgspec.json.encode(without_recorders(scenario)).decode()
         self.sink.metadata(META_RUN, meta)
 
     @property
@@ -117,8 +142,9 @@ class McapRecording:
         """Simulated seconds between the first and the newest message."""
         return 0.0 if self.first_ns is None else (self.last_ns - self.first_ns) / 1e9
 
-    def add(self, key: str, payload: bytes, received_ns: int) -> None:
-        """Record one payload received on ``key`` at wall time ``received_ns``."""
+    def add(self, key: str, payload: bytes, received_ns: int) -> m.Msg | None:
+        """Record one payload received on ``key`` at wall time ``received_ns``; returns
+        it decoded (None if it does not decode)."""
         try:
             msg: m.Msg = codec.decode_any(payload)
         except codec.DecodeError as exc:
@@ -127,11 +153,11 @@ class McapRecording:
             self.sink.write(self.sink.raw_channel(key), payload, log_time_ns=self.last_ns,
                             publish_time_ns=received_ns)
             self.kinds["undecodable"] += 1
-            return
+            return None
         if isinstance(msg, m.CameraImage):
             if not self.options.images:
                 self.skipped_images += 1
-                return
+                return msg
             if self.options.image_scale != 1.0:
                 msg = scale_image(msg, self.options.image_scale)
                 payload = codec.encode(msg)
@@ -146,10 +172,11 @@ class McapRecording:
                 views = self.views.views(key, msg)
             except Exception as exc:  # a view is a convenience: never lose the recording over one
                 self.rejects.reject("foxglove_view", f"{key}: {type(exc).__name__}: {exc}")
-                return
+                return msg
             for topic, schema, data in views:
                 self.sink.write(self.sink.foxglove_channel(topic, schema), data, log_time_ns=stamp,
                                 publish_time_ns=received_ns)
+        return msg
 
     def stats(self) -> dict[str, int]:
         """Counters: messages per type, rejects per kind, skipped images, totals."""
@@ -171,9 +198,13 @@ class McapRecording:
 
 class Recorder:
     """Feeds a :class:`McapRecording` from the bus: one subscription to ``keyexpr`` plus
-    the world's liveliness (to notice that its run ended)."""
+    the world's liveliness (to notice that its run ended).  With ``participant``
+    (``"record/0"``) it also joins the lockstep of ``keys``' run: a liveliness token once
+    subscribed, and an ack for each tick once everything received before it is written."""
 
-    def __init__(self, bus: Bus, keyexpr: str, recording: McapRecording, world_alive_key: str | None) -> None:
+    def __init__(self, bus: Bus, keyexpr: str, recording: McapRecording, world_alive_key: str | None, *,
+                 participant: str | None = None, keys: Keys | None = None) -> None:
+        self.bus = bus
         self.recording = recording
         try:
             self.inbox = bus.subscribe(keyexpr, capacity=INBOX_CAPACITY)
@@ -184,6 +215,13 @@ class Recorder:
         self.world_seen = False
         self.world_gone = False
         self.last_rx = time.monotonic()
+        self.participant = participant
+        self.keys = keys
+        self._ack_seq = 0
+        if participant is not None:
+            if keys is None:
+                raise ValueError("a lockstep participant needs the run's keys")
+            bus.declare_token(keys.alive(participant))  # after subscribing: the world may start once it sees this
 
     def poll(self) -> int:
         """Write everything that arrived; returns how many payloads."""
@@ -193,10 +231,19 @@ class Recorder:
                 self.world_gone = self.world_seen and not change.value
         items = self.inbox.drain()
         now_ns = time.time_ns()  # reception ~ now: the inbox is drained every few ms
+        newest: m.Tick | None = None
         for item in items:
-            self.recording.add(item.key, item.value, now_ns)
+            msg = self.recording.add(item.key, item.value, now_ns)
+            if isinstance(msg, m.Tick) and (newest is None or msg.step > newest.step):
+                newest = msg
         if items:
             self.last_rx = time.monotonic()
+        if newest is not None and self.participant is not None and self.keys is not None:
+            # one ack for the newest step covers the older ones (the world keeps the latest per participant)
+            key = self.keys.ack(self.participant)
+            self.bus.put(key, codec.encode(m.TickAck(seq=self._ack_seq, stamp_ns=newest.stamp_ns,
+                                                     participant=self.participant, step=newest.step)))
+            self._ack_seq += 1
         return len(items)
 
     def close(self) -> dict[str, int]:
@@ -229,9 +276,13 @@ class BackgroundRecording:
 
 def start_recording(bus: Bus, keys: Keys, path: Path, scenario: Scenario | None = None,
                     options: RecordOptions | None = None) -> BackgroundRecording:
-    """Record every key of ``keys``' run to ``path`` on a background thread."""
+    """Record every key of ``keys``' run to ``path`` on a background thread, as the
+    lockstep participant ``record/0`` if ``scenario`` lists it (see :func:`with_recorder`)."""
     rec = McapRecording(path, options or RecordOptions(), run=keys.run, keyexpr=keys.all(), scenario=scenario)
-    return BackgroundRecording(Recorder(bus, keys.all(), rec, None), bus)
+    joins = scenario is not None and scenario.clock.mode == "lockstep" and \
+        RECORD_PARTICIPANT in scenario.clock.participants
+    return BackgroundRecording(Recorder(bus, keys.all(), rec, None, participant=RECORD_PARTICIPANT if joins else None,
+                                        keys=keys), bus)
 
 
 def parser() -> OneLineParser:
@@ -245,6 +296,9 @@ def parser() -> OneLineParser:
     p.add_argument("--no-foxglove", action="store_true", help="raw channels only, no Foxglove views")
     p.add_argument("--compression", choices=("zstd", "lz4", "none"), default="zstd",
                    help="MCAP chunk compression (default zstd)")
+    p.add_argument("--participant", metavar="ROLE/ID",
+                   help="join the lockstep as this participant (list it in clock.participants, e.g. record/0): "
+                        "the world then waits for the recorder, so nothing is missed")
     add_common_args(p)
     return p
 
@@ -269,6 +323,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         scenario = scenario_from(args, env) if given else None
         options = RecordOptions(images=not args.no_images, image_scale=args.image_scale,
                                 foxglove=not args.no_foxglove, compression=args.compression)
+        if args.participant is not None:
+            split_participant(args.participant)
         if not args.out.parent.is_dir():
             raise ConfigError(f"--out: no such directory {str(args.out.parent)!r}")
         bus_cfg = bus_from(args, env)
@@ -278,7 +334,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         stats: dict[str, int] = {}
         try:
             with open_bus(bus_cfg) as bus:
-                rec = Recorder(bus, keyexpr, recording, keys.alive("world/0"))
+                rec = Recorder(bus, keyexpr, recording, keys.alive("world/0"), participant=args.participant,
+                               keys=keys)
                 log.info("recording %s to %s", keyexpr, args.out)
                 while not stop.is_set():
                     bus.wait(0.05)

@@ -14,6 +14,8 @@ Pacing:
   ``clock.ack_timeout_s`` is skipped for that step, as the world does).  The participants
   are ``--participants``, else those of the scenario given with ``--scenario``, else those
   of the scenario stored in the recording, else whoever acknowledged ticks in it.
+  ``--wait-for ROLE/ID`` names more processes to wait for before the first tick (only their
+  liveliness, no acks), e.g. the run-folder writer of ``tagswarm up`` (``up/0``).
 
 What: ``--only world`` = the world's sensor streams (ticks, world status, camera images,
 encoders, ground truth; the default with ``--lockstep``) or ``--only all`` (every raw
@@ -87,12 +89,13 @@ def recorded_scenario(path: Path) -> dict[str, Any] | None:
 
 def recorded_participants(path: Path) -> tuple[str, ...]:
     """Lockstep participants that acknowledged ticks in the recording (render workers
-    excluded: they answer the world's render requests, which a replay does not send)."""
+    excluded: they answer the world's render requests, which a replay does not send; and
+    recorders: a replay reproduces the run, not its recording)."""
     found = set()
     for topic in raw_topics(path):
         if is_ack(topic):
             role, ident = topic.split("/")[-2:]
-            if role != "render":
+            if role not in ("render", "record"):
                 found.add(f"{role}/{ident}")
     return tuple(sorted(found))
 
@@ -128,7 +131,7 @@ class Replayer:
 
     def __init__(self, bus: Bus, path: Path, *, accept: Callable[[str], bool], run: str | None,
                  speed: float | None, participants: tuple[str, ...] = (), clock: Clock | None = None,
-                 end_s: float | None = None) -> None:
+                 end_s: float | None = None, wait_for: tuple[str, ...] = ()) -> None:
         self.bus, self.path, self.accept, self.speed = bus, path, accept, speed
         self.clock = clock or Clock()
         self.end_s = end_s
@@ -145,6 +148,7 @@ class Replayer:
         self.rejects = codec.RejectCounter(log)
         self.ack_timeouts = 0
         self.tracker = AckTracker(participants)
+        self.joiners = AckTracker(wait_for)  # only their liveliness counts (before the first tick)
         self.keys = Keys(self.target_run) if self.target_run is not None else None
         if self.lockstep:
             assert self.keys is not None
@@ -161,7 +165,10 @@ class Replayer:
         assert self.keys is not None
         for change in self.alive_in.drain():
             who = self.keys.participant_of(change.key)
-            if who is not None and self.tracker.set_alive(who, change.value):
+            if who is None:
+                continue
+            self.joiners.set_alive(who, change.value)
+            if self.tracker.set_alive(who, change.value):
                 log.info("lockstep participant %s %s", who, "joined" if change.value else "left")
         for item, ack in self.rejects.decoded(self.ack_in.drain(), m.TickAck):
             who = self.keys.participant_of(item.key)
@@ -176,12 +183,12 @@ class Replayer:
 
         def ready() -> bool:
             self._drain_presence()
-            return stop.is_set() or not self.tracker.missing()
+            return stop.is_set() or not (self.tracker.missing() or self.joiners.missing())
 
         ok = self.bus.wait_for(ready, self.clock.join_timeout_s)
         if not ok:
-            log.warning("starting without %s (not alive after %.1f s)", ", ".join(sorted(self.tracker.missing())),
-                        self.clock.join_timeout_s)
+            log.warning("starting without %s (not alive after %.1f s)",
+                        ", ".join(sorted(self.tracker.missing() | self.joiners.missing())), self.clock.join_timeout_s)
         return ok
 
     def _wait_acks(self, step: int, stop: threading.Event) -> None:
@@ -258,11 +265,16 @@ def _participants(args: argparse.Namespace, env: dict[str, str], path: Path) -> 
                 raise ConfigError(f"{path}: the recorded scenario does not load ({exc}); "
                                   "name one with --scenario") from None
             clock, given = s.clock, s.clock.participants
-    flag = tuple(p.strip() for chunk in args.participants or [] for p in chunk.split(",") if p.strip())
-    parts = flag or given or recorded_participants(path)
-    for p in parts:
-        split_participant(p)  # validates "role/id"
+    parts = _names(args.participants) or given or recorded_participants(path)
     return tuple(parts), clock
+
+
+def _names(flags: list[str] | None) -> tuple[str, ...]:
+    """``role/id`` names from repeatable comma-separated flags, validated."""
+    names = tuple(p.strip() for chunk in flags or [] for p in chunk.split(",") if p.strip())
+    for p in names:
+        split_participant(p)
+    return names
 
 
 def parser() -> OneLineParser:
@@ -279,6 +291,8 @@ def parser() -> OneLineParser:
                    help="only recorded keys matching this key expression (repeatable)")
     p.add_argument("--participants", action="append", metavar="ROLE/ID,...",
                    help="lockstep participants to wait for, e.g. agent/0,agent/1,server/0")
+    p.add_argument("--wait-for", action="append", metavar="ROLE/ID,...",
+                   help="with --lockstep: also wait for these to come up before the first tick (no acks)")
     add_common_args(p)
     return p
 
@@ -320,6 +334,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                                            for p in patterns)
 
             participants, clock = _participants(args, env, args.file) if lockstep else ((), Clock())
+            wait_for = _names(args.wait_for)
             if lockstep and not participants:
                 raise ConfigError("--lockstep: no participants to wait for; name them with --participants")
             stop = threading.Event()
@@ -327,7 +342,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             with open_bus(bus_from(args, env)) as bus:
                 replayer = Replayer(bus, args.file, accept=accept, run=run,
                                     speed=None if lockstep else (args.speed or 1.0), participants=participants,
-                                    clock=clock, end_s=end_s)
+                                    clock=clock, end_s=end_s, wait_for=wait_for)
                 if not replayer.topics:
                     raise ConfigError(f"{args.file}: no recorded channel matches the filter")
                 log.info("replaying %d channel(s) of %s%s%s", len(replayer.topics), args.file,

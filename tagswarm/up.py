@@ -131,8 +131,9 @@ def run_up(scenario: Scenario, out: Path, endpoint: str, run: str, *, live: bool
         for rid in scenario.robot_ids:
             children.append(Child(f"agent/{rid}", [*_script("tagswarm-agent"), *common, "--connect", endpoint,
                                                    "--robot-id", str(rid)], logs / f"agent{rid}.log"))
-        world_cmd = [sys.executable, "-m", "tagswarm.replay", str(replay), "--lockstep"] if replay else \
-            _script("tagswarm-world")
+        # a replay plays the world; it also waits for this process's token (up/0) so the run folder misses nothing
+        world_cmd = [sys.executable, "-m", "tagswarm.replay", str(replay), "--lockstep", "--wait-for", "up/0"] \
+            if replay else _script("tagswarm-world")
         world = Child("world", [*world_cmd, *common, "--listen", endpoint], logs / "world.log")
         children.append(world)
         console.print(f"[bold]tagswarm up[/]: {len(scenario.robot_ids)} robots, {scenario.clock.mode} clock, "
@@ -143,6 +144,7 @@ def run_up(scenario: Scenario, out: Path, endpoint: str, run: str, *, live: bool
                 from tagswarm.record import start_recording
 
                 recording = start_recording(bus, Keys(run), record, scenario)
+            bus.declare_token(Keys(run).alive("up/0"))  # after subscribing (a lockstep replay waits for it)
             with Live(console=console, refresh_per_second=2, transient=False) if live else _Null() as display:
                 last_print = 0.0
                 while not stop.is_set():
@@ -236,6 +238,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             scenario = scenario_for_replay(args.replay, args, env, resolve)
         else:
             scenario = resolve(args, env)
+        if args.record is not None:
+            from tagswarm.record import with_recorder
+
+            scenario = with_recorder(scenario)  # lockstep: the world waits for the recorder (nothing missed)
         run = pick(args, env, "run", f"up{int(time.time()) % 100000}")
         Keys(run)
         out = args.out or Path("runs") / datetime.now().strftime("%Y%m%d-%H%M%S")

@@ -1,0 +1,170 @@
+"""Receive-side fault injection (protocol/netfaults.py) and its configuration (flags,
+environment, validation).  No Zenoh session: the injector is pure logic; the real
+bus path is in tests/integration/test_bus_faults.py."""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+
+import pytest
+
+from protocol.bus import BusConfig, BusError, default_fault_keys, key_matches, net_faults
+from protocol.config import ConfigError
+from protocol.keys import Keys
+from protocol.netfaults import NetFaults
+from tagswarm import router
+from world.config import build_config
+
+N = 4000
+
+
+def binomial_ok(lost: int, n: int, p: float, z: float = 5.0) -> bool:
+    """``lost`` of ``n`` is within z standard deviations of a Binomial(n, p) mean."""
+    return abs(lost - n * p) <= z * math.sqrt(n * p * (1 - p))
+
+
+def pattern(faults: NetFaults, sub: str, key: str, n: int) -> list[bool]:
+    return [faults.admit(sub, key) for _ in range(n)]
+
+
+def everything(key: str) -> bool:
+    return True
+
+
+# --------------------------------------------------------------------------- loss
+
+
+@pytest.mark.parametrize("loss", [0.05, 0.3, 0.9])
+def test_the_lost_share_is_within_binomial_bounds(loss: float) -> None:
+    f = NetFaults(loss=loss, delay_s=0.0, seed=7, matches=everything)
+    admitted = pattern(f, "a/*", "a/b", N)
+    lost = admitted.count(False)
+    assert f.dropped == lost
+    assert binomial_ok(lost, N, loss), (lost, N * loss)
+
+
+def test_no_loss_and_full_loss_are_exact() -> None:
+    assert all(pattern(NetFaults(loss=0.0, delay_s=0.0, seed=1, matches=everything), "a", "a", 500))
+    assert not any(pattern(NetFaults(loss=1.0, delay_s=0.0, seed=1, matches=everything), "a", "a", 500))
+
+
+def test_the_pattern_is_reproducible_per_seed_and_independent_of_interleaving() -> None:
+    a = NetFaults(loss=0.3, delay_s=0.0, seed=3, matches=everything)
+    b = NetFaults(loss=0.3, delay_s=0.0, seed=3, matches=everything)
+    # a sees the two keys interleaved, b one after the other: each key's pattern is the same
+    inter = [(k, a.admit("r/*", k)) for _ in range(200) for k in ("r/1", "r/2")]
+    seq = {k: pattern(b, "r/*", k, 200) for k in ("r/1", "r/2")}
+    for k in ("r/1", "r/2"):
+        assert [ok for key, ok in inter if key == k] == seq[k]
+    assert seq["r/1"] != seq["r/2"]  # keys have their own streams
+    other = NetFaults(loss=0.3, delay_s=0.0, seed=4, matches=everything)
+    assert pattern(other, "r/*", "r/1", 200) != seq["r/1"]
+
+
+def test_only_matching_keys_are_impaired() -> None:
+    f = NetFaults(loss=1.0, delay_s=0.0, seed=0, matches=lambda key: key.endswith("/obs"))
+    assert not f.admit("x/**", "x/1/obs")
+    assert f.admit("x/**", "x/tick")
+    assert f.dropped == 1
+
+
+# --------------------------------------------------------------------------- delay
+
+
+def test_delay_holds_each_sample_at_least_the_delay_and_keeps_order() -> None:
+    delay_s = 0.05
+    f = NetFaults(loss=0.0, delay_s=delay_s, seed=0, matches=lambda key: key != "now")
+    got: list[tuple[int, float]] = []
+    done = threading.Event()
+    sent: dict[int, float] = {}
+    try:
+        for i in range(20):
+            sent[i] = time.monotonic()
+            f.hold("late", lambda i=i: (got.append((i, time.monotonic())), i == 19 and done.set()))
+        f.hold("now", lambda: got.append((-1, time.monotonic())))
+        assert got and got[0][0] == -1  # not held: delivered at once, before any delayed one
+        assert done.wait(10), got
+        assert [i for i, _ in got[1:]] == list(range(20))
+        assert all(t - sent[i] >= delay_s for i, t in got[1:])  # never early (no upper bound: noisy machine)
+        assert f.delayed == 20
+    finally:
+        f.close()
+
+
+def test_close_discards_what_is_still_held() -> None:
+    f = NetFaults(loss=0.0, delay_s=30.0, seed=0, matches=everything)
+    got: list[int] = []
+    f.hold("k", lambda: got.append(1))
+    f.close()
+    assert got == [] and f.delayed == 1
+
+
+def test_bad_parameters_are_refused() -> None:
+    for loss in (-0.1, 1.5, math.nan):
+        with pytest.raises(ValueError, match="loss"):
+            NetFaults(loss=loss, delay_s=0.0, seed=0, matches=everything)
+    with pytest.raises(ValueError, match="delay"):
+        NetFaults(loss=0.0, delay_s=-1.0, seed=0, matches=everything)
+    with pytest.raises(BusError, match="key expression"):
+        net_faults(BusConfig(loss=0.1, fault_keys=("a//b",)))
+
+
+# --------------------------------------------------------------------------- default keys
+
+
+def test_default_keys_spare_the_clock_images_truth_and_statuses() -> None:
+    k = Keys("any-run")
+    defaults = default_fault_keys()
+
+    def faulty(key: str) -> bool:
+        return any(key_matches(p, key) for p in defaults)
+
+    for key in (k.encoders(2), k.cmd(0), k.goal(1), k.observation(3), k.odometry(0), k.correction(5), k.map()):
+        assert faulty(key), key
+    for key in (k.tick(), k.ack("agent/1"), k.ack("server/0"), k.render(0), k.image(1, "front"), k.truth(1),
+                k.robot_status(1), k.world_status(), k.server_status(), k.alive("agent/1")):
+        assert not faulty(key), key
+    f = net_faults(BusConfig(loss=0.5))
+    assert f.matches(k.observation()) and not f.matches(k.images()) and not f.matches(k.tick())
+
+
+# --------------------------------------------------------------------------- flags and environment
+
+
+def test_flags_and_environment_reach_the_bus_config() -> None:
+    c = build_config(["--net-loss", "0.25", "--net-delay-ms", "40", "--net-fault-keys", "tagswarm/*/robot/1/*",
+                      "--net-fault-keys", "tagswarm/*/server/map", "--net-seed", "9"], {})
+    assert (c.bus.loss, c.bus.delay_ms, c.bus.fault_seed) == (0.25, 40.0, 9)
+    assert c.bus.fault_keys == ("tagswarm/*/robot/1/*", "tagswarm/*/server/map")
+    env = {"TAGSWARM_NET_LOSS": "0.1", "TAGSWARM_NET_DELAY_MS": "5", "TAGSWARM_NET_SEED": "2",
+           "TAGSWARM_NET_FAULT_KEYS": "a/**, b/*"}
+    c = build_config([], env)
+    assert (c.bus.loss, c.bus.delay_ms, c.bus.fault_seed, c.bus.fault_keys) == (0.1, 5.0, 2, ("a/**", "b/*"))
+    assert build_config(["--net-loss", "0.3"], env).bus.loss == 0.3  # flag beats environment
+    d = build_config([], {}).bus
+    assert (d.loss, d.delay_ms, d.fault_keys, d.fault_seed) == (0.0, 0.0, (), 0)
+
+
+@pytest.mark.parametrize("argv,env,flag", [
+    (["--net-loss", "1.5"], {}, "--net-loss"),
+    (["--net-loss", "-0.1"], {}, "--net-loss"),
+    ([], {"TAGSWARM_NET_LOSS": "lots"}, "--net-loss"),
+    (["--net-loss", "nan"], {}, "--net-loss"),
+    (["--net-delay-ms", "-3"], {}, "--net-delay-ms"),
+    (["--net-delay-ms", "1e9"], {}, "--net-delay-ms"),
+    (["--net-fault-keys", "a//b"], {}, "--net-fault-keys"),
+    (["--net-seed", "x"], {}, "--net-seed"),
+])
+def test_bad_fault_settings_are_one_line_config_errors(argv: list[str], env: dict[str, str], flag: str) -> None:
+    with pytest.raises(ConfigError) as info:
+        build_config(argv, env)
+    text = str(info.value)
+    assert text.startswith(flag) and "\n" not in text
+
+
+def test_bad_loss_exits_2_with_one_line(capsys: pytest.CaptureFixture[str]) -> None:
+    assert router.main(["--net-loss", "2", "--listen", "tcp/127.0.0.1:0"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("tagswarm router: error: --net-loss 2: must be a share"), err

@@ -15,7 +15,8 @@ Pacing:
   are ``--participants``, else those of the scenario given with ``--scenario``, else those
   of the scenario stored in the recording, else whoever acknowledged ticks in it.
   ``--wait-for ROLE/ID`` names more processes to wait for before the first tick (only their
-  liveliness, no acks), e.g. the run-folder writer of ``tagswarm up`` (``up/0``).
+  liveliness, no acks), e.g. the run-folder writer of ``tagswarm up`` (``up/0``); it works
+  with ``--speed`` too.
 
 What: ``--only world`` = the world's sensor streams (ticks, world status, camera images,
 encoders, ground truth; the default with ``--lockstep``) or ``--only all`` (every raw
@@ -141,7 +142,8 @@ class Replayer:
         self.target_run = run
         if run is None and len(runs) == 1:
             self.target_run = next(iter(runs))
-        if self.lockstep and self.target_run is None:
+        self.presence = self.lockstep or bool(wait_for)
+        if self.presence and self.target_run is None:
             raise ConfigError(f"{path} holds {len(runs)} runs ({', '.join(sorted(runs))}): pick one with --run")
         self.topics = topics
         self.counts: Counter[str] = Counter()
@@ -150,7 +152,7 @@ class Replayer:
         self.tracker = AckTracker(participants)
         self.joiners = AckTracker(wait_for)  # only their liveliness counts (before the first tick)
         self.keys = Keys(self.target_run) if self.target_run is not None else None
-        if self.lockstep:
+        if self.presence:
             assert self.keys is not None
             self.alive_in = bus.watch_liveliness(self.keys.alive_all())
             self.ack_in = bus.subscribe(self.keys.acks())
@@ -178,8 +180,8 @@ class Replayer:
                 self.rejects.reject("unknown_participant", f"{who} is not a declared participant")
 
     def wait_for_participants(self, stop: threading.Event) -> bool:
-        """Before the first tick: wait until every participant is alive, up to
-        ``clock.join_timeout_s``."""
+        """Before the first message: wait until every participant (and ``wait_for``
+        process) is alive, up to ``clock.join_timeout_s``."""
 
         def ready() -> bool:
             self._drain_presence()
@@ -207,7 +209,7 @@ class Replayer:
     # ------------------------------------------------------------------ loop
     def run(self, stop: threading.Event) -> int:
         """Publish the whole recording (or ``end_s`` simulated seconds of it); returns 0."""
-        if self.lockstep:
+        if self.presence:
             self.wait_for_participants(stop)
         t0 = time.monotonic()
         first: int | None = None
@@ -292,7 +294,7 @@ def parser() -> OneLineParser:
     p.add_argument("--participants", action="append", metavar="ROLE/ID,...",
                    help="lockstep participants to wait for, e.g. agent/0,agent/1,server/0")
     p.add_argument("--wait-for", action="append", metavar="ROLE/ID,...",
-                   help="with --lockstep: also wait for these to come up before the first tick (no acks)")
+                   help="wait for these to come up before the first message (their liveliness only, no acks)")
     add_common_args(p)
     return p
 

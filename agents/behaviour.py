@@ -14,6 +14,11 @@ Modes:
 Only cycles in which the robot moves count towards the threshold: dead
 reckoning does not drift while the robot stands still.
 
+Without a map server (its liveliness token gone) nothing can correct the pose:
+the robot stays in ``odometry`` mode and keeps its mission on dead reckoning
+(a search cannot help), and searches again once a server is back if it has
+gone too long without a fix meanwhile.
+
 Frames: poses are (x_m, y_m, yaw_rad) of base_link in the map frame; waypoints
 are given in the arena frame and converted with ``arena_to_map``.
 """
@@ -132,11 +137,12 @@ class Behaviour:
         return target
 
     def cycle(self, *, t_s: float, map_pose: Pose2 | None, odom_yaw: float, moved: bool,
-              fix: bool) -> tuple[float, float]:
+              fix: bool, server_up: bool = True) -> tuple[float, float]:
         """One control step.  ``map_pose`` is the corrected pose (None if never
         localised), ``odom_yaw`` the smooth odometry heading (to measure the sweep),
         ``moved`` whether the encoders moved since the last cycle, ``fix`` whether
-        a visual fix arrived.  Returns (v_m_s, w_rad_s)."""
+        a visual fix arrived, ``server_up`` whether a map server is reachable (see
+        the module docstring).  Returns (v_m_s, w_rad_s)."""
         swept = 0.0 if self._last_yaw is None else abs(wrap_angle(odom_yaw - self._last_yaw))
         self._last_yaw = odom_yaw
         if fix:
@@ -150,7 +156,9 @@ class Behaviour:
         if self.mode == Mode.VISUAL and self.since_fix > self.visual_hold:
             self.mode = Mode.ODOMETRY
         stationary = self.mission.kind == "hold" and self.goal is None
-        needs_search = map_pose is None or self.counter > self.cfg.fix_threshold
+        if not server_up and self.mode in (Mode.SEARCHING, Mode.LOST):
+            self.mode = Mode.ODOMETRY  # nobody can turn a sighting into a fix: stop looking
+        needs_search = server_up and (map_pose is None or self.counter > self.cfg.fix_threshold)
         if self.mode in (Mode.ODOMETRY, Mode.VISUAL) and needs_search and not stationary:
             self.mode = Mode.SEARCHING
             self.searches += 1

@@ -22,6 +22,7 @@ class AgentConfig(msgspec.Struct, frozen=True, kw_only=True):
     run: str = "default"
     log_level: str = "INFO"
     fetch_map_timeout_s: float = 1.0
+    inject_frame_delay_s: float = 0.0  # extra seconds per processed frame (overload tests); agent.inject_frame_delay_s
 
     @property
     def participant(self) -> str:
@@ -38,12 +39,19 @@ def parser(prog: str = "tagswarm-agent") -> argparse.ArgumentParser:
     p.add_argument("--robot-id", type=int, help="which robot this agent drives (env TAGSWARM_ROBOT_ID); required")
     p.add_argument("--fetch-map-timeout", type=float, default=1.0, metavar="SECONDS",
                    help="how long to ask the server for this robot's last pose at start (default 1; 0 = skip)")
+    p.add_argument("--inject-frame-delay", type=float, metavar="SECONDS",
+                   help="fault injection: spend this much extra wall time on every camera frame, as a slow detector "
+                        "would (frames are then skipped, never queued); same as --set agent.inject_frame_delay_s=S")
     return p
 
 
 def build_config(argv: Sequence[str] | None = None, environ: Mapping[str, str] | None = None) -> AgentConfig:
     args = parse(parser(), argv)
     env = env_of(environ)
+    if args.inject_frame_delay is not None:
+        if not args.inject_frame_delay >= 0:  # also NaN
+            raise ConfigError("--inject-frame-delay must be >= 0 seconds")
+        args.overrides.append(f"agent.inject_frame_delay_s={args.inject_frame_delay!r}")
     scenario = scenario_from(args, env)
     raw = pick(args, env, "robot_id")
     if raw is None:
@@ -60,4 +68,5 @@ def build_config(argv: Sequence[str] | None = None, environ: Mapping[str, str] |
     if args.fetch_map_timeout < 0:
         raise ConfigError("--fetch-map-timeout must be >= 0")
     return AgentConfig(scenario=scenario, bus=bus_from(args, env), robot_id=robot_id, run=run,
-                       log_level=pick(args, env, "log_level", "INFO"), fetch_map_timeout_s=args.fetch_map_timeout)
+                       log_level=pick(args, env, "log_level", "INFO"), fetch_map_timeout_s=args.fetch_map_timeout,
+                       inject_frame_delay_s=scenario.agent.inject_frame_delay_s)

@@ -8,12 +8,24 @@ odometry, wheel commands and status.  It never reads ground truth.
 Realtime: each :meth:`AgentNode.step` handles what has arrived.  Lockstep:
 for each world tick it waits (bounded) for that tick's frames, processes them,
 publishes, then acknowledges the tick.
+
+Faults it rides out:
+- restart of this agent: it resumes from the server's last pose for its robot
+  (a map query at start) and ignores corrections made before the server saw
+  its new odometry (they refer to the previous process's odom frame);
+- loss of the server (liveliness): it keeps its mission on odometry (mode
+  ``odometry``, counter ``server_alive`` 0) and takes corrections again as soon
+  as a server sends them;
+- restart of the world: a tick with a new ``run_id`` after the world's
+  liveliness token vanished starts a new run: odometry, behaviour, map pose and
+  priors are reset.  A foreign ``run_id`` while the world is alive is rejected.
 """
 
 from __future__ import annotations
 
 import logging
 import threading
+import time
 from collections import Counter
 from collections.abc import Mapping, Sequence
 
@@ -49,34 +61,25 @@ class AgentNode:
         self.detector = make_detector(s.tags.family, a.detector, max_hamming=a.max_hamming, min_margin=a.min_margin)
         self.tagmap = TagMap.from_scenario(s)
         self.estimator = CubePoseEstimator(s, pixel_sigma_px=a.pixel_sigma_px, max_rms_px=a.max_reprojection_px)
-        self.odom = DiffDriveOdometry(DiffDriveParams(s.robot.wheel_radius_m, s.robot.wheel_base_m,
-                                                      s.encoders.ticks_per_rev, a.odom_wheel_sigma))
-        # map -> odom; the origin robot's first pose *is* the map frame (unless landmarks pin it)
-        self.map_odom: Pose2 | None = (0.0, 0.0, 0.0) if rid == s.map.origin_id and not s.landmarks else None
-        team = tuple(sorted(mi.robot for mi in s.missions if mi.kind == "leapfrog"))
-        self.behaviour = Behaviour(rid, s.mission(rid), a, s.robot, arena_to_map(s), team)
+        self.frame_delay_s = config.inject_frame_delay_s
         self.rejects = codec.RejectCounter(log)
         self.counters: Counter[str] = Counter()
         self.seq = codec.Sequencer()
-        self.time_ns = 0
-        self.last_fix_ns = 0
-        self._moved = False
-        self._fix = False
-        self._next_status_ns = 0
-        # last relative pose of each target and when: a prior for single-face ambiguity, only while fresh
-        self._priors: dict[tuple[str, int], tuple[int, tuple[float, float, float]]] = {}
         self.lockstep = s.clock.mode == "lockstep"
         self.images: dict[str, Inbox[bytes]] = {
             c.name: bus.subscribe(self.keys.image(rid, c.name), newest_only=True) for c in s.robot.cameras}
-        self.pending_frames: dict[str, m.CameraImage] = {}
+        self._frames_taken = 0  # frames drained from the newest-only inboxes (the rest were overwritten)
         self.enc_in = bus.subscribe(self.keys.encoders(rid))
         self.tick_in = bus.subscribe(self.keys.tick())
         self.corr_in = bus.subscribe(self.keys.correction(rid))
         self.goal_in = bus.subscribe(self.keys.goal(rid))
         self.server_alive_in = bus.watch_liveliness(self.keys.alive_role("server"))
+        self.world_alive_in = bus.watch_liveliness(self.keys.alive_role("world"))
         self.server_alive = False
-        self.correction_stamp_ns = -1
+        self.run_id: str | None = None  # the world instance whose ticks we follow
+        self._world_left = False  # its liveliness token vanished since: a new run_id may start
         self.wait_for_server = any(p.startswith("server/") for p in s.clock.participants)
+        self._reset_run()
         if config.fetch_map_timeout_s > 0:
             self._fetch_last_pose(config.fetch_map_timeout_s)
         bus.declare_token(self.keys.alive(config.participant))
@@ -84,6 +87,66 @@ class AgentNode:
                  self.behaviour.mission.kind, s.clock.mode)
 
     # ------------------------------------------------------------------ helpers
+    def _reset_run(self) -> None:
+        """Everything that belongs to one world run: odometry, behaviour, map pose, priors, clocks."""
+        s, a, rid = self.s, self.s.agent, self.rid
+        self.odom = DiffDriveOdometry(DiffDriveParams(s.robot.wheel_radius_m, s.robot.wheel_base_m,
+                                                      s.encoders.ticks_per_rev, a.odom_wheel_sigma))
+        # map -> odom; the origin robot's first pose *is* the map frame (unless landmarks pin it)
+        self.map_odom: Pose2 | None = (0.0, 0.0, 0.0) if rid == s.map.origin_id and not s.landmarks else None
+        team = tuple(sorted(mi.robot for mi in s.missions if mi.kind == "leapfrog"))
+        self.behaviour = Behaviour(rid, s.mission(rid), a, s.robot, arena_to_map(s), team)
+        self.time_ns = 0
+        self.last_fix_ns = 0
+        self._moved = False
+        self._fix = False
+        self._next_status_ns = 0
+        # last relative pose of each target and when: a prior for single-face ambiguity, only while fresh
+        self._priors: dict[tuple[str, int], tuple[int, tuple[float, float, float]]] = {}
+        self.pending_frames: dict[str, m.CameraImage] = {}
+        self._last_frame_ns: dict[str, int] = {}
+        self._last_enc_ns = -1
+        self.correction_stamp_ns = -1
+        # stamp of our first odometry in this run: older corrections were computed without it, in the odom
+        # frame of a previous process or run
+        self._odom_since_ns: int | None = None
+        self._last_step: int | None = None
+
+    def _drain_presence(self) -> None:
+        """Liveliness of the server (corrections possible?) and of the world (may a new run start?)."""
+        for change in self.server_alive_in.drain():
+            if self.server_alive and not change.value:
+                self.counters["server_lost"] += 1
+                log.warning("the map server is gone: running on odometry until it is back")
+            elif change.value and not self.server_alive and self.counters["server_lost"]:
+                log.info("a map server is back")
+            self.server_alive = change.value
+        for change in self.world_alive_in.drain():
+            if not change.value:
+                self._world_left = True
+
+    def _accept_tick(self, tick: m.Tick) -> bool:
+        """Whether ``tick`` belongs to the run we follow; a new run_id after the world
+        left starts a new run (reset), while the world is alive it is foreign."""
+        self._drain_presence()
+        if tick.run_id == self.run_id:
+            return True
+        if self.run_id is not None and not self._world_left:
+            self.rejects.reject("foreign_run", f"tick of run {tick.run_id!r} while {self.run_id!r} is live")
+            return False
+        restart = self.run_id is not None
+        self.run_id, self._world_left = tick.run_id, False
+        if restart:
+            log.warning("the world restarted (new run %s): resetting odometry, behaviour and map pose", tick.run_id)
+            self.counters["world_restarts"] += 1
+            self._reset_run()
+            # a world killed mid-step leaves that step's sensor data queued, stamped after the new run's
+            # first tick: take only what belongs to the new run; old corrections refer to old odometry
+            self.corr_in.drain()
+            self._handle_encoders(upto_ns=tick.stamp_ns)
+            self._take_frames(upto_ns=tick.stamp_ns)
+        return True
+
     def _publish(self, key: str, msg: m.Msg) -> None:
         self.bus.put(key, codec.encode(msg))
 
@@ -114,7 +177,8 @@ class AgentNode:
                     log.info("resuming from the server's last pose (%.2f, %.2f, %.2f)", e.x_m, e.y_m, e.yaw_rad)
 
     # ------------------------------------------------------------------ inputs
-    def _handle_encoders(self) -> None:
+    def _handle_encoders(self, upto_ns: int | None = None) -> None:
+        """Integrate queued encoder counts; ``upto_ns``: drop any stamped later (see :meth:`_accept_tick`)."""
         for item, enc in self.rejects.decoded(self.enc_in.drain(), m.EncoderTicks):
             if enc.robot_id != self.rid:
                 self.rejects.reject("spoofed", f"{item.key} carries robot_id {enc.robot_id}")
@@ -122,6 +186,11 @@ class AgentNode:
             if enc.ticks_per_rev != self.odom.params.ticks_per_rev:
                 self.rejects.reject("inconsistent", f"ticks_per_rev {enc.ticks_per_rev} != configured")
                 continue
+            if enc.stamp_ns < self._last_enc_ns or (upto_ns is not None and enc.stamp_ns > upto_ns):
+                # counts of another world run (its clock restarted): integrating them would jump the pose
+                self.counters["stale_encoders"] += 1
+                continue
+            self._last_enc_ns = enc.stamp_ns
             ds, dth = self.odom.update(enc.left_ticks, enc.right_ticks)
             self._moved = self._moved or abs(ds) > 1e-4 or abs(dth) > 1e-4
             self.time_ns = max(self.time_ns, enc.stamp_ns)
@@ -133,6 +202,10 @@ class AgentNode:
                 continue
             self.correction_stamp_ns = max(self.correction_stamp_ns, c.stamp_ns)
             if not c.localised:
+                continue
+            if self._odom_since_ns is None or c.stamp_ns < self._odom_since_ns:
+                # made before the server had our odometry: its map -> odom is for a previous odom frame
+                self.counters["stale_corrections"] += 1
                 continue
             self.map_odom = (c.map_odom_x_m, c.map_odom_y_m, c.map_odom_yaw_rad)
             self.counters["corrections"] += 1
@@ -146,14 +219,22 @@ class AgentNode:
             self.behaviour.set_goal(g.x_m, g.y_m, g.tolerance_m)
             log.info("new goal (%.2f, %.2f)", g.x_m, g.y_m)
 
-    def _take_frames(self) -> None:
+    def _take_frames(self, upto_ns: int | None = None) -> None:
+        """Move the newest frame of each camera into ``pending_frames``.  A frame not
+        processed before a newer one arrives is skipped (counted), never queued."""
         for name, inbox in self.images.items():
-            for item, img in self.rejects.decoded(inbox.drain(), m.CameraImage):
+            items = inbox.drain()
+            self._frames_taken += len(items)
+            for item, img in self.rejects.decoded(items, m.CameraImage):
                 if img.robot_id != self.rid or img.camera != name:
                     self.rejects.reject("spoofed", f"{item.key} carries robot {img.robot_id}/{img.camera}")
                     continue
+                if img.stamp_ns < self._last_frame_ns.get(name, -1) or (upto_ns is not None and img.stamp_ns > upto_ns):
+                    self.counters["stale_frames"] += 1  # of another world run
+                    continue
                 if name in self.pending_frames:
-                    self.counters["frames_skipped"] += 1
+                    self.counters["frames_replaced"] += 1
+                self._last_frame_ns[name] = img.stamp_ns
                 self.pending_frames[name] = img
 
     # ------------------------------------------------------------------ vision
@@ -164,6 +245,11 @@ class AgentNode:
         self.pending_frames.clear()
         views = []
         for img in frames:
+            if self.frame_delay_s > 0:
+                time.sleep(self.frame_delay_s)  # injected overload (tests, demos): a slow detector
+            # how old the frame is when we get to it (simulated time): stays small if frames are skipped, not queued
+            age_ms = max(0, self.time_ns - img.stamp_ns) // 1_000_000
+            self.counters["frame_age_max_ms"] = max(self.counters["frame_age_max_ms"], age_ms)
             gray = np.frombuffer(img.data, np.uint8).reshape(img.height, img.width)
             dets = []
             for d in self.detector.detect(gray):
@@ -185,7 +271,8 @@ class AgentNode:
                 continue
             self._priors[(est.target_kind, est.target_id)] = (stamp, (est.x_m, est.y_m, est.yaw_rad))
             self._publish_observation(est, stamp)
-            self._fix = True
+            # a sighting corrects our pose only through a server
+            self._fix = self._fix or self.server_alive
 
     def _publish_observation(self, est: PoseEstimate, stamp_ns: int) -> None:
         key = self.keys.observation(self.rid)
@@ -196,13 +283,15 @@ class AgentNode:
     def _control(self) -> None:
         b = self.behaviour
         v, w = b.cycle(t_s=self.time_ns / 1e9, map_pose=self.map_pose, odom_yaw=self.odom.yaw_rad,
-                       moved=self._moved, fix=self._fix)
+                       moved=self._moved, fix=self._fix, server_up=self.server_alive)
         self._moved = self._fix = False
         left, right = wheel_speeds(v, w, self.s.robot)
         key = self.keys.cmd(self.rid)
         self._publish(key, m.WheelCommand(seq=self.seq.next(key), stamp_ns=self.time_ns, robot_id=self.rid,
                                           left_rad_s=left, right_rad_s=right))
         key = self.keys.odometry(self.rid)
+        if self._odom_since_ns is None:
+            self._odom_since_ns = self.time_ns
         self._publish(key, m.OdometryEstimate(
             seq=self.seq.next(key), stamp_ns=self.time_ns, robot_id=self.rid, x_m=self.odom.x_m, y_m=self.odom.y_m,
             yaw_rad=self.odom.yaw_rad, cov=tuple(float(v) for v in self.odom.cov.ravel()),
@@ -214,8 +303,12 @@ class AgentNode:
     def status_counters(self) -> dict[str, int]:
         b = self.behaviour
         out = dict(self.counters)
+        received = sum(inbox.received for inbox in self.images.values())
         out.update(fixes=b.fixes, searches=b.searches, lost_events=b.lost_events, odometry_cycles=b.counter,
-                   localised=int(self.map_odom is not None))
+                   localised=int(self.map_odom is not None), server_alive=int(self.server_alive),
+                   frames_received=received,
+                   # overwritten in the newest-only inbox, or replaced while pending
+                   frames_skipped=received - self._frames_taken + self.counters["frames_replaced"])
         out.update(self.rejects.as_counters())
         out.update({f"pose_rejected_{k}": v for k, v in self.estimator.rejects.items()})
         return out
@@ -231,13 +324,15 @@ class AgentNode:
         Returns True if anything was processed."""
         if self.lockstep:
             return self._step_lockstep()
+        self._drain_presence()
+        for _, tick in self.rejects.decoded(self.tick_in.drain(), m.Tick):
+            self._accept_tick(tick)  # realtime needs ticks only to notice a world restart
         self._handle_corrections()
         had_enc = len(self.enc_in) > 0
         self._handle_encoders()
         self._take_frames()
         had_frames = bool(self.pending_frames)
         self._process_frames()
-        self.tick_in.drain()
         if had_enc:
             self._control()
         return had_enc or had_frames
@@ -245,6 +340,11 @@ class AgentNode:
     def _step_lockstep(self) -> bool:
         ticks = self.tick_in.drain()
         for _, tick in self.rejects.decoded(ticks, m.Tick):
+            if not self._accept_tick(tick):
+                continue
+            if self._last_step is not None and tick.step <= self._last_step:
+                self.counters["stale_ticks"] += 1  # a repeat: acting twice on one tick would break lockstep
+                continue
             self.time_ns = max(self.time_ns, tick.stamp_ns)
             mine = {pair.split("/", 1)[1] for pair in tick.cameras_rendered if pair.split("/", 1)[0] == str(self.rid)}
 
@@ -254,12 +354,20 @@ class AgentNode:
 
             if mine and not self.bus.wait_for(frames_in, self.s.agent.frame_wait_s):
                 self.counters["frames_missing"] += 1
-            if self.wait_for_server and tick.step > 0:
+            if self.wait_for_server and self._last_step is None:
+                # first tick: the world started, so the server is up; wait for its token so that
+                # the first corrections are waited for like every later one (determinism)
+                def server_known() -> bool:
+                    self._drain_presence()
+                    return self.server_alive
+
+                self.bus.wait_for(server_known, self.s.agent.frame_wait_s)
+            elif self.wait_for_server and self._last_step == tick.step - 1:
                 # the server corrected tick k-1 before acking it; wait for that correction so that the
-                # run does not depend on which network path is faster (lockstep determinism)
+                # run does not depend on which network path is faster (lockstep determinism).  Not after
+                # a gap (we joined late or restarted): that correction may have gone out before we listened.
                 def corrected(prev: int = tick.stamp_ns - tick.dt_ns) -> bool:
-                    for change in self.server_alive_in.drain():
-                        self.server_alive = change.value
+                    self._drain_presence()
                     self._handle_corrections()
                     return not self.server_alive or self.correction_stamp_ns >= prev
 
@@ -269,6 +377,7 @@ class AgentNode:
             self._handle_encoders()
             self._process_frames()
             self._control()
+            self._last_step = tick.step
             key = self.keys.ack(self.cfg.participant)
             self._publish(key, m.TickAck(seq=self.seq.next(key), stamp_ns=tick.stamp_ns,
                                          participant=self.cfg.participant, step=tick.step))

@@ -61,6 +61,8 @@ class WorldNode:
         self.counters: Counter[str] = Counter()
         self.seq = codec.Sequencer()
         self._started = False
+        self._published_step = -1  # newest step whose tick is out
+        self._render_step = -1  # newest step whose render poses are out
         self._next_status_ns = 0
         self._camera_pairs = [(rid, cam) for rid in s.robot_ids for cam in s.robot.cameras]
         self.cmd_in = bus.subscribe(self.keys.cmd())
@@ -95,9 +97,15 @@ class WorldNode:
             who = self.keys.participant_of(change.key)
             if who is None:
                 continue
-            tracker = self.workers if who.startswith("render/") else self.participants
-            if tracker.set_alive(who, change.value):
-                log.info("lockstep participant %s %s", who, "joined" if change.value else "left")
+            worker = who.startswith("render/")
+            tracker = self.workers if worker else self.participants
+            # a (re)joining participant can only answer what is sent after it joined
+            published = self._render_step if worker else self._published_step
+            if tracker.set_alive(who, change.value, published):
+                log.info("lockstep participant %s %s after step %d", who, "joined" if change.value else "left",
+                         published)
+                if not change.value:
+                    self.counters["participants_left"] += 1
         for item, ack in self.rejects.decoded(self.ack_in.drain(), m.TickAck):
             who = self.keys.participant_of(item.key)
             if who is None or ack.participant != who:
@@ -191,6 +199,7 @@ class WorldNode:
                                              robot_ids=tuple(ids), poses=tuple(poses), cameras=mine),
                           drop=not self.lockstep)
         self.counters["frames_requested"] += len(pairs)
+        self._render_step = step
         if self.lockstep:
             self._wait_acks(self.workers, step, "render worker(s)")
 
@@ -221,6 +230,7 @@ class WorldNode:
         key = self.keys.tick()
         self._publish(key, m.Tick(seq=self.seq.next(key), stamp_ns=self.time_ns, run_id=self.instance, step=step,
                                   dt_ns=self.sim.dt_ns, mode=self.s.clock.mode, cameras_rendered=tuple(rendered)))
+        self._published_step = step
         if self.time_ns >= self._next_status_ns:
             self._publish_status()
             self._next_status_ns = self.time_ns + int(self.cfg.status_period_s * 1e9)

@@ -106,3 +106,25 @@ def test_leapfrog_moves_only_on_its_turn() -> None:
     v0, _ = b.cycle(t_s=1.0, map_pose=(0, 0, 0), odom_yaw=0.0, moved=False, fix=True)   # robot 1's turn
     v1, _ = b.cycle(t_s=6.0, map_pose=(0, 0, 0), odom_yaw=0.0, moved=False, fix=True)   # robot 2's turn
     assert v0 == 0.0 and v1 > 0.0
+
+
+def test_without_a_server_the_robot_keeps_its_mission_on_odometry_and_searches_once_it_is_back() -> None:
+    b = _moving()
+    pose = (0.0, 0.0, 0.0)
+    b.cycle(t_s=0, map_pose=pose, odom_yaw=0.0, moved=False, fix=True)
+    for k in range(3 * CFG.fix_threshold):  # long past the search threshold
+        v, w = b.cycle(t_s=k, map_pose=pose, odom_yaw=0.0, moved=True, fix=False, server_up=False)
+        assert v > 0 and b.mode in (Mode.VISUAL, Mode.ODOMETRY)
+    assert b.mode == Mode.ODOMETRY and b.searches == 0
+    v, w = b.cycle(t_s=99, map_pose=pose, odom_yaw=0.0, moved=True, fix=False, server_up=True)
+    assert b.mode == Mode.SEARCHING and (v, w) == (0.0, CFG.search_speed_rad_s)
+    # the server vanishes mid-search: stop the useless sweep, back to the mission
+    v, w = b.cycle(t_s=100, map_pose=pose, odom_yaw=0.2, moved=True, fix=False, server_up=False)
+    assert b.mode == Mode.ODOMETRY and v > 0
+
+
+def test_never_localised_and_no_server_stands_still() -> None:
+    b = _moving()
+    for k in range(50):
+        assert b.cycle(t_s=k, map_pose=None, odom_yaw=0.0, moved=False, fix=False, server_up=False) == (0.0, 0.0)
+    assert b.mode == Mode.ODOMETRY and b.searches == 0

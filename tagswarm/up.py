@@ -126,8 +126,12 @@ def run_up(scenario: Scenario, out: Path, endpoint: str, run: str, *, live: bool
     t0 = time.monotonic()
     recording = None
     try:
-        children.append(Child("server", [*_script("tagswarm-server"), *common, "--connect", endpoint],
-                              logs / "server.log"))
+        # the server's write-ahead journal (restart it by hand with the same --journal to resume the map);
+        # a run folder is rewritten, and a journal of an earlier run would be refused by the server
+        journal = out / "server.journal"
+        journal.unlink(missing_ok=True)
+        children.append(Child("server", [*_script("tagswarm-server"), *common, "--connect", endpoint,
+                                         "--journal", str(journal)], logs / "server.log"))
         for rid in scenario.robot_ids:
             children.append(Child(f"agent/{rid}", [*_script("tagswarm-agent"), *common, "--connect", endpoint,
                                                    "--robot-id", str(rid)], logs / f"agent{rid}.log"))

@@ -4,8 +4,13 @@ One encoder and one decoder per message type are built once at import.  Decoding
 never raises anything but :class:`DecodeError`, whose ``kind`` says why the
 payload was rejected: ``oversized`` (checked before decoding), ``malformed`` (not
 msgpack, wrong type, out-of-range field), ``non_finite`` (NaN/inf anywhere) or
-``inconsistent`` (fields that contradict each other, e.g. image size).
-Receivers count rejects with :class:`RejectCounter`.
+``inconsistent`` (fields that contradict each other: image size, covariance
+not a symmetric positive semi-definite 3x3 matrix, quaternion not of unit norm,
+render poses not one per robot id).  Receivers count rejects with
+:class:`RejectCounter`; the nodes add their own kinds for messages that decode
+but must not be used (``spoofed``: robot id or participant not matching its
+key, or a tick of another run; ``unknown_robot`` / ``unknown_participant``: not
+in the roster; ``inconsistent``: contradicts the receiver's state).
 """
 
 from __future__ import annotations
@@ -17,6 +22,7 @@ from collections.abc import Iterable, Iterator
 from typing import Any, Final, TypeVar
 
 import msgspec
+import numpy as np
 
 from protocol import messages as m
 
@@ -45,6 +51,7 @@ _DECODERS: Final[dict[type[Any], msgspec.msgpack.Decoder[Any]]] = {
     cls: msgspec.msgpack.Decoder(cls) for cls in MAX_BYTES
 }
 _ANY_DECODER: Final = msgspec.msgpack.Decoder(m.AnyMessage)  # type: ignore[arg-type]
+_MAX_ANY: Final = max(MAX_BYTES.values())
 
 log = logging.getLogger(__name__)
 
@@ -63,6 +70,13 @@ def encode(msg: m.Msg) -> bytes:
     return _ENCODER.encode(msg)
 
 
+#: Kinds :func:`decode` and :func:`decode_any` raise.
+DECODE_KINDS: Final = frozenset({"oversized", "malformed", "non_finite", "inconsistent"})
+_QUAT_NORM_TOL: Final = 1e-2  # senders normalise; this only catches degenerate (e.g. all-zero) rotations
+_COV_SYM_RTOL: Final = 1e-6  # GTSAM marginals and J P J^T products are symmetric to ~1e-15 relative
+_COV_PSD_RTOL: Final = 1e-9
+
+
 def _all_finite(value: Any) -> bool:
     if isinstance(value, float):
         return math.isfinite(value)
@@ -73,18 +87,57 @@ def _all_finite(value: Any) -> bool:
     return True
 
 
+def _cov_problem(cov: tuple[float, ...]) -> str | None:
+    """Why ``cov`` (row-major 3x3, finite) cannot be a covariance, or None."""
+    if len(cov) != 9:
+        return f"covariance has {len(cov)} entries, expected 9"
+    raw = np.asarray(cov, dtype=float).reshape(3, 3)
+    scale = float(np.abs(raw).max())
+    if scale == 0.0:
+        return None  # "unknown yet" (e.g. a Correction with localised=False)
+    a = raw / scale  # entries in [-1, 1]: no overflow in the eigen decomposition even for 1e308 inputs
+    if float(np.abs(a - a.T).max()) > _COV_SYM_RTOL:
+        return "covariance is not symmetric"
+    # a negative variance turns into NaN sigmas inside GTSAM (no exception), poisoning the whole map
+    if float(np.linalg.eigvalsh(a).min()) < -_COV_PSD_RTOL:
+        return "covariance is not positive semi-definite"
+    return None
+
+
+def _pose_problem(p: m.Pose3) -> str | None:
+    norm = math.sqrt(p.qx * p.qx + p.qy * p.qy + p.qz * p.qz + p.qw * p.qw)
+    if abs(norm - 1.0) > _QUAT_NORM_TOL:
+        return f"quaternion norm {norm:.3g} is not 1"
+    return None
+
+
+def _poses(msg: m.Msg) -> list[m.Pose3]:
+    if isinstance(msg, m.CameraImage):
+        return [msg.mount]
+    if isinstance(msg, (m.GroundTruthPose, m.RelativeObservation)):
+        return [msg.pose]
+    if isinstance(msg, m.RenderPoses):
+        return list(msg.poses)
+    return []
+
+
 def _check(msg: m.Msg) -> None:
+    name = type(msg).__name__
     if not _all_finite(msg):
-        raise DecodeError("non_finite", f"{type(msg).__name__} has NaN or inf")
+        raise DecodeError("non_finite", f"{name} has NaN or inf")
     if isinstance(msg, m.CameraImage) and len(msg.data) != msg.width * msg.height:
-        raise DecodeError(
-            "inconsistent",
-            f"image {msg.width}x{msg.height} carries {len(msg.data)} bytes",
-        )
+        raise DecodeError("inconsistent", f"image {msg.width}x{msg.height} carries {len(msg.data)} bytes")
+    if isinstance(msg, m.RenderPoses) and len(msg.robot_ids) != len(msg.poses):
+        raise DecodeError("inconsistent", f"{name}: {len(msg.robot_ids)} robot ids but {len(msg.poses)} poses")
     covs = [e.cov for e in msg.robots] if isinstance(msg, m.GlobalMap) else [getattr(msg, "cov", None)]
     for cov in covs:
-        if cov is not None and len(cov) != 9:
-            raise DecodeError("inconsistent", f"covariance has {len(cov)} entries, expected 9")
+        why = None if cov is None else _cov_problem(cov)
+        if why is not None:
+            raise DecodeError("inconsistent", f"{name}: {why}")
+    for pose in _poses(msg):
+        why = _pose_problem(pose)
+        if why is not None:
+            raise DecodeError("inconsistent", f"{name}: {why}")
 
 
 def decode(cls: type[T], payload: bytes | bytearray | memoryview) -> T:
@@ -103,17 +156,35 @@ def decode(cls: type[T], payload: bytes | bytearray | memoryview) -> T:
 
 
 def decode_any(payload: bytes | bytearray | memoryview) -> m.AnyMessage:
-    """Decode a payload of unknown type (recordings, journals, spy)."""
-    if len(payload) > max(MAX_BYTES.values()):
-        raise DecodeError("oversized", f"payload of {len(payload)} B")
+    """Decode a payload of unknown type (recordings, journals, spy) or raise
+    :class:`DecodeError`.  The largest per-type limit is checked before decoding,
+    the message's own limit right after (the type is only known then)."""
+    if len(payload) > _MAX_ANY:
+        raise DecodeError("oversized", f"payload of {len(payload)} B > {_MAX_ANY} B")
     try:
         msg: m.AnyMessage = _ANY_DECODER.decode(payload)
     except (msgspec.DecodeError, msgspec.ValidationError) as exc:
         raise DecodeError("malformed", str(exc)) from None
     except Exception as exc:
         raise DecodeError("malformed", f"{type(exc).__name__}: {exc}") from None
+    limit = MAX_BYTES[type(msg)]
+    if len(payload) > limit:
+        raise DecodeError("oversized", f"{type(msg).__name__} payload of {len(payload)} B > {limit} B")
     _check(msg)
     return msg
+
+
+def foreign_tick(tick: m.Tick, run: str) -> bool:
+    """Whether ``tick`` comes from the world of another run than ``run`` (its
+    ``run_id`` is ``"<run>-<instance>"``, see :func:`world_instance`).  Such a
+    tick must not drive this run's clock: receivers reject it as ``spoofed``."""
+    return not tick.run_id.startswith(f"{run}-")
+
+
+def world_instance(run: str, instance: str) -> str:
+    """``Tick.run_id`` of one world process of run ``run``: a restarted world gets a
+    new ``instance`` and stays recognisably of the same run."""
+    return f"{run}-{instance}"
 
 
 class RejectCounter:

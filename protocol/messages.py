@@ -26,6 +26,8 @@ StampNs = Annotated[int, msgspec.Meta(ge=0)]
 Count = Annotated[int, msgspec.Meta(ge=0)]
 Int64 = Annotated[int, msgspec.Meta(ge=-(2**63), le=2**63 - 1)]
 Pixels = Annotated[int, msgspec.Meta(ge=1, le=8192)]
+TagId = Annotated[int, msgspec.Meta(ge=0, le=2**31 - 1)]  # tag ids and landmark ids; robot ids are smaller
+FocalPx = Annotated[float, msgspec.Meta(gt=0)]
 
 
 class Msg(msgspec.Struct, frozen=True, kw_only=True, tag_field="type"):
@@ -36,7 +38,8 @@ class Msg(msgspec.Struct, frozen=True, kw_only=True, tag_field="type"):
 
 
 class Pose3(msgspec.Struct, frozen=True, kw_only=True):
-    """A rigid transform: translation in metres, unit quaternion (x, y, z, w)."""
+    """A rigid transform: translation in metres, unit quaternion (x, y, z, w)
+    (a norm off 1 by more than 1 % is rejected as ``inconsistent``)."""
 
     x_m: float
     y_m: float
@@ -51,7 +54,9 @@ class Tick(Msg, frozen=True, kw_only=True, tag="tick"):
     """World clock: the world has finished step ``step`` and published every sensor
     message of that step before this one.  ``cameras_rendered`` lists the
     ``"robot_id/camera"`` pairs that have an image stamped with this tick, so a
-    lockstep participant knows what to wait for."""
+    lockstep participant knows what to wait for.  ``run_id`` is
+    ``"<run>-<instance>"``: the run of the keys plus one id per world process (a
+    restarted world gets a new one); a tick of another run is rejected."""
 
     run_id: str
     step: Count
@@ -81,8 +86,8 @@ class CameraImage(Msg, frozen=True, kw_only=True, tag="camera_image"):
     width: Pixels
     height: Pixels
     encoding: Literal["mono8"] = "mono8"
-    fx_px: float
-    fy_px: float
+    fx_px: FocalPx
+    fy_px: FocalPx
     cx_px: float
     cy_px: float
     mount: Pose3
@@ -124,18 +129,19 @@ class GroundTruthPose(Msg, frozen=True, kw_only=True, tag="ground_truth"):
 class RelativeObservation(Msg, frozen=True, kw_only=True, tag="observation"):
     """Pose of the observed robot's base (or of a landmark tag) in the observer's
     base frame, measured from one camera frame (or one synchronised rig).
-    ``cov`` is the 3x3 covariance of (x_m, y_m, yaw_rad)."""
+    ``cov`` is the 3x3 covariance of (x_m, y_m, yaw_rad) (every ``cov`` must be
+    symmetric positive semi-definite, else the message is ``inconsistent``)."""
 
     robot_id: RobotId  # observer
     target_kind: Literal["robot", "landmark"]
-    target_id: int
+    target_id: TagId
     x_m: float
     y_m: float
     yaw_rad: float
     cov: tuple[float, ...]
     pose: Pose3
     reprojection_rms_px: float
-    tag_ids: tuple[int, ...]
+    tag_ids: tuple[TagId, ...]
     camera: str
 
 
@@ -198,7 +204,7 @@ class GlobalMap(Msg, frozen=True, kw_only=True, tag="global_map"):
 
     origin_id: RobotId
     robots: tuple[MapEntry, ...]
-    edges: tuple[tuple[int, int], ...] = ()
+    edges: tuple[tuple[RobotId, RobotId], ...] = ()
 
 
 class AgentStatus(Msg, frozen=True, kw_only=True, tag="status"):
@@ -213,10 +219,11 @@ class AgentStatus(Msg, frozen=True, kw_only=True, tag="status"):
 
 class RenderPoses(Msg, frozen=True, kw_only=True, tag="render_poses"):
     """World -> render workers: the robot poses to render for step ``step`` and the
-    cameras each worker must render (``"robot_id/camera"``)."""
+    cameras each worker must render (``"robot_id/camera"``); ``poses[i]`` is robot
+    ``robot_ids[i]``'s base in the arena frame."""
 
     step: Count
-    robot_ids: tuple[int, ...]
+    robot_ids: tuple[RobotId, ...]
     poses: tuple[Pose3, ...]
     cameras: tuple[str, ...]
 

@@ -156,7 +156,10 @@ def test_valid_but_oversized_message_is_rejected() -> None:
     with pytest.raises(codec.DecodeError) as exc:
         codec.decode(m.Tick, payload)
     assert exc.value.kind == "oversized"
-    assert codec.decode_any(payload) == tick  # the union limit is the largest one
+    with pytest.raises(codec.DecodeError) as exc:
+        codec.decode_any(payload)  # the type's own limit applies once the tag is known
+    assert exc.value.kind == "oversized"
+    assert "Tick" in exc.value.detail
 
 
 def test_decode_any_oversized() -> None:

@@ -111,7 +111,12 @@ class WorldNode:
             if who is None or ack.participant != who:
                 self.rejects.reject("spoofed", f"{item.key} carries participant {ack.participant!r}")
                 continue
-            tracker = self.workers if who.startswith("render/") else self.participants
+            worker = who.startswith("render/")
+            tracker = self.workers if worker else self.participants
+            published = self._render_step if worker else self._published_step
+            if ack.step > published:  # else one forged ack would excuse a participant from every later step
+                self.rejects.reject("inconsistent", f"{who} acknowledges step {ack.step}, newest sent is {published}")
+                continue
             if not tracker.ack(who, ack.step):
                 self.rejects.reject("unknown_participant", f"{who} is not a declared participant")
 

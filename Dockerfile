@@ -4,6 +4,10 @@
 #   docker compose up                          # see compose.yaml
 # Every dependency is a pinned manylinux wheel from PyPI (pybullet renders with its
 # CPU TinyRenderer, OpenCV is the headless build): no system packages are needed.
+# No credentials in the image: Zenoh passwords (and TLS keys) are mounted at run time
+# (compose secrets under /run/secrets, see docs/security.md); .dockerignore keeps
+# deploy/secrets/ and key files out of the build context.  Processes run as the
+# unprivileged user `tagswarm` (uid 10001), never as root.
 FROM python:3.11-slim
 
 ENV PYTHONUNBUFFERED=1 \

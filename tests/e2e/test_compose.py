@@ -3,7 +3,11 @@ LOCAL process, in the file's start order (``depends_on`` with ``service_healthy`
 for the dependency's own healthcheck command to pass).  The router endpoint
 ``tcp/router:7447`` is rewritten to a free loopback port that the router service
 listens on; every other process is a Zenoh client of it, so all traffic goes through
-the router.  A 20 s lockstep run of the paper scenario must localise every robot."""
+the router.  The secrets are made by ``tagswarm router --make-secrets`` (what the
+compose header tells people to run) and each service's ``/run/secrets/<target>`` is
+rewritten to its own host file, so every process logs in with its role's password
+and the router enforces the ACL.  A 20 s lockstep run of the paper scenario must
+localise every robot."""
 
 from __future__ import annotations
 
@@ -26,7 +30,7 @@ from protocol.geometry import se2_compose
 from protocol.keys import Keys
 from protocol.layout import arena_to_map
 from tests.harness import BIN, free_port, script
-from tests.unit.test_compose import ROUTER_ENDPOINT, load_compose, service_env
+from tests.unit.test_compose import PASSWORD_FILE, ROUTER_ENDPOINT, load_compose, service_env
 from world.config import build_config as world_config
 
 DURATION_S = 20.0
@@ -133,22 +137,43 @@ def compose_up(services: dict[str, Service]) -> Iterator[dict[str, Service]]:
             s.stop()
 
 
+def secret_mounts(compose: Mapping[str, Any], service: Mapping[str, Any], folder: Path) -> dict[str, str]:
+    """``/run/secrets/<target>`` -> the host file in ``folder`` that compose would mount there."""
+    out = {}
+    for entry in service.get("secrets", []):
+        source, target = (entry, entry) if isinstance(entry, str) else (entry["source"], entry["target"])
+        host_file = folder / compose["secrets"][source]["file"].rsplit("/", 1)[1]
+        assert host_file.is_file(), f"{source}: {host_file} was not made by tagswarm router --make-secrets"
+        out[f"/run/secrets/{target}"] = str(host_file)
+    return out
+
+
 def test_compose_services_as_local_processes_localise_through_the_router(tmp_path: Path) -> None:
     port = free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
     run = f"compose{os.getpid()}"
     host = {"TAGSWARM_RUN": run, "TAGSWARM_CLOCK": "lockstep", "TAGSWARM_DURATION": f"{DURATION_S:g}",
             "TAGSWARM_SEED": "3"}
-    spec = load_compose(host)["services"]
+    secrets = tmp_path / "secrets"
+    made = subprocess.run([script("tagswarm"), "router", "--make-secrets", str(secrets)], capture_output=True,
+                          text=True, timeout=60)
+    assert made.returncode == 0, made.stderr
+    compose = load_compose(host)
+    spec = compose["services"]
     router_cmd = spec["router"]["command"]
     heartbeat = router_cmd[router_cmd.index("--heartbeat") + 1]
     rewrite = {ROUTER_ENDPOINT: endpoint, "tcp/0.0.0.0:7447": endpoint, heartbeat: str(tmp_path / "router.hb")}
-    services = {name: Service(name, s, service_env(s, host), rewrite, tmp_path) for name, s in spec.items()}
+    services = {name: Service(name, s, service_env(s, host), {**rewrite, **secret_mounts(compose, s, secrets)},
+                              tmp_path) for name, s in spec.items()}
     for name, s in services.items():
         if name != "router":
             assert s.env["TAGSWARM_ZENOH_MODE"] == "client" and s.env["TAGSWARM_CONNECT"] == endpoint
             assert "TAGSWARM_LISTEN" not in s.env and "--listen" not in s.argv
-    assert services["router"].argv[-4:] == ["--listen", endpoint, "--heartbeat", str(tmp_path / "router.hb")]
+            user = s.env["TAGSWARM_ZENOH_USER"]
+            assert s.env["TAGSWARM_ZENOH_PASSWORD_FILE"] == str(secrets / f"{user}.password")
+    assert services["router"].argv[-7:] == ["--listen", endpoint, "--heartbeat", str(tmp_path / "router.hb"),
+                                            "--users", str(secrets / "users.txt"), "--acl"]
+    assert PASSWORD_FILE not in str(services["world"].env)
 
     world_env = services["world"].env
     scenario = world_config([], world_env).scenario
@@ -161,11 +186,14 @@ def test_compose_services_as_local_processes_localise_through_the_router(tmp_pat
 
     t0 = time.monotonic()
     with ExitStack() as stack:
-        # the router first, then our observer (a client of the router, like every service)
+        # the router first, then our observer (a client of the router, like every service:
+        # the read-only viewer; without credentials it could not even connect)
         router = services["router"]
         router.start()
         wait_healthy([router], 30)
-        bus = stack.enter_context(open_bus(BusConfig(mode="client", connect=(endpoint,))))
+        viewer = BusConfig(mode="client", connect=(endpoint,), user="viewer",
+                           password_file=str(secrets / "viewer.password"))
+        bus = stack.enter_context(open_bus(viewer))
         truth_in = bus.subscribe(keys.truth())
         corr_in = bus.subscribe(keys.correction())
         stack.enter_context(compose_up(services))

@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 import jsonschema
+import msgspec
 import pytest
 import yaml
 
@@ -33,8 +34,12 @@ ROUTER_ENDPOINT = "tcp/router:7447"
 #: Every variable the processes understand (protocol/config.py, agents/config.py, protocol/bus.py).
 ENV_NAMES = ("TAGSWARM_SCENARIO", "TAGSWARM_SET", "TAGSWARM_SEED", "TAGSWARM_ROBOTS", "TAGSWARM_CLOCK",
              "TAGSWARM_DURATION", "TAGSWARM_RUN", "TAGSWARM_ZENOH_MODE", "TAGSWARM_LISTEN", "TAGSWARM_CONNECT",
-             "TAGSWARM_LOG_LEVEL", "TAGSWARM_ROBOT_ID", "TAGSWARM_MULTICAST_SCOUTING", "ZENOH_CONFIG")
+             "TAGSWARM_LOG_LEVEL", "TAGSWARM_ROBOT_ID", "TAGSWARM_MULTICAST_SCOUTING", "ZENOH_CONFIG",
+             "TAGSWARM_ZENOH_USER", "TAGSWARM_ZENOH_PASSWORD_FILE", "TAGSWARM_ZENOH_USERS_FILE",
+             "TAGSWARM_NET_LOSS", "TAGSWARM_NET_DELAY_MS", "TAGSWARM_NET_FAULT_KEYS", "TAGSWARM_NET_SEED")
 AGENTS = ("agent0", "agent1", "agent2", "agent3")
+#: where every client service finds its own password (compose mounts the service's secret there)
+PASSWORD_FILE = "/run/secrets/zenoh_password"
 
 _VAR = re.compile(r"\$(?:(\$)|\{([A-Za-z_][A-Za-z0-9_]*)(?:(:?[-?+])([^}]*))?\}|([A-Za-z_][A-Za-z0-9_]*))")
 
@@ -167,9 +172,10 @@ def test_agents_share_one_definition_through_a_yaml_anchor() -> None:
     assert re.search(r"^x-agent: &agent$", text, re.M)
     assert len(re.findall(r"^    <<: \*agent$", text, re.M)) == len(AGENTS)
     services = load_compose()["services"]
-    first = {k: v for k, v in services["agent0"].items() if k != "environment"}
+    own = ("environment", "secrets")  # robot id, Zenoh user and password differ
+    first = {k: v for k, v in services["agent0"].items() if k not in own}
     for name in AGENTS[1:]:
-        assert {k: v for k, v in services[name].items() if k != "environment"} == first
+        assert {k: v for k, v in services[name].items() if k not in own} == first
 
 
 def test_every_process_is_a_client_of_the_router_with_multicast_off() -> None:
@@ -218,6 +224,48 @@ def test_interpolation_defaults_and_host_values() -> None:
     assert "TAGSWARM_DURATION" not in env and "TAGSWARM_SEED" not in env  # not set on the host
 
 
+# --------------------------------------------------------------------------- security
+
+
+def test_each_process_logs_in_as_its_role_with_its_own_secret() -> None:
+    from tagswarm import acl
+
+    data = load_compose()
+    services, secrets = data["services"], data["secrets"]
+    robots = load_scenario("paper").robot_ids
+    # every secret is a host file named as `tagswarm router --make-secrets` writes it
+    made = {f"{u}{acl.PASSWORD_SUFFIX}" for u in acl.users(robots)} | {acl.USERS_FILE}
+    for name, secret in secrets.items():
+        assert set(secret) == {"file"}, name
+        assert secret["file"].startswith("./deploy/secrets/") and secret["file"].rsplit("/", 1)[1] in made, secret
+    expected = {"world": "world", "server": "server", **{a: acl.agent_user(int(a[-1])) for a in AGENTS}}
+    for name, user in expected.items():
+        svc = services[name]
+        env = service_env(svc, {})
+        assert env["TAGSWARM_ZENOH_USER"] == user, name
+        assert env["TAGSWARM_ZENOH_PASSWORD_FILE"] == PASSWORD_FILE, name
+        assert svc["secrets"] == [{"source": f"zenoh_{user}", "target": PASSWORD_FILE.rsplit("/", 1)[1]}], name
+        assert secrets[f"zenoh_{user}"]["file"] == f"./deploy/secrets/{user}{acl.PASSWORD_SUFFIX}"
+    # only the router sees the dictionary of every password, and it enforces the ACL
+    router = services["router"]
+    assert router["secrets"] == ["zenoh_users"]
+    assert secrets["zenoh_users"]["file"] == f"./deploy/secrets/{acl.USERS_FILE}"
+    cmd = router["command"]
+    assert cmd[cmd.index("--users") + 1] == "/run/secrets/zenoh_users" and "--acl" in cmd
+    assert "TAGSWARM_ZENOH_USER" not in service_env(router, {})
+    assert service_env(router, {})["TAGSWARM_SCENARIO"] == "paper"  # the ACL covers the paper's robots
+    assert set(services) == {*expected, "router"}  # no service without a Zenoh user
+
+
+def test_secrets_stay_out_of_the_image_and_git() -> None:
+    ignored = [line.strip() for line in (ROOT / ".dockerignore").read_text().splitlines()]
+    assert "deploy/secrets/" in ignored
+    copied = " ".join(a for w, a in _instructions() if w in ("COPY", "ADD"))
+    assert "deploy" not in copied and "secret" not in copied
+    gitignore = (ROOT / "deploy" / "secrets" / ".gitignore").read_text().split()
+    assert gitignore == ["*", "!.gitignore"]
+
+
 # --------------------------------------------------------------------------- documentation
 
 
@@ -234,25 +282,36 @@ def test_every_environment_variable_is_documented_in_the_header() -> None:
 # --------------------------------------------------------------------------- the real config builders
 
 
-def test_service_environments_build_valid_process_configs() -> None:
-    host = {"TAGSWARM_CLOCK": "lockstep", "TAGSWARM_DURATION": "20", "TAGSWARM_SEED": "3"}
+def test_service_environments_build_valid_process_configs(tmp_path: Path) -> None:
+    host = {"TAGSWARM_CLOCK": "lockstep", "TAGSWARM_DURATION": "20", "TAGSWARM_SEED": "3", "TAGSWARM_NET_LOSS": "0.1"}
     services = load_compose(host)["services"]
-    world = world_config([], service_env(services["world"], host))
+    password = tmp_path / "password"  # what compose mounts at PASSWORD_FILE
+    password.write_text("secret\n")
+
+    def env(name: str, host: Mapping[str, str]) -> dict[str, str]:
+        e = service_env(services[name], host)
+        assert e["TAGSWARM_ZENOH_PASSWORD_FILE"] == PASSWORD_FILE
+        return {**e, "TAGSWARM_ZENOH_PASSWORD_FILE": str(password)}
+
+    world = world_config([], env("world", host))
     assert world.bus.mode == "client" and world.bus.connect == (ROUTER_ENDPOINT,) and world.bus.listen == ()
+    assert world.bus.user == "world" and world.bus.password_file == str(password)
+    assert world.bus.loss == 0.1  # fault injection passed through from the host
     assert world.run == "compose"
     s = world.scenario
     assert s.name == "paper" and s.clock.mode == "lockstep" and s.duration_s == 20.0 and s.seed == 3
     # the same participants `tagswarm up` declares: every agent, then the server
     assert s.clock.participants == (*(f"agent/{r}" for r in s.robot_ids), "server/0")
-    server = server_config([], service_env(services["server"], host))
-    assert server.scenario == s and server.bus == world.bus
+    server = server_config([], env("server", host))
+    assert server.scenario == s and server.bus == msgspec.structs.replace(world.bus, user="server")
     for name in AGENTS:
-        agent = agent_config([], service_env(services[name], host))
+        agent = agent_config([], env(name, host))
         assert agent.participant == f"agent/{name[-1]}"
-        assert agent.scenario == s and agent.bus == world.bus
+        assert agent.scenario == s and agent.bus == msgspec.structs.replace(world.bus, user=name)
     # realtime (no host variables): the scenario's own clock and duration
-    rt = world_config([], service_env(load_compose({})["services"]["world"], {}))
-    assert rt.scenario.clock.mode == "realtime" and rt.scenario.duration_s == 60.0
+    services = load_compose({})["services"]
+    rt = world_config([], env("world", {}))
+    assert rt.scenario.clock.mode == "realtime" and rt.scenario.duration_s == 60.0 and rt.bus.loss == 0.0
 
 
 # --------------------------------------------------------------------------- the image

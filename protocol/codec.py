@@ -9,8 +9,10 @@ not a symmetric positive semi-definite 3x3 matrix, quaternion not of unit norm,
 render poses not one per robot id).  Receivers count rejects with
 :class:`RejectCounter`; the nodes add their own kinds for messages that decode
 but must not be used (``spoofed``: robot id or participant not matching its
-key, or a tick of another run; ``unknown_robot`` / ``unknown_participant``: not
-in the roster; ``inconsistent``: contradicts the receiver's state).
+key; ``foreign_run``: a tick of another world instance while the followed one
+is alive; ``unknown_robot`` / ``unknown_participant``: not in the roster;
+``inconsistent``: contradicts the receiver's state, e.g. an ack of a step not
+sent yet).
 """
 
 from __future__ import annotations
@@ -172,19 +174,6 @@ def decode_any(payload: bytes | bytearray | memoryview) -> m.AnyMessage:
         raise DecodeError("oversized", f"{type(msg).__name__} payload of {len(payload)} B > {limit} B")
     _check(msg)
     return msg
-
-
-def foreign_tick(tick: m.Tick, run: str) -> bool:
-    """Whether ``tick`` comes from the world of another run than ``run`` (its
-    ``run_id`` is ``"<run>-<instance>"``, see :func:`world_instance`).  Such a
-    tick must not drive this run's clock: receivers reject it as ``spoofed``."""
-    return not tick.run_id.startswith(f"{run}-")
-
-
-def world_instance(run: str, instance: str) -> str:
-    """``Tick.run_id`` of one world process of run ``run``: a restarted world gets a
-    new ``instance`` and stays recognisably of the same run."""
-    return f"{run}-{instance}"
 
 
 class RejectCounter:

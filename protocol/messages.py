@@ -54,9 +54,9 @@ class Tick(Msg, frozen=True, kw_only=True, tag="tick"):
     """World clock: the world has finished step ``step`` and published every sensor
     message of that step before this one.  ``cameras_rendered`` lists the
     ``"robot_id/camera"`` pairs that have an image stamped with this tick, so a
-    lockstep participant knows what to wait for.  ``run_id`` is
-    ``"<run>-<instance>"``: the run of the keys plus one id per world process (a
-    restarted world gets a new one); a tick of another run is rejected."""
+    lockstep participant knows what to wait for.  ``run_id`` names the world
+    instance (``"<run>-<random>"``, new for a restarted world): receivers follow
+    one instance and reject another one's ticks while it is alive."""
 
     run_id: str
     step: Count

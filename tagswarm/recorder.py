@@ -58,35 +58,39 @@ class Recorder:
         self.mode_now: dict[int, str] = {}
         self.sim_ns = 0
         self.rejected = 0
+        self.run_id: str | None = None  # the world instance whose ticks set the clock
 
     def poll(self) -> None:
         """Drain every inbox into the in-memory record."""
         ib = self.inboxes
         for it in ib["tick"].drain():
             tick = self._decode(m.Tick, it.value)
-            if tick is not None:
+            if tick is not None and self.run_id in (None, tick.run_id):
+                self.run_id = tick.run_id
                 self.sim_ns = max(self.sim_ns, tick.stamp_ns)
+            elif tick is not None:
+                self.rejected += 1  # a tick of another world instance must not move our clock
         for it in ib["truth"].drain():
-            t = self._decode(m.GroundTruthPose, it.value)
+            t = self._decode(m.GroundTruthPose, it.value, it.key)
             if t is not None:
                 self.truth[t.robot_id].append((t.stamp_ns, se2_compose(self.a2m, (t.x_m, t.y_m, t.yaw_rad))))
                 self.sim_ns = max(self.sim_ns, t.stamp_ns)
         for it in ib["odom"].drain():
-            o = self._decode(m.OdometryEstimate, it.value)
+            o = self._decode(m.OdometryEstimate, it.value, it.key)
             if o is not None:
                 self.odom[o.robot_id].append((o.stamp_ns, (o.x_m, o.y_m, o.yaw_rad)))
         for it in ib["corr"].drain():
-            c = self._decode(m.Correction, it.value)
+            c = self._decode(m.Correction, it.value, it.key)
             if c is not None and c.localised:
                 self.fused[c.robot_id].append((c.stamp_ns, (c.x_m, c.y_m, c.yaw_rad)))
         for it in ib["obs"].drain():
-            ob = self._decode(m.RelativeObservation, it.value)
+            ob = self._decode(m.RelativeObservation, it.value, it.key)
             if ob is not None:
                 self.observations.append((ob.stamp_ns, ob.robot_id, ob.target_kind, ob.target_id, ob.x_m, ob.y_m,
                                           ob.yaw_rad))
         for name in ("status", "world", "server"):
             for it in ib[name].drain():
-                st = self._decode(m.AgentStatus, it.value)
+                st = self._decode(m.AgentStatus, it.value, it.key if name == "status" else None)
                 if st is None:
                     continue
                 who = f"agent/{st.robot_id}" if st.role == "agent" else st.role
@@ -95,12 +99,19 @@ class Recorder:
                     self.modes.append((st.stamp_ns, st.robot_id, st.mode))
                     self.mode_now[st.robot_id] = st.mode
 
-    def _decode(self, cls: Any, payload: bytes) -> Any:
+    def _decode(self, cls: Any, payload: bytes, robot_key: str | None = None) -> Any:
+        """The message, or None (counted) if it does not decode or, on a robot's key
+        (``robot_key``), carries another robot id or one not in the roster."""
         try:
-            return codec.decode(cls, payload)
+            msg = codec.decode(cls, payload)
         except codec.DecodeError:
             self.rejected += 1
             return None
+        if robot_key is not None and (msg.robot_id != self.keys.robot_id_of(robot_key)
+                                      or msg.robot_id not in self.s.robot_ids):
+            self.rejected += 1
+            return None
+        return msg
 
     def fused_error(self, rid: int) -> float | None:
         """Distance (m) between the newest fused pose and the truth at that time."""

@@ -188,7 +188,8 @@ def run_up(scenario: Scenario, out: Path, endpoint: str, run: str, *, live: bool
             if c.proc.returncode not in (0, -signal.SIGTERM):
                 console.print(f"[bold]last lines of {c.log}[/]:\n{c.tail()}")
     code = 1 if failure else (130 if stop.is_set() else 0)
-    rec.write(out, {"wall_time_s": wall, "exit_code": code, "failure": failure, "endpoint": endpoint})
+    rec.write(out, {"wall_time_s": wall, "exit_code": code, "failure": failure, "endpoint": endpoint,
+                    "exit_codes": {c.name: c.proc.returncode for c in children}})
     if report:
         from tagswarm.report import write_report
 

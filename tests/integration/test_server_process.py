@@ -3,10 +3,13 @@
 from __future__ import annotations
 
 import math
+import signal
+import subprocess
 from pathlib import Path
 
 from protocol import codec
 from protocol import messages as m
+from protocol.bus import BusConfig, open_bus
 from protocol.keys import Keys
 from tests.harness import client, endpoint, process, script, wait_alive
 
@@ -89,3 +92,52 @@ def test_map_queryable_and_spoofed_observations(tmp_path: Path) -> None:
         assert set(after) == {0, 1}
         for rid in (0, 1):
             assert math.dist(before[rid][:2], after[rid][:2]) < 1e-6
+
+
+def test_killed_server_restarts_from_its_journal_with_the_same_map(tmp_path: Path) -> None:
+    ep, run = endpoint(), "srvjournal"
+    keys = Keys(run)
+    journal = tmp_path / "server.journal"
+    # the test listens and the servers connect: a restarted server is reachable at once (no reconnect back-off)
+    argv = [script("tagswarm-server"), "--connect", ep, "--run", run, "--set", "robots.count=2",
+            "--set", 'robots.placement="ring"', "--set", "missions=[]", "--map-rate", "10", "--journal", str(journal)]
+    with open_bus(BusConfig(listen=(ep,))) as bus:
+        for rid in (0, 1):
+            bus.declare_token(keys.alive(f"agent/{rid}"))
+        status = bus.subscribe(keys.server_status())
+        with process(argv, tmp_path / "server1.log") as first:
+            wait_alive(bus, keys, "server/0")
+            for k in range(20):
+                for rid in (0, 1):
+                    bus.put(keys.odometry(rid), codec.encode(_odom(rid, k, x=0.01 * k * rid)))
+                if k % 2 == 0:
+                    bus.put(keys.observation(0), codec.encode(_obs(0, 1, k, 2.0 + 0.01 * k, 1.0, math.pi)))
+            counters: dict[str, int] = {}
+
+            def accepted_all() -> bool:
+                for it in status.drain():
+                    counters.update(codec.decode(m.AgentStatus, it.value).counters)
+                return counters.get("accepted", 0) == 50
+
+            assert bus.wait_for(accepted_all, 20), counters
+            assert counters["journal_records"] == 50 and counters["journal_replayed"] == 0
+
+            def map_now() -> dict[int, tuple[float, float, float]]:
+                gmap = codec.decode(m.GlobalMap, bus.get(keys.map(), 5.0)[0].value)
+                return {e.robot_id: (e.x_m, e.y_m, e.yaw_rad) for e in gmap.robots}
+
+            before = map_now()
+            assert set(before) == {0, 1}
+            presence = bus.watch_liveliness(keys.alive("server/0"))
+            first.send_signal(signal.SIGKILL)
+            first.wait(10)
+            # a stale token would let the next wait_alive pass before the new server is reachable
+            assert bus.wait_for(lambda: any(not c.value for c in presence.drain()), 10)
+        with process(argv, tmp_path / "server2.log"):
+            wait_alive(bus, keys, "server/0")
+            assert map_now() == before  # exactly, before any new data arrived
+    # a journal of another run is refused with a one-line config error (exit 2)
+    bad = subprocess.run([*argv[:4], "another", *argv[5:]], capture_output=True, text=True, timeout=60)
+    assert bad.returncode == 2, bad.stderr
+    lines = [ln for ln in bad.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1 and "written for another map" in lines[0] and "run 'srvjournal'" in lines[0], bad.stderr

@@ -5,7 +5,10 @@ The world sends :class:`~protocol.messages.RenderPoses` (all robot poses plus
 the cameras this worker must render) on ``world/render/<i>``; the worker renders,
 publishes each :class:`~protocol.messages.CameraImage`, then acknowledges the
 step as participant ``render/<i>``.  In realtime mode the request inbox is
-newest-only, so a slow worker skips frames instead of queueing them.
+newest-only, so a slow worker skips frames instead of queueing them.  Its
+counters (frames, rejected requests per kind) go out as an
+:class:`~protocol.messages.AgentStatus` with role ``render/<i>`` on the world's
+status key, every simulated second and when it stops.
 """
 
 from __future__ import annotations
@@ -37,6 +40,7 @@ from protocol.scenario import Scenario
 from world.render import Renderer, image_message, pose_matrix
 
 log = logging.getLogger("tagswarm.render")
+STATUS_PERIOD_NS = 1_000_000_000
 
 
 class RenderConfig(msgspec.Struct, frozen=True, kw_only=True):
@@ -79,6 +83,8 @@ class RenderWorkerNode:
         self.rejects = codec.RejectCounter(log)
         self.counters: Counter[str] = Counter()
         self.seq = codec.Sequencer()
+        self.time_ns = 0
+        self._next_status_ns = 0
         lockstep = self.s.clock.mode == "lockstep"
         self.req_in = bus.subscribe(self.keys.render(config.worker_index), newest_only=not lockstep)
         bus.declare_token(self.keys.alive(self.name))
@@ -91,7 +97,18 @@ class RenderWorkerNode:
             key = self.keys.ack(self.name)
             self.bus.put(key, codec.encode(m.TickAck(seq=self.seq.next(key), stamp_ns=req.stamp_ns,
                                                      participant=self.name, step=req.step)))
+            self.time_ns = max(self.time_ns, req.stamp_ns)
+            if self.time_ns >= self._next_status_ns:
+                self.publish_status()
+                self._next_status_ns = self.time_ns + STATUS_PERIOD_NS
         return frames
+
+    def publish_status(self) -> None:
+        """Counters and rejects, on the world's status key (the worker is part of the world)."""
+        key = self.keys.world_status()
+        counters = {**self.counters, **self.rejects.as_counters()}
+        self.bus.put(key, codec.encode(m.AgentStatus(seq=self.seq.next(key), stamp_ns=self.time_ns, role=self.name,
+                                                     mode=self.s.clock.mode, counters=counters)))
 
     def _render(self, req: m.RenderPoses) -> int:
         bases = {}
@@ -120,6 +137,7 @@ class RenderWorkerNode:
         while not stop_event.is_set():
             if not self.step():
                 self.bus.wait(0.2)
+        self.publish_status()
         return 0
 
     def close(self) -> None:

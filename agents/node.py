@@ -157,8 +157,18 @@ class AgentNode:
 
     def _fetch_last_pose(self, timeout_s: float) -> None:
         """Late joiner / restart: start from the server's last pose for this robot."""
+        def server_known() -> bool:
+            self._drain_presence()
+            return self.server_alive
+
+        # a query only reaches queryables this session already knows of: wait until the server's
+        # declarations (its token comes after its queryable) have reached us over the peer mesh
+        t0 = time.monotonic()
+        if not self.bus.wait_for(server_known, timeout_s):
+            log.info("no map server within %.1f s: starting unlocalised", timeout_s)
+            return
         try:
-            replies = self.bus.get(self.keys.map(), timeout_s)
+            replies = self.bus.get(self.keys.map(), max(0.2, timeout_s - (time.monotonic() - t0)))
         except Exception as exc:
             log.debug("map query failed: %s", exc)
             return

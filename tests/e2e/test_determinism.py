@@ -24,7 +24,8 @@ def test_same_seed_same_bytes_other_seed_other_bytes(tmp_path_factory: pytest.Te
     for rid in range(4):
         truth = tum(first, "truth", rid)
         # complete from the first tick to the end: the comparison covers the whole run
-        assert truth[0, 0] == 0.0 and truth[-1, 0] >= PAPER_DURATION_S - 0.1 and len(truth) >= 700, (rid, truth[[0, -1], 0])
+        span = (truth[0, 0], truth[-1, 0], len(truth))
+        assert span[0] == 0.0 and span[1] >= PAPER_DURATION_S - 0.1 and span[2] >= 700, (rid, span)
         assert len(tum(first, "fused", rid)) >= 500  # every robot localised most of the run
         for kind in KINDS:
             a, b = _bytes(first, kind, rid), _bytes(second, kind, rid)

@@ -186,8 +186,9 @@ class WorldNode:
         for rid, cam in pairs:
             img = self.renderer.render(rid, cam, bases[rid])
             key = self.keys.image(rid, cam.name)
+            # lockstep: BLOCK, or a subscriber busy for a few ms (a recorder taking every camera) loses frames
             self._publish(key, image_message(self.s, rid, cam, img, seq=self.seq.next(key), step=step,
-                                             stamp_ns=self.time_ns), drop=True)
+                                             stamp_ns=self.time_ns), drop=not self.lockstep)
         self.counters["frames_rendered"] += len(pairs)
 
     def _render_in_workers(self, pairs: list[tuple[int, Camera]], step: int) -> None:

@@ -128,7 +128,8 @@ class RenderWorkerNode:
             img = self.renderer.render(rid, cam, bases[rid])
             key = self.keys.image(rid, cam.name)
             self.bus.put(key, codec.encode(image_message(self.s, rid, cam, img, seq=self.seq.next(key), step=req.step,
-                                                         stamp_ns=req.stamp_ns)), drop=True)
+                                                         stamp_ns=req.stamp_ns)),
+                         drop=self.s.clock.mode != "lockstep")  # lockstep: BLOCK (see world/node.py)
             n += 1
         self.counters["frames_rendered"] += n
         return n

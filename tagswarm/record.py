@@ -128,6 +128,9 @@ class McapRecording:
         self.rejects = codec.RejectCounter(log)
         self.kinds: Counter[str] = Counter()  # messages written per tagswarm type
         self.skipped_images = 0
+        # (robot_id/camera, step) promised by ticks vs received: a lossy recording says so in its stats
+        self._frames_promised: set[tuple[str, int]] = set()
+        self._frames_seen: set[tuple[str, int]] = set()
         self.first_ns: int | None = None
         self.last_ns = 0
         meta = {"run": run, "keyexpr": keyexpr, "images": str(options.images).lower(),
@@ -154,7 +157,10 @@ class McapRecording:
                             publish_time_ns=received_ns)
             self.kinds["undecodable"] += 1
             return None
-        if isinstance(msg, m.CameraImage):
+        if isinstance(msg, m.Tick):
+            self._frames_promised.update((pair, msg.step) for pair in msg.cameras_rendered)
+        elif isinstance(msg, m.CameraImage):
+            self._frames_seen.add((f"{msg.robot_id}/{msg.camera}", msg.step))
             if not self.options.images:
                 self.skipped_images += 1
                 return msg
@@ -183,7 +189,7 @@ class McapRecording:
         out = {f"messages_{k}": v for k, v in sorted(self.kinds.items())}
         out.update(self.rejects.as_counters())
         out.update(skipped_images=self.skipped_images, mcap_messages=self.sink.messages,
-                   mcap_payload_bytes=self.sink.bytes)
+                   mcap_payload_bytes=self.sink.bytes, images_missing=len(self._frames_promised - self._frames_seen))
         return out
 
     def close(self, extra: dict[str, int] | None = None) -> dict[str, int]:

@@ -126,6 +126,7 @@ def test_recording_passes_mcap_validation_with_expected_channels_and_counts(
     assert v.start_ns == 0 and v.end_ns == (STEPS - 1) * DT_NS
     assert stats["rejected_malformed"] == 1 and stats["rejected_non_finite"] == 1
     assert stats["messages_undecodable"] == 2 and stats["messages_Tick"] == STEPS
+    assert stats["images_missing"] == 0
     assert v.metadata["tagswarm.stats"]["rejected_malformed"] == "1"
     assert v.metadata["tagswarm"]["run"] == RUN
 
@@ -151,6 +152,15 @@ def test_ticks_follow_their_step_even_when_received_first(tmp_path: Path) -> Non
     rec.close()
     keys = [r.key for r in iter_raw(path, lambda _: True)]
     assert keys[-1] == f"{P}/world/tick" and f"{P}/robot/0/camera/front" in keys[:-1] and len(keys) == len(step)
+
+
+def test_frames_promised_by_a_tick_but_never_received_are_counted(tmp_path: Path) -> None:
+    rec = McapRecording(tmp_path / "lossy.mcap", RecordOptions(), run=RUN, keyexpr=f"{P}/**")
+    for step in range(6):
+        for key, msg in _world_step(step):
+            if not (step == 3 and key.endswith("1/camera/front")):
+                rec.add(key, codec.encode(msg), time.time_ns())
+    assert rec.close()["images_missing"] == 1
 
 
 def test_undecodable_payloads_are_recorded_raw(recording: tuple[Path, dict[str, int]]) -> None:

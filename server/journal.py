@@ -229,7 +229,10 @@ class Journal:
         self.sync_every = max(1, sync_every)
         self.sync_interval_s = sync_interval_s
         self.counters: dict[str, int] = dict.fromkeys(
-            ("records", "odometry", "observations", "advances", "replayed", "fsyncs", "bytes", "truncated_bytes"), 0)
+            ("records", "odometry", "observations", "advances", "replayed", "fsyncs", "bytes", "truncated_bytes",
+             "write_errors", "lost"), 0)
+        self.failed = False  # set by a write error: journalling stops, the server serves on
+        self._pending: list[Record] = []  # queued, counted once written
         self.sync_s_total = 0.0  # wall time spent in fsync (bench/report only, never logic)
         self._buffer = bytearray()
         self._unsynced = 0
@@ -289,6 +292,7 @@ class Journal:
         return reader.valid_bytes
 
     def _count(self, record: Record) -> None:
+        """Count a record that is in the file."""
         if isinstance(record, Advance):
             self.counters["advances"] += 1
             return
@@ -298,9 +302,11 @@ class Journal:
     # ------------------------------------------------------------------ writing
     def append(self, record: Odometry | Observation | Advance) -> None:
         """Queue one record; it reaches the OS at the next :meth:`flush`."""
-        data = frame(record)
-        self._buffer += data
-        self._count(record)
+        if self.failed:
+            self.counters["lost"] += not isinstance(record, Advance)
+            return
+        self._buffer += frame(record)
+        self._pending.append(record)
         if not self._unsynced:
             self._unsynced_since = time.monotonic()
         self._unsynced += 1
@@ -308,22 +314,43 @@ class Journal:
     def flush(self) -> None:
         """Hand queued records to the OS (they survive a killed process from here
         on) and fsync if a batch is due."""
-        if self._buffer:
+        if self._buffer and not self.failed:
             data = bytes(self._buffer)
             self._buffer.clear()
-            done = 0
-            while done < len(data):  # os.write may write less than asked
-                done += os.write(self._fd, data[done:])
+            try:
+                done = 0
+                while done < len(data):  # os.write may write less than asked
+                    done += os.write(self._fd, data[done:])
+            except OSError as exc:
+                self._fail(exc)
+                return
             self.counters["bytes"] += len(data)
+            for record in self._pending:
+                self._count(record)
+            self._pending.clear()
         self.maybe_sync()
+
+    def _fail(self, exc: OSError) -> None:
+        """A write or fsync failed (disk full, I/O error): stop journalling rather than
+        stop the server; what was queued and what follows is counted as lost."""
+        self.failed = True
+        self.counters["write_errors"] += 1
+        self.counters["lost"] += sum(not isinstance(r, Advance) for r in self._pending)
+        self._pending.clear()
+        self._buffer.clear()
+        log.error("journal %s: %s; journalling stops here (the map is still served, but a restart would "
+                  "rebuild it only up to this point)", self.path, exc)
 
     def maybe_sync(self) -> None:
         """fsync if ``sync_every`` records or ``sync_interval_s`` have passed since
         the oldest record not yet on disk (call it from the loop, also when idle)."""
-        if self._unsynced and not self._buffer and (
+        if self._unsynced and not self._buffer and not self.failed and (
                 self._unsynced >= self.sync_every
                 or time.monotonic() - self._unsynced_since >= self.sync_interval_s):
-            self._fsync()
+            try:
+                self._fsync()
+            except OSError as exc:
+                self._fail(exc)
 
     def _fsync(self) -> None:
         t0 = time.perf_counter()
@@ -338,8 +365,11 @@ class Journal:
             return
         try:
             self.flush()
-            if self._unsynced:
-                self._fsync()
+            if self._unsynced and not self.failed:
+                try:
+                    self._fsync()
+                except OSError as exc:
+                    self._fail(exc)
         finally:
             os.close(self._fd)
             self._fd = -1

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import os
 import shutil
 from pathlib import Path
 
@@ -85,6 +86,29 @@ def test_fsync_is_batched_by_record_count(tmp_path: Path) -> None:
     assert j.counters["fsyncs"] == 1 + 2  # header, then after records 10 and 20
     j.close()
     assert j.counters["fsyncs"] == 1 + 3  # close syncs the remaining 5
+
+
+@pytest.mark.skipif(not os.path.exists("/dev/full"), reason="needs /dev/full (a disk that is always full)")
+def test_a_full_disk_stops_journalling_not_the_server(tmp_path: Path) -> None:
+    path = tmp_path / "j"
+    j = jr.Journal(path, jr.header_for("r", _fusion()))
+    recs = _records(9)
+    good, bad = recs[:4], recs[4:]
+    for rec in good:
+        j.append(rec)
+    j.flush()
+    os.close(j._fd)
+    j._fd = os.open("/dev/full", os.O_WRONLY)  # every write now fails with ENOSPC
+    for rec in bad:
+        j.append(rec)
+    j.flush()  # no exception: the server keeps serving
+    j.append(good[0])
+    j.flush()
+    j.close()
+    assert j.failed and j.counters["write_errors"] == 1
+    assert j.counters["records"] == sum(not isinstance(r, jr.Advance) for r in good)
+    assert j.counters["lost"] == sum(not isinstance(r, jr.Advance) for r in bad) + 1
+    assert jr.read_journal(path)[0][1:] == good
 
 
 def test_torn_last_record_at_every_byte_offset(tmp_path: Path) -> None:

@@ -10,9 +10,10 @@ simulated without touching the others), the sender's congestion control is
 unchanged, and each subscriber sees its own lossy link, as on a real network.
 
 Reproducibility: the drop decision for the n-th sample on key K of subscription S
-comes from a random stream seeded with ``(seed, S, K)``.  Samples of one key come
-from one publisher in order, so the drop pattern of every key is the same on every
-run with the same seed, whatever the interleaving between keys (lockstep runs stay
+comes from a random stream seeded with ``(seed, S, K)``, the run id left out of S
+and K (``tagswarm up`` picks a new one per run).  Samples of one key come from one
+publisher in order, so the drop pattern of every key is the same on every run with
+the same seed, whatever the interleaving between keys (lockstep runs stay
 repeatable).
 """
 
@@ -24,6 +25,8 @@ import random
 import threading
 import time
 from collections.abc import Callable
+
+from protocol.keys import ROOT
 
 #: A sample whose delivery has been postponed: called when it is due.
 Deliver = Callable[[], None]
@@ -69,7 +72,8 @@ class NetFaults:
         with self._lock:  # several Zenoh receive threads may call in (one per link)
             stream = self._streams.get((sub_key, key))
             if stream is None:
-                stream = self._streams[(sub_key, key)] = random.Random(f"{self.seed}/{sub_key}/{key}")
+                name = f"{self.seed}/{_without_run(sub_key)}/{_without_run(key)}"
+                stream = self._streams[(sub_key, key)] = random.Random(name)
             lost = stream.random() < self.loss
             if lost:
                 self.dropped += 1
@@ -93,6 +97,12 @@ class NetFaults:
             line, self._line = self._line, None
         if line is not None:
             line.close()
+
+
+def _without_run(key: str) -> str:
+    """``tagswarm/<run>/rest`` -> ``rest`` (any other key unchanged)."""
+    parts = key.split("/", 2)
+    return parts[2] if len(parts) == 3 and parts[0] == ROOT else key
 
 
 class _DelayLine:

@@ -67,7 +67,8 @@ def test_loss_applies_to_observations_only_and_repeats_with_the_seed() -> None:
 def test_delay_holds_matching_samples_but_not_the_clock() -> None:
     ep = endpoint()
     delay_ms = 1000.0  # long enough that "still held when the tick is here" cannot race on a busy machine
-    with open_bus(BusConfig(listen=(ep,))) as pub, open_bus(BusConfig(connect=(ep,), delay_ms=delay_ms)) as sub:
+    late = BusConfig(connect=(ep,), delay_ms=delay_ms, fault_keys=(KEYS.correction(),))  # not a default key
+    with open_bus(BusConfig(listen=(ep,))) as pub, open_bus(late) as sub:
         corr, tick = sub.subscribe(KEYS.correction(2)), sub.subscribe(KEYS.tick())
         for _ in range(100):
             pub.put(KEYS.tick(), b"-1")

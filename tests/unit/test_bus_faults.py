@@ -63,6 +63,13 @@ def test_the_pattern_is_reproducible_per_seed_and_independent_of_interleaving() 
     assert pattern(other, "r/*", "r/1", 200) != seq["r/1"]
 
 
+def test_the_pattern_does_not_depend_on_the_run_id() -> None:
+    """``tagswarm up`` names each run differently: the same seed must still lose the same messages."""
+    a, b = (NetFaults(loss=0.3, delay_s=0.0, seed=5, matches=everything) for _ in range(2))
+    ka, kb = Keys("up123"), Keys("up456")
+    assert pattern(a, ka.cmd(), ka.cmd(1), 300) == pattern(b, kb.cmd(), kb.cmd(1), 300)
+
+
 def test_only_matching_keys_are_impaired() -> None:
     f = NetFaults(loss=1.0, delay_s=0.0, seed=0, matches=lambda key: key.endswith("/obs"))
     assert not f.admit("x/**", "x/1/obs")
@@ -114,17 +121,19 @@ def test_bad_parameters_are_refused() -> None:
 # --------------------------------------------------------------------------- default keys
 
 
-def test_default_keys_spare_the_clock_images_truth_and_statuses() -> None:
+def test_default_keys_spare_the_clock_its_sync_points_images_truth_and_statuses() -> None:
     k = Keys("any-run")
     defaults = default_fault_keys()
 
     def faulty(key: str) -> bool:
         return any(key_matches(p, key) for p in defaults)
 
-    for key in (k.encoders(2), k.cmd(0), k.goal(1), k.observation(3), k.odometry(0), k.correction(5), k.map()):
+    for key in (k.encoders(2), k.cmd(0), k.goal(1), k.observation(3), k.map()):
         assert faulty(key), key
+    # the clock, and what lockstep participants wait for (odometry, corrections), are spared
     for key in (k.tick(), k.ack("agent/1"), k.ack("server/0"), k.render(0), k.image(1, "front"), k.truth(1),
-                k.robot_status(1), k.world_status(), k.server_status(), k.alive("agent/1")):
+                k.odometry(0), k.correction(5), k.robot_status(1), k.world_status(), k.server_status(),
+                k.alive("agent/1")):
         assert not faulty(key), key
     f = net_faults(BusConfig(loss=0.5))
     assert f.matches(k.observation()) and not f.matches(k.images()) and not f.matches(k.tick())

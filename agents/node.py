@@ -46,6 +46,8 @@ from protocol.layout import arena_to_map
 
 log = logging.getLogger("tagswarm.agent")
 PRIOR_MAX_AGE_NS = 500_000_000  # robots move ~15 cm in 0.5 s: older relative poses mislead more than help
+# the server's clock never runs ahead of our odometry by more than its watermark slack (1 s, server/node.py)
+CORRECTION_AHEAD_NS = 1_000_000_000
 
 
 class AgentNode:
@@ -213,8 +215,10 @@ class AgentNode:
             self.correction_stamp_ns = max(self.correction_stamp_ns, c.stamp_ns)
             if not c.localised:
                 continue
-            if self._odom_since_ns is None or c.stamp_ns < self._odom_since_ns:
-                # made before the server had our odometry: its map -> odom is for a previous odom frame
+            if (self._odom_since_ns is None or c.stamp_ns < self._odom_since_ns
+                    or c.stamp_ns > self.time_ns + CORRECTION_AHEAD_NS):
+                # made before the server had our odometry, or ahead of our clock (a previous world run):
+                # its map -> odom is for another odom frame
                 self.counters["stale_corrections"] += 1
                 continue
             self.map_odom = (c.map_odom_x_m, c.map_odom_y_m, c.map_odom_yaw_rad)

@@ -86,11 +86,17 @@ def test_delay_holds_each_sample_at_least_the_delay_and_keeps_order() -> None:
     got: list[tuple[int, float]] = []
     done = threading.Event()
     sent: dict[int, float] = {}
+
+    def arrive(i: int) -> None:
+        got.append((i, time.monotonic()))
+        if i == 19:
+            done.set()
+
     try:
         for i in range(20):
             sent[i] = time.monotonic()
-            f.hold("late", lambda i=i: (got.append((i, time.monotonic())), i == 19 and done.set()))
-        f.hold("now", lambda: got.append((-1, time.monotonic())))
+            f.hold("late", lambda i=i: arrive(i))
+        f.hold("now", lambda: arrive(-1))
         assert got and got[0][0] == -1  # not held: delivered at once, before any delayed one
         assert done.wait(10), got
         assert [i for i, _ in got[1:]] == list(range(20))

@@ -4,6 +4,7 @@ bus path is in tests/integration/test_bus_faults.py."""
 
 from __future__ import annotations
 
+import functools
 import math
 import threading
 import time
@@ -95,7 +96,7 @@ def test_delay_holds_each_sample_at_least_the_delay_and_keeps_order() -> None:
     try:
         for i in range(20):
             sent[i] = time.monotonic()
-            f.hold("late", lambda i=i: arrive(i))
+            f.hold("late", functools.partial(arrive, i))
         f.hold("now", lambda: arrive(-1))
         assert got and got[0][0] == -1  # not held: delivered at once, before any delayed one
         assert done.wait(10), got

@@ -14,7 +14,8 @@ comes from a random stream seeded with ``(seed, S, K)``, the run id left out of 
 and K (``tagswarm up`` picks a new one per run).  Samples of one key come from one
 publisher in order, so the drop pattern of every key is the same on every run with
 the same seed, whatever the interleaving between keys (lockstep runs stay
-repeatable).
+repeatable).  Delays are wall-clock time: in lockstep a delayed message lands at
+whatever step the run has reached by then, so runs with delay do not repeat exactly.
 """
 
 from __future__ import annotations

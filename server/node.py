@@ -8,7 +8,8 @@ joiners).  Accepts data only from roster robots on their own keys.
 With ``--journal PATH`` every accepted input (and every fusion update) is
 written ahead to :mod:`server.journal`; a server started on an existing journal
 first replays it through the same fusion code, so a crashed server comes back
-with the exact graph it had, then declares itself alive and resumes.
+with the graph it had (same decisions, estimates equal to rounding), then
+declares itself alive and resumes.
 """
 
 from __future__ import annotations

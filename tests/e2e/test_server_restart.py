@@ -3,8 +3,8 @@
 World + 4 agents + a server writing ``--journal`` run in lockstep; the test
 SIGKILLs the server mid-run, checks the swarm keeps running without it, starts a
 new server on the same journal and checks that it resumes corrections quickly,
-that no robot's fused pose jumps, that the rebuilt graph is exactly the one the
-dead server had, and that every accepted measurement is in the journal.
+that no robot's fused pose jumps, that the rebuilt graph is the one the dead
+server had (to floating-point rounding), and that every accepted measurement is in the journal.
 
 Lockstep survives the kill: the world stops waiting for acks of a participant
 whose liveliness token vanished, agents stop waiting for corrections of a dead
@@ -171,7 +171,7 @@ def test_server_killed_mid_run_resumes_from_its_journal(tmp_path: Path) -> None:
             assert err_after[r] < err_before[r] + 0.10, (r, err_before, err_after)
 
         # ---- the rebuilt graph is the dead server's: replaying the journal copied at the kill
-        # reproduces its last published correction of every robot exactly
+        # reproduces its last published correction of every robot (to rounding)
         fusion = make_fusion(config)
         rebuilt: dict[int, Pose2] = {}
         want = {r: before[r].stamp_ns for r in ROBOTS}
@@ -186,7 +186,7 @@ def test_server_killed_mid_run_resumes_from_its_journal(tmp_path: Path) -> None:
 
         jr.Journal(snapshot, jr.header_for(run, fusion), replay=on_record).close()
         replay_gap = {r: _dist(rebuilt[r], (before[r].x_m, before[r].y_m, before[r].yaw_rad)) for r in ROBOTS}
-        assert max(replay_gap.values()) < 1e-9, replay_gap
+        assert max(replay_gap.values()) < 1e-6, replay_gap
         at_kill = jr.read_journal(snapshot)[0]
         assert status_before["accepted"] <= sum(isinstance(x, jr.Odometry | jr.Observation) for x in at_kill)
 

@@ -185,8 +185,10 @@ def test_a_journal_of_another_map_or_not_a_journal_is_refused(tmp_path: Path) ->
 
 
 def test_replay_rebuilds_exactly_the_live_graph(tmp_path: Path) -> None:
-    """The live path (journal then fuse) and a replay of the journal give identical
-    estimates, covariances, corrections and counters, including at every update."""
+    """The live path (journal then fuse) and a replay of the journal make the same
+    decisions (identical counters, edges, fix times) and the same estimates and
+    covariances at every update, to floating-point rounding (GTSAM/Eigen may differ
+    in the last bits between runs; usually they are bit-identical)."""
     sw = SyntheticSwarm(n=4, seed=5, outlier_rate=0.05)
     live = Fusion(FusionParams(odom_scale_sigma=0.05, lag_s=10.0), 0, tuple(range(4)))
     path = tmp_path / "j"
@@ -230,10 +232,17 @@ def test_replay_rebuilds_exactly_the_live_graph(tmp_path: Path) -> None:
 
     again = jr.Journal(path, jr.header_for("r", rebuilt), replay=on_record)
     again.close()
-    assert replayed == history  # bit for bit, at every one of the 301 updates
+    assert len(replayed) == len(history) == 301
+    for k, (got, want) in enumerate(zip(replayed, history, strict=True)):  # at every update
+        assert got.keys() == want.keys() and all((got[r] is None) == (want[r] is None) for r in got), k
+        for r, g in got.items():
+            w = want[r]
+            if g is not None and w is not None:
+                assert np.allclose(g, w, rtol=1e-6, atol=1e-9), (k, r, g, w)
     assert rebuilt.counters == live.counters
     for rid in range(4):
-        assert rebuilt.map_to_odom(rid) == live.map_to_odom(rid)
+        a, b = rebuilt.map_to_odom(rid), live.map_to_odom(rid)
+        assert a is not None and b is not None and np.allclose(a, b, rtol=0, atol=1e-9)
         assert rebuilt.last_fix_ns(rid) == live.last_fix_ns(rid)
     assert rebuilt.edges == live.edges
 

@@ -46,6 +46,7 @@ from protocol.layout import arena_to_map
 
 log = logging.getLogger("tagswarm.agent")
 PRIOR_MAX_AGE_NS = 500_000_000  # robots move ~15 cm in 0.5 s: older relative poses mislead more than help
+LOCKSTEP_FRAME_QUEUE = 16  # per camera, lockstep only (bounded memory under a flood)
 # the server's clock never runs ahead of our odometry by more than its watermark slack (1 s, server/node.py)
 CORRECTION_AHEAD_NS = 1_000_000_000
 
@@ -68,8 +69,12 @@ class AgentNode:
         self.counters: Counter[str] = Counter()
         self.seq = codec.Sequencer()
         self.lockstep = s.clock.mode == "lockstep"
+        # realtime: newest-only, a slow detector skips frames.  Lockstep: the world waits for us, so nothing
+        # queues, but a newest-only inbox would let one bad payload landing after a frame displace it (the
+        # agent then waits frame_wait_s for a frame that never comes): a short FIFO keeps both
         self.images: dict[str, Inbox[bytes]] = {
-            c.name: bus.subscribe(self.keys.image(rid, c.name), newest_only=True) for c in s.robot.cameras}
+            c.name: bus.subscribe(self.keys.image(rid, c.name), newest_only=not self.lockstep,
+                                  capacity=LOCKSTEP_FRAME_QUEUE) for c in s.robot.cameras}
         self._frames_taken = 0  # frames drained from the newest-only inboxes (the rest were overwritten)
         self.enc_in = bus.subscribe(self.keys.encoders(rid))
         self.tick_in = bus.subscribe(self.keys.tick())

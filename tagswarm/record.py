@@ -21,7 +21,10 @@ A recorder that joins a system already running misses what came before, and a pa
 cannot slow a lockstep world down.  ``--participant record/0`` (with ``record/0`` added to
 ``clock.participants``; ``tagswarm up --record`` does both) makes it a lockstep participant
 instead: the world waits for it before the first tick and until it has written each step,
-so the recording holds every message from step 0 on.
+so the recording holds every message from step 0 on.  Zenoh peers deliver to each other
+over direct links that form as they discover each other, so the recorder announces itself
+only once it sees every process named by ``--wait-for`` (``up --record``: the world and
+every participant), i.e. once it is linked to all of them.
 """
 
 from __future__ import annotations
@@ -76,6 +79,41 @@ class RecordOptions(msgspec.Struct, frozen=True, kw_only=True):
     image_scale: float = 1.0
     foxglove: bool = True
     compression: Literal["zstd", "lz4", "none"] = "zstd"
+
+
+def declare_when_meshed(bus: Bus, keys: Keys, name: str, peers: Sequence[str], timeout_s: float = 30.0,
+                        stop: threading.Event | None = None) -> threading.Thread:
+    """Declare ``name``'s liveliness token once every process in ``peers`` (``"role/id"``)
+    is seen alive, on a background thread (or after ``timeout_s``, with a warning).
+
+    Why: a peer's publications reach only the subscribers it already knows of, over a
+    direct link.  Seeing a peer's token means that link is up and this session's
+    subscriptions (declared before the call) went over it; announcing ourselves only then
+    means whoever waits for our token (the world, a lockstep replay) starts when nothing
+    can be missed any more."""
+    wanted = set(peers) - {name}
+    inbox = bus.watch_liveliness(keys.alive_all())
+    seen: set[str] = set()
+
+    def all_seen() -> bool:
+        for change in inbox.drain():
+            who = keys.participant_of(change.key)
+            if who is not None:
+                (seen.add if change.value else seen.discard)(who)
+        return wanted <= seen or (stop is not None and stop.is_set())
+
+    def run() -> None:
+        if not bus.wait_for(all_seen, timeout_s):
+            log.warning("%s: %s not seen within %.0f s; announcing anyway", name, ", ".join(sorted(wanted - seen)),
+                        timeout_s)
+        try:
+            bus.declare_token(keys.alive(name))
+        except Exception as exc:  # the session closed meanwhile (the run ended early): nothing to announce
+            log.debug("not announcing %s: %s", name, exc)
+
+    thread = threading.Thread(target=run, name=f"announce-{name}", daemon=True)
+    thread.start()
+    return thread
 
 
 def with_recorder(scenario: Scenario, participant: str = RECORD_PARTICIPANT) -> Scenario:
@@ -209,7 +247,8 @@ class Recorder:
     subscribed, and an ack for each tick once everything received before it is written."""
 
     def __init__(self, bus: Bus, keyexpr: str, recording: McapRecording, world_alive_key: str | None, *,
-                 participant: str | None = None, keys: Keys | None = None) -> None:
+                 participant: str | None = None, keys: Keys | None = None, peers: Sequence[str] = (),
+                 join_timeout_s: float = 30.0) -> None:
         self.bus = bus
         self.recording = recording
         try:
@@ -227,7 +266,8 @@ class Recorder:
         if participant is not None:
             if keys is None:
                 raise ValueError("a lockstep participant needs the run's keys")
-            bus.declare_token(keys.alive(participant))  # after subscribing: the world may start once it sees this
+            # after subscribing, once linked to every peer: the world may start as soon as it sees this token
+            declare_when_meshed(bus, keys, participant, peers, join_timeout_s)
 
     def poll(self) -> int:
         """Write everything that arrived; returns how many payloads."""
@@ -287,8 +327,10 @@ def start_recording(bus: Bus, keys: Keys, path: Path, scenario: Scenario | None 
     rec = McapRecording(path, options or RecordOptions(), run=keys.run, keyexpr=keys.all(), scenario=scenario)
     joins = scenario is not None and scenario.clock.mode == "lockstep" and \
         RECORD_PARTICIPANT in scenario.clock.participants
+    peers = (*scenario.clock.participants, "world/0") if scenario is not None else ()
+    timeout = scenario.clock.join_timeout_s if scenario is not None else 30.0
     return BackgroundRecording(Recorder(bus, keys.all(), rec, None, participant=RECORD_PARTICIPANT if joins else None,
-                                        keys=keys), bus)
+                                        keys=keys, peers=peers, join_timeout_s=timeout), bus)
 
 
 def parser() -> OneLineParser:
@@ -305,6 +347,9 @@ def parser() -> OneLineParser:
     p.add_argument("--participant", metavar="ROLE/ID",
                    help="join the lockstep as this participant (list it in clock.participants, e.g. record/0): "
                         "the world then waits for the recorder, so nothing is missed")
+    p.add_argument("--wait-for", action="append", metavar="ROLE/ID,...", default=[],
+                   help="with --participant: join only once these are alive (linked to us), e.g. "
+                        "world/0,agent/0,server/0")
     add_common_args(p)
     return p
 
@@ -331,6 +376,9 @@ def main(argv: Sequence[str] | None = None) -> int:
                                 foxglove=not args.no_foxglove, compression=args.compression)
         if args.participant is not None:
             split_participant(args.participant)
+        peers = tuple(p.strip() for chunk in args.wait_for for p in chunk.split(",") if p.strip())
+        for peer in peers:
+            split_participant(peer)
         if not args.out.parent.is_dir():
             raise ConfigError(f"--out: no such directory {str(args.out.parent)!r}")
         bus_cfg = bus_from(args, env)
@@ -341,7 +389,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         try:
             with open_bus(bus_cfg) as bus:
                 rec = Recorder(bus, keyexpr, recording, keys.alive("world/0"), participant=args.participant,
-                               keys=keys)
+                               keys=keys, peers=peers)
                 log.info("recording %s to %s", keyexpr, args.out)
                 while not stop.is_set():
                     bus.wait(0.05)

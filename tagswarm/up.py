@@ -148,7 +148,11 @@ def run_up(scenario: Scenario, out: Path, endpoint: str, run: str, *, live: bool
                 from tagswarm.record import start_recording
 
                 recording = start_recording(bus, Keys(run), record, scenario)
-            bus.declare_token(Keys(run).alive("up/0"))  # after subscribing (a lockstep replay waits for it)
+            from tagswarm.record import declare_when_meshed
+
+            # once linked to every process (a lockstep replay waits for this token: the run folder misses nothing)
+            declare_when_meshed(bus, Keys(run), "up/0", (*scenario.clock.participants, "world/0"),
+                                scenario.clock.join_timeout_s, stop)
             with Live(console=console, refresh_per_second=2, transient=False) if live else _Null() as display:
                 last_print = 0.0
                 while not stop.is_set():

@@ -1,8 +1,9 @@
 """``tagswarm record [KEYEXPR] --out FILE.mcap``: record a running system to MCAP.
 
-A read-only Zenoh client (like ``tagswarm spy``: no liveliness token, never part of a
-lockstep) that writes every message on keys matching KEYEXPR (default: every key of the
-run, ``tagswarm/<run>/**``) to an MCAP file that Foxglove opens:
+A read-only Zenoh client (like ``tagswarm spy``, by default no liveliness token and never
+part of a lockstep; see ``--participant`` below) that writes every message on keys
+matching KEYEXPR (default: every key of the run, ``tagswarm/<run>/**``) to an MCAP file
+that Foxglove opens:
 
 - one raw channel per key holding the payload bytes exactly as received (msgpack, with the
   message type's JSON schema), so ``tagswarm replay`` is byte-exact; log time is the

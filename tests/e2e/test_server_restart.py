@@ -25,13 +25,14 @@ from pathlib import Path
 
 from protocol import codec
 from protocol import messages as m
+from protocol.bus import BusConfig, open_bus
 from protocol.geometry import Pose2, se2_compose, se2_inverse
 from protocol.keys import Keys
 from protocol.layout import arena_to_map
 from server import journal as jr
 from server.config import build_config
 from server.node import make_fusion
-from tests.harness import client, endpoint, process, script
+from tests.harness import endpoint, process, script
 
 ROBOTS = (0, 1, 2, 3)
 DURATION_S = 24.0
@@ -50,17 +51,20 @@ def _dist(a: Pose2, b: Pose2) -> float:
 
 
 def test_server_killed_mid_run_resumes_from_its_journal(tmp_path: Path) -> None:
-    ep, run = endpoint(), "srvrestart"
+    ep, mine, run = endpoint(), endpoint(), "srvrestart"
+    # every process connects to the world and to the test's own endpoint: what the test observes does not
+    # depend on gossip discovery between peers (the processes still find each other as in any run)
+    links = ["--connect", ep, "--connect", mine]
     keys = Keys(run)
     scen = _scenario_args()
     journal = tmp_path / "server.journal"
-    server_argv = [script("tagswarm-server"), "--connect", ep, "--run", run, *scen, "--journal", str(journal)]
+    server_argv = [script("tagswarm-server"), *links, "--run", run, *scen, "--journal", str(journal)]
     config = build_config(server_argv[1:], {})
     t_map_arena = arena_to_map(config.scenario)
     with ExitStack() as st:
         st.enter_context(process([script("tagswarm-world"), "--listen", ep, "--run", run, *scen],
                                  tmp_path / "world.log"))
-        bus = st.enter_context(client(ep))
+        bus = st.enter_context(open_bus(BusConfig(listen=(mine,), connect=(ep,))))
         ticks = bus.subscribe(keys.tick())
         corr_in = bus.subscribe(keys.correction())
         truth_in = bus.subscribe(keys.truth())
@@ -69,7 +73,7 @@ def test_server_killed_mid_run_resumes_from_its_journal(tmp_path: Path) -> None:
         server_alive = bus.watch_liveliness(keys.alive("server/0"))
         server = st.enter_context(process(server_argv, tmp_path / "server1.log"))
         for rid in ROBOTS:
-            st.enter_context(process([script("tagswarm-agent"), "--connect", ep, "--run", run, *scen,
+            st.enter_context(process([script("tagswarm-agent"), *links, "--run", run, *scen,
                                       "--robot-id", str(rid)], tmp_path / f"agent{rid}.log"))
 
         now_ns = 0

@@ -29,6 +29,7 @@ power loss) is batched every ``sync_every`` records or ``sync_interval_s``.
 from __future__ import annotations
 
 import dataclasses
+import fcntl
 import logging
 import os
 import struct
@@ -99,7 +100,6 @@ class Advance(msgspec.Struct, frozen=True, kw_only=True, tag="advance"):
 
 
 Record = Header | Odometry | Observation | Advance
-Measurement = Odometry | Observation
 
 
 def _enc_hook(obj: Any) -> Any:
@@ -241,10 +241,17 @@ class Journal:
         self._unsynced = 0
         self._unsynced_since = 0.0
         self.replay_s = 0.0
-        keep = self._open_existing(replay) if self.path.exists() else 0
-        self.counters["bytes"] = keep
+        existed = self.path.exists()
         self._fd = os.open(self.path, os.O_WRONLY | os.O_CREAT, 0o644)
         try:
+            # one writer per journal: a second server on the same file would interleave records (the
+            # kernel drops the lock with the process, so a SIGKILLed server does not leave it behind)
+            try:
+                fcntl.flock(self._fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                raise JournalError(f"journal {self.path} is in use by another server") from None
+            keep = self._open_existing(replay) if existed else 0
+            self.counters["bytes"] = keep
             if os.fstat(self._fd).st_size != keep:
                 os.ftruncate(self._fd, keep)
             os.lseek(self._fd, keep, os.SEEK_SET)
@@ -255,8 +262,9 @@ class Journal:
                 self.counters["bytes"] = len(data)
                 self._fsync()
                 _fsync_dir(self.path.parent)
-        except OSError:
+        except BaseException:
             os.close(self._fd)
+            self._fd = -1
             raise
 
     def _open_existing(self, replay: Callable[[Record], None] | None) -> int:
@@ -361,6 +369,12 @@ class Journal:
         self.sync_s_total += time.perf_counter() - t0
         self.counters["fsyncs"] += 1
         self._unsynced = 0
+
+    def __enter__(self) -> Journal:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
 
     def close(self) -> None:
         """Flush, fsync and close (idempotent)."""

@@ -171,6 +171,9 @@ def test_a_journal_of_another_map_or_not_a_journal_is_refused(tmp_path: Path) ->
     with pytest.raises(jr.JournalError, match="lag_s"):
         jr.Journal(path, jr.header_for("one", other))
     assert path.read_bytes() == before  # refused, untouched
+    with jr.Journal(path, jr.header_for("one", _fusion())) as _, pytest.raises(jr.JournalError, match="in use"):
+        jr.Journal(path, jr.header_for("one", _fusion()))  # a second server on the same journal
+    jr.Journal(path, jr.header_for("one", _fusion())).close()  # free again once the first one closed
     notes = tmp_path / "notes.txt"
     notes.write_text("my precious notes\n")
     with pytest.raises(jr.JournalError, match="not a tagswarm journal"):

@@ -79,19 +79,30 @@ def test_flushed_records_survive_without_close(tmp_path: Path) -> None:
 
 
 def test_fsync_is_batched_by_record_count(tmp_path: Path) -> None:
-    j = jr.Journal(tmp_path / "j", jr.header_for("r", _fusion()), sync_every=10, sync_interval_s=1e9)
+    j = jr.Journal(tmp_path / "j", jr.header_for("r", _fusion()), sync_every=10, sync_interval_s=1e9,
+                   background_sync=False)
     for rec in _records(20)[:25]:
         j.append(rec)
         j.flush()
     assert j.counters["fsyncs"] == 1 + 2  # header, then after records 10 and 20
     j.close()
     assert j.counters["fsyncs"] == 1 + 3  # close syncs the remaining 5
+    # in the background (the default) the loop does not wait; requests made during an fsync coalesce
+    path = tmp_path / "bg"
+    j = jr.Journal(path, jr.header_for("r", _fusion()), sync_every=10, sync_interval_s=1e9)
+    recs = _records(40)
+    for rec in recs:
+        j.append(rec)
+        j.flush()
+    j.close()
+    assert 1 + 1 <= j.counters["fsyncs"] <= 1 + len(recs) // 10 + 1
+    assert jr.read_journal(path)[0][1:] == recs
 
 
 @pytest.mark.skipif(not os.path.exists("/dev/full"), reason="needs /dev/full (a disk that is always full)")
 def test_a_full_disk_stops_journalling_not_the_server(tmp_path: Path) -> None:
     path = tmp_path / "j"
-    j = jr.Journal(path, jr.header_for("r", _fusion()))
+    j = jr.Journal(path, jr.header_for("r", _fusion()), background_sync=False)
     recs = _records(9)
     good, bad = recs[:4], recs[4:]
     for rec in good:

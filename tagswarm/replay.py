@@ -350,6 +350,9 @@ def main(argv: Sequence[str] | None = None) -> int:
                 log.info("replaying %d channel(s) of %s%s%s", len(replayer.topics), args.file,
                          f" into run {replayer.target_run!r}" if replayer.target_run else "",
                          f", lockstep with {', '.join(participants)}" if lockstep else f" at x{args.speed or 1.0:g}")
+                if lockstep and not any("/camera/" in t for t in replayer.topics):
+                    log.warning("no camera images in what is replayed, but the recorded ticks announce frames: "
+                                "lockstep agents will wait agent.frame_wait_s for each of them")
                 code = replayer.run(stop)
         except RecordingError as exc:
             raise ConfigError(str(exc)) from None

@@ -21,7 +21,7 @@ token goes away (its run ended); the file is always closed with its summary.
 A recorder that joins a system already running misses what came before, and a passive one
 cannot slow a lockstep world down.  ``--participant record/0`` (with ``record/0`` added to
 ``clock.participants``; ``tagswarm up --record`` does both) makes it a lockstep participant
-instead: the world waits for it before the first tick and until it has written each step,
+instead: the world waits for it before the first tick and until it has received each step,
 so the recording holds every message from step 0 on.  Zenoh peers deliver to each other
 over direct links that form as they discover each other, so the recorder announces itself
 only once it sees every process named by ``--wait-for`` (``up --record``: the world and
@@ -47,7 +47,7 @@ import numpy as np
 
 from protocol import codec
 from protocol import messages as m
-from protocol.bus import Bus, open_bus
+from protocol.bus import Bus, Received, open_bus
 from protocol.config import (
     ConfigError,
     OneLineParser,
@@ -64,7 +64,7 @@ from protocol.keys import Keys, split_participant
 from protocol.layout import arena_to_map
 from protocol.scenario import Scenario
 from tagswarm.foxglove_views import FoxgloveViews
-from tagswarm.mcapio import META_RUN, META_STATS, McapSink
+from tagswarm.mcapio import META_RUN, META_STATS, McapSink, is_tick
 
 PROG = "tagswarm record"
 RECORD_PARTICIPANT = "record/0"
@@ -245,7 +245,7 @@ class Recorder:
     """Feeds a :class:`McapRecording` from the bus: one subscription to ``keyexpr`` plus
     the world's liveliness (to notice that its run ended).  With ``participant``
     (``"record/0"``) it also joins the lockstep of ``keys``' run: a liveliness token once
-    subscribed, and an ack for each tick once everything received before it is written."""
+    subscribed and linked to ``peers``, and an ack for each tick once it is in hand."""
 
     def __init__(self, bus: Bus, keyexpr: str, recording: McapRecording, world_alive_key: str | None, *,
                  participant: str | None = None, keys: Keys | None = None, peers: Sequence[str] = (),
@@ -278,20 +278,33 @@ class Recorder:
                 self.world_gone = self.world_seen and not change.value
         items = self.inbox.drain()
         now_ns = time.time_ns()  # reception ~ now: the inbox is drained every few ms
-        newest: m.Tick | None = None
-        for item in items:
-            msg = self.recording.add(item.key, item.value, now_ns)
-            if isinstance(msg, m.Tick) and (newest is None or msg.step > newest.step):
-                newest = msg
         if items:
             self.last_rx = time.monotonic()
-        if newest is not None and self.participant is not None and self.keys is not None:
-            # one ack for the newest step covers the older ones (the world keeps the latest per participant)
+        if self.participant is not None and self.keys is not None:
+            self._ack(items)
+        for item in items:
+            self.recording.add(item.key, item.value, now_ns)
+        return len(items)
+
+    def _ack(self, items: list[Received[bytes]]) -> None:
+        """Acknowledge the newest tick among ``items`` before writing them: everything the
+        world sent before that tick is in hand (in order, in memory), so the world may go
+        on while we write; one ack covers older steps (the world keeps the newest)."""
+        assert self.keys is not None and self.participant is not None
+        newest: m.Tick | None = None
+        for item in items:
+            if is_tick(item.key):
+                try:
+                    tick = codec.decode(m.Tick, item.value)
+                except codec.DecodeError:
+                    continue  # counted when written
+                if newest is None or tick.step > newest.step:
+                    newest = tick
+        if newest is not None:
             key = self.keys.ack(self.participant)
             self.bus.put(key, codec.encode(m.TickAck(seq=self._ack_seq, stamp_ns=newest.stamp_ns,
                                                      participant=self.participant, step=newest.step)))
             self._ack_seq += 1
-        return len(items)
 
     def close(self) -> dict[str, int]:
         self.poll()

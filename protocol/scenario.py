@@ -158,13 +158,17 @@ class Clock(Spec, frozen=True, kw_only=True, forbid_unknown_fields=True):
     in ``participants`` (``"agent/0"``, ``"server/0"``...); one that has not acked
     after ``ack_timeout_s`` is skipped for that tick and logged; one whose
     liveliness token vanishes is dropped until it comes back.  The world waits up
-    to ``join_timeout_s`` for participants to appear before the first tick."""
+    to ``join_timeout_s`` for participants to appear before the first tick.
+    ``observers`` (``"up/0"``, ``"record/0"``) are waited for in the same way
+    before the first tick, in either mode, but never for acks: a recorder that
+    must not miss the start of a run without slowing it down."""
 
     mode: Literal["realtime", "lockstep"] = "realtime"
     tick_hz: Annotated[float, msgspec.Meta(gt=0, le=10_000)] = 30.0
     physics_substeps: Annotated[int, msgspec.Meta(ge=1, le=100)] = 4
     speed: Pos = 1.0
     participants: tuple[str, ...] = ()
+    observers: tuple[str, ...] = ()
     ack_timeout_s: Pos = 5.0
     join_timeout_s: Pos = 30.0
     command_timeout_s: Pos = 0.5

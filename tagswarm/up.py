@@ -87,13 +87,15 @@ class Child:
 
 
 def resolve(args: Any, env: dict[str, str]) -> Scenario:
-    """Scenario with lockstep participants filled in (every agent and the server)."""
+    """Scenario with lockstep participants filled in (every agent and the server), and
+    ``up/0`` as a clock observer: the world starts only once this process records."""
     scenario = scenario_from(args, env)
+    table = msgspec.to_builtins(scenario)
     if scenario.clock.mode == "lockstep" and not scenario.clock.participants:
-        parts = [f"agent/{r}" for r in scenario.robot_ids] + ["server/0"]
-        table = msgspec.to_builtins(scenario)
-        table["clock"]["participants"] = parts
-        scenario = msgspec.convert(table, Scenario)
+        table["clock"]["participants"] = [f"agent/{r}" for r in scenario.robot_ids] + ["server/0"]
+    if "up/0" not in scenario.clock.observers:
+        table["clock"]["observers"] = [*scenario.clock.observers, "up/0"]
+    scenario = msgspec.convert(table, Scenario)
     return scenario
 
 

@@ -57,6 +57,7 @@ class WorldNode:
         self.lockstep = s.clock.mode == "lockstep"
         self.participants = AckTracker(s.clock.participants)
         self.workers = AckTracker(f"render/{i}" for i in range(s.render.workers))
+        self.observers_alive: set[str] = set()
         self.rejects = codec.RejectCounter(log)
         self.counters: Counter[str] = Counter()
         self.seq = codec.Sequencer()
@@ -97,6 +98,9 @@ class WorldNode:
             who = self.keys.participant_of(change.key)
             if who is None:
                 continue
+            if who in self.s.clock.observers:
+                (self.observers_alive.add if change.value else self.observers_alive.discard)(who)
+                continue
             worker = who.startswith("render/")
             tracker = self.workers if worker else self.participants
             # a (re)joining participant can only answer what is sent after it joined
@@ -136,18 +140,20 @@ class WorldNode:
                 tracker.ack(p, step)
 
     def wait_for_participants(self, timeout_s: float | None = None) -> bool:
-        """Before the first tick: wait until every declared participant and render
-        worker is alive (liveliness), up to ``clock.join_timeout_s``."""
+        """Before the first tick: wait until every declared participant, observer and
+        render worker is alive (liveliness), up to ``clock.join_timeout_s``."""
         timeout = self.s.clock.join_timeout_s if timeout_s is None else timeout_s
 
         def ready() -> bool:
             self._drain_presence()
-            return not self.workers.missing() and (not self.lockstep or not self.participants.missing())
+            return (not self.workers.missing() and (not self.lockstep or not self.participants.missing())
+                    and self.observers_alive >= set(self.s.clock.observers))
 
         ok = self.bus.wait_for(ready, timeout)
         if not ok:
+            missing = self.workers.missing() | self.participants.missing()
             log.warning("starting without %s (not alive after %.1f s)",
-                        ", ".join(sorted(self.workers.missing() | self.participants.missing())), timeout)
+                        ", ".join(sorted(missing | (set(self.s.clock.observers) - self.observers_alive))), timeout)
         return ok
 
     # ------------------------------------------------------------------ outputs

@@ -127,7 +127,8 @@ def test_spy_once_lists_world_agent_and_server_keys_with_rates(system: System) -
     assert rows[k.image(0, "front")]["LAST"].startswith("320x240 mono8 robot 0 front")
     assert rows[k.image(0, "front")]["BANDWIDTH"].endswith("KB/s")
     assert not [r for r in rows.values() if r["TYPE"].startswith("undecodable")]
-    assert sorted(alive) == sorted(k.alive(p) for p in ("world/0", "server/0", "agent/0", "agent/1"))
+    # up/0: the `tagswarm up` recorder running the system
+    assert sorted(alive) == sorted(k.alive(p) for p in ("world/0", "server/0", "agent/0", "agent/1", "up/0"))
 
 
 def test_spy_echo_prints_json_lines_without_pixels(system: System) -> None:

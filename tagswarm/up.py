@@ -114,14 +114,16 @@ def _table(rec: Recorder, scenario: Scenario, wall_s: float, out: Path, endpoint
 
 
 def run_up(scenario: Scenario, out: Path, endpoint: str, run: str, *, live: bool, report: bool,
-           stop: threading.Event, console: Console, record: Path | None = None, replay: Path | None = None) -> int:
-    """Start everything, record until the world ends or ``stop``, write the run folder."""
+           stop: threading.Event, console: Console, record: Path | None = None, replay: Path | None = None,
+           child_args: Sequence[str] = ()) -> int:
+    """Start everything, record until the world ends or ``stop``, write the run folder.
+    ``child_args`` go to every child (e.g. the ``--net-*`` fault-injection flags)."""
     out.mkdir(parents=True, exist_ok=True)
     logs = out / "logs"
     logs.mkdir(exist_ok=True)
     scen_file = out / "scenario.json"
     scen_file.write_bytes(msgspec.json.format(msgspec.json.encode(scenario)))
-    common = ["--scenario", str(scen_file), "--run", run]
+    common = ["--scenario", str(scen_file), "--run", run, *child_args]
     children: list[Child] = []
     failure: str | None = None
     may_die = {f"agent/{r}" for r in scenario.robots.may_die}
@@ -231,6 +233,18 @@ class _Null:
         return None
 
 
+def net_flags(args: Any) -> list[str]:
+    """The fault-injection flags given to ``up``, for its children (the environment
+    variables reach them anyway); ``up``'s own recorder is never impaired."""
+    out: list[str] = []
+    for flag in ("net_loss", "net_delay_ms", "net_seed"):
+        if getattr(args, flag, None) is not None:
+            out += ["--" + flag.replace("_", "-"), str(getattr(args, flag))]
+    for key in getattr(args, "net_fault_keys", None) or []:
+        out += ["--net-fault-keys", key]
+    return out
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Console entry for ``tagswarm up``."""
 
@@ -263,7 +277,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         try:
             return run_up(scenario, out, endpoint, run, live=not args.no_live and sys.stdout.isatty(),
                           report=not args.no_report, stop=stop, console=Console(), record=args.record,
-                          replay=args.replay)
+                          replay=args.replay, child_args=net_flags(args))
         finally:
             signal.signal(signal.SIGINT, previous)
 

@@ -66,6 +66,7 @@ class AgentNode:
         self.estimator = CubePoseEstimator(s, pixel_sigma_px=a.pixel_sigma_px, max_rms_px=a.max_reprojection_px)
         self.frame_delay_s = config.inject_frame_delay_s
         self.rejects = codec.RejectCounter(log)
+        self.gaps = codec.GapCounter()  # messages lost on the way, per sender (lossy networks)
         self.counters: Counter[str] = Counter()
         self.seq = codec.Sequencer()
         self.lockstep = s.clock.mode == "lockstep"
@@ -208,6 +209,7 @@ class AgentNode:
                 self.counters["stale_encoders"] += 1
                 continue
             self._last_enc_ns = enc.stamp_ns
+            self.gaps.seen(item.key, enc.seq, "encoders")
             ds, dth = self.odom.update(enc.left_ticks, enc.right_ticks)
             self._moved = self._moved or abs(ds) > 1e-4 or abs(dth) > 1e-4
             self.time_ns = max(self.time_ns, enc.stamp_ns)
@@ -218,6 +220,7 @@ class AgentNode:
                 self.rejects.reject("spoofed", f"correction for robot {c.robot_id} on {item.key}")
                 continue
             self.correction_stamp_ns = max(self.correction_stamp_ns, c.stamp_ns)
+            self.gaps.seen(item.key, c.seq, "corrections")
             if not c.localised:
                 continue
             if (self._odom_since_ns is None or c.stamp_ns < self._odom_since_ns
@@ -329,6 +332,8 @@ class AgentNode:
                    # overwritten in the newest-only inbox, or replaced while pending
                    frames_skipped=received - self._frames_taken + self.counters["frames_replaced"])
         out.update(self.rejects.as_counters())
+        out.update(self.gaps.as_counters())
+        out.update(self.bus.fault_stats())
         out.update({f"pose_rejected_{k}": v for k, v in self.estimator.rejects.items()})
         return out
 

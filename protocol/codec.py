@@ -207,6 +207,37 @@ class RejectCounter:
         return {prefix + k: v for k, v in sorted(self.counts.items())}
 
 
+class GapCounter:
+    """Messages missing from each publisher's sequence, counted per label.
+
+    Every publisher numbers its messages on one key 0, 1, 2...; a jump from
+    ``n`` to ``n + k`` means ``k - 1`` messages were lost on the way (a lossy
+    network, an overloaded queue).  A number at or below the last one seen is a
+    restarted publisher (its sequencer began again) and restarts the count.
+    Feed it only messages that passed validation, so forged numbers cannot
+    inflate it beyond what a forger can do anyway.
+    """
+
+    def __init__(self) -> None:
+        self._last: dict[str, int] = {}
+        self.missing: Counter[str] = Counter()
+
+    def seen(self, key: str, seq: int, label: str) -> int:
+        """Record ``seq`` on ``key``; returns (and adds to ``missing[label]``) the gap before it."""
+        last = self._last.get(key)
+        self._last[key] = seq
+        if last is None or seq <= last:
+            return 0
+        gap = seq - last - 1
+        if gap:
+            self.missing[label] += gap
+        return gap
+
+    def as_counters(self, prefix: str = "seq_gaps_") -> dict[str, int]:
+        """Counters for a status message (only labels with losses appear)."""
+        return {prefix + k: v for k, v in sorted(self.missing.items())}
+
+
 class Sequencer:
     """Per-key sequence numbers of one publisher (receivers can count gaps)."""
 

@@ -56,6 +56,7 @@ class ServerNode:
         self.roster = set(s.robot_ids)
         self.fusion = make_fusion(config)
         self.rejects = codec.RejectCounter(log)
+        self.gaps = codec.GapCounter()  # messages lost on the way, per sender (lossy networks)
         self.counters: Counter[str] = Counter()
         self.seq = codec.Sequencer()
         self.alive: set[int] = set()
@@ -127,6 +128,7 @@ class ServerNode:
             sender = self._robot_from_key(item.key, od.robot_id)
             if sender is None:
                 continue
+            self.gaps.seen(item.key, od.seq, f"odometry_robot{sender}")
             self._accept(jr.Odometry(robot_id=sender, stamp_ns=od.stamp_ns, x_m=od.x_m, y_m=od.y_m,
                                      yaw_rad=od.yaw_rad, distance_m=od.distance_m))
             self.counters["odometry"] += 1
@@ -137,6 +139,7 @@ class ServerNode:
             if ob.target_kind == "robot" and (ob.target_id not in self.roster or ob.target_id == observer):
                 self.rejects.reject("unknown_robot", f"observation of robot {ob.target_id}")
                 continue
+            self.gaps.seen(item.key, ob.seq, f"observations_robot{observer}")
             self._accept(jr.Observation(observer=observer, target_kind=ob.target_kind, target_id=ob.target_id,
                                         stamp_ns=ob.stamp_ns, x_m=ob.x_m, y_m=ob.y_m, yaw_rad=ob.yaw_rad,
                                         cov=tuple(float(v) for v in ob.cov)))
@@ -246,6 +249,8 @@ class ServerNode:
         counters = dict(self.counters)
         counters.update({f"fusion_{k}": v for k, v in self.fusion.counters.items()})
         counters.update(self.rejects.as_counters())
+        counters.update(self.gaps.as_counters())
+        counters.update(self.bus.fault_stats())
         counters["accepted"] = counters.get("accepted_odometry", 0) + counters.get("accepted_observations", 0)
         if self.journal is not None:
             counters.update(self.journal.as_counters())

@@ -224,6 +224,7 @@ class WorldNode:
         if self.renderer is not None:
             counters["frames_rendered"] = self.renderer.frames_rendered
         counters.update(self.rejects.as_counters())
+        counters.update(self.bus.fault_stats())
         key = self.keys.world_status()
         self._publish(key, m.AgentStatus(seq=self.seq.next(key), stamp_ns=self.time_ns, role="world",
                                          mode=self.s.clock.mode, counters=counters))

@@ -509,3 +509,13 @@ def test_reject_counter_decoded_yields_good_and_counts_bad() -> None:
     out = list(rc.decoded(items, m.TickAck))
     assert [(it.key, msg) for it, msg in out] == [("k/1", good)]
     assert rc.total() == 2 and rc.counts["malformed"] == 2
+
+
+def test_gap_counter_counts_lost_messages_per_label_and_survives_restarts() -> None:
+    g = codec.GapCounter()
+    assert [g.seen("k/1", s, "robot1") for s in (0, 1, 2, 5, 6, 9)] == [0, 0, 0, 2, 0, 2]
+    assert g.seen("k/2", 7, "robot2") == 0  # the first number seen is no gap
+    assert g.seen("k/2", 9, "robot2") == 1
+    assert g.seen("k/1", 0, "robot1") == 0  # a restarted publisher begins again
+    assert g.seen("k/1", 3, "robot1") == 2
+    assert g.as_counters() == {"seq_gaps_robot1": 6, "seq_gaps_robot2": 1}

@@ -128,11 +128,11 @@ def with_recorder(scenario: Scenario, participant: str = RECORD_PARTICIPANT) -> 
 
 
 def without_recorders(scenario: Scenario) -> Scenario:
-    """``scenario`` without ``record/*`` participants: the run as it is to be reproduced
-    (a replay must not wait for the original run's recorder)."""
+    """``scenario`` without ``record/*`` participants and without observers: the run as it
+    is to be reproduced (a replay must not wait for the original run's recorder or ``up``)."""
     c = scenario.clock
     kept = tuple(p for p in c.participants if not p.startswith("record/"))
-    return msgspec.structs.replace(scenario, clock=msgspec.structs.replace(c, participants=kept))
+    return msgspec.structs.replace(scenario, clock=msgspec.structs.replace(c, participants=kept, observers=()))
 
 
 def scale_image(img: m.CameraImage, scale: float) -> m.CameraImage:

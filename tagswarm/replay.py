@@ -16,7 +16,8 @@ Pacing:
   of the scenario stored in the recording, else whoever acknowledged ticks in it.
   ``--wait-for ROLE/ID`` names more processes to wait for before the first tick (only their
   liveliness, no acks), e.g. the run-folder writer of ``tagswarm up`` (``up/0``); it works
-  with ``--speed`` too.
+  with ``--speed`` too.  The ``clock.observers`` of a scenario named with ``--scenario``
+  are waited for the same way (as the world does); the recorded run's are not.
 
 What: ``--only world`` = the world's sensor streams (ticks, world status, camera images,
 encoders, ground truth; the default with ``--lockstep``) or ``--only all`` (every raw
@@ -252,7 +253,8 @@ class Replayer:
 
 
 def _participants(args: argparse.Namespace, env: dict[str, str], path: Path) -> tuple[tuple[str, ...], Clock]:
-    """Participants and clock settings, in the precedence of the module docstring."""
+    """Participants and clock settings (its ``observers`` are waited for like ``--wait-for``),
+    in the precedence of the module docstring."""
     clock = Clock()
     given: tuple[str, ...] = ()
     if args.scenario is not None or "TAGSWARM_SCENARIO" in env:
@@ -266,7 +268,8 @@ def _participants(args: argparse.Namespace, env: dict[str, str], path: Path) -> 
             except msgspec.ValidationError as exc:
                 raise ConfigError(f"{path}: the recorded scenario does not load ({exc}); "
                                   "name one with --scenario") from None
-            clock, given = s.clock, s.clock.participants
+            # the original run's observers (its `up`, its recorder) are not part of this one
+            clock, given = msgspec.structs.replace(s.clock, observers=()), s.clock.participants
     parts = _names(args.participants) or given or recorded_participants(path)
     return tuple(parts), clock
 
@@ -336,7 +339,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                                            for p in patterns)
 
             participants, clock = _participants(args, env, args.file) if lockstep else ((), Clock())
-            wait_for = _names(args.wait_for)
+            wait_for = tuple(dict.fromkeys((*_names(args.wait_for), *clock.observers)))
             if lockstep and not participants:
                 raise ConfigError("--lockstep: no participants to wait for; name them with --participants")
             stop = threading.Event()

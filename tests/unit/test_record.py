@@ -246,9 +246,11 @@ def test_recorded_scenario_and_participants_drive_a_replay(recording: tuple[Path
 
 
 def test_recorder_participant_joins_only_lockstep_runs() -> None:
-    lock = load_scenario("paper", ['clock.mode="lockstep"', 'clock.participants=["server/0"]'])
+    lock = load_scenario("paper", ['clock.mode="lockstep"', 'clock.participants=["server/0"]',
+                                   'clock.observers=["up/0"]'])
     assert with_recorder(lock).clock.participants == ("server/0", "record/0")
-    assert without_recorders(with_recorder(lock)).clock.participants == ("server/0",)
+    stored = without_recorders(with_recorder(lock)).clock  # what a recording keeps of the run
+    assert stored.participants == ("server/0",) and stored.observers == ()
     real = load_scenario("paper")
     assert with_recorder(real).clock.participants == ()
 

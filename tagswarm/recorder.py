@@ -140,11 +140,11 @@ class Recorder:
         with open(run_dir / "observations.csv", "w", newline="") as f:
             w = csv.writer(f)
             w.writerow(["stamp_ns", "observer", "target_kind", "target_id", "x_m", "y_m", "yaw_rad"])
-            w.writerows(self.observations)
+            w.writerows(sorted(self.observations))  # arrival order across agents is not deterministic
         with open(run_dir / "modes.csv", "w", newline="") as f:
             w = csv.writer(f)
             w.writerow(["stamp_ns", "robot", "mode"])
-            w.writerows(self.modes)
+            w.writerows(sorted(self.modes))
         run = {"scenario": msgspec.to_builtins(self.s), "robots": list(self.s.robot_ids),
                "origin_id": self.s.map.origin_id, "clock": self.s.clock.mode, "sim_time_s": self.sim_ns / 1e9,
                "counters": self.counters, **info}

@@ -27,6 +27,7 @@ from agents.cubepose import (
     output_jacobian,
 )
 from agents.detect import AprilTagDetector, TagDetection
+from agents.sixdof import SixDofSolver
 from protocol import tags
 from protocol.geometry import Mat, matrix_to_pose3, pose3_to_matrix, se2_matrix, transform, wrap_angle, yaw_quat
 from protocol.scenario import Camera, Scenario, convert, validate
@@ -205,7 +206,7 @@ def test_a_degenerate_ippe_alternative_is_rebuilt(renderer, detector, monkeypatc
     assert e.ambiguity > 0.2 and nees(e) < 12
     (p,) = CubePoseEstimator(S).estimate([(MODELS["front"], dets)])
     assert p.ambiguity > 0.2 and nees(p) < 12
-    monkeypatch.setattr(CubePoseEstimator, "_mirror_start", lambda self, *a: None)
+    monkeypatch.setattr(SixDofSolver, "mirror_start", lambda self, *a: None)
     (e,) = CubePoseEstimator(S, planar=False).estimate([(MODELS["front"], dets)])
     assert e.ambiguity == 0 and nees(e) > 30
     # the planar fit weighs the mirrored pose on its own (agents.planar.mirror)

@@ -1,0 +1,191 @@
+"""Reading a run folder (the contract ``tagswarm up`` writes) for :mod:`tagswarm.metrics`.
+
+Pure code: files in, arrays and trajectories out; a missing or malformed folder
+raises :class:`RunFolderError` with a one-line message naming the file.
+
+- ``run.json``: a JSON object with at least ``robots`` (list of ids); the rest
+  (``clock``, ``counters``, ``scenario`` ...) is kept as ``RunData.info``.
+- ``trajectories/{truth,odom,fused}_<k>.tum``: evo reads them (TUM, seconds and
+  metres, MAP frame).  A missing or empty file is ``None``: legal for ``fused``
+  (robot k was never localised), a warning for ``truth`` and ``odom``.
+- ``observations.csv`` (:data:`OBS_HEADER`) and ``modes.csv`` (:data:`MODES_HEADER`):
+  ``stamp_ns`` columns become simulation seconds; a missing file is a warning.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from evo import EvoException
+from evo.core.trajectory import PoseTrajectory3D
+from evo.tools import file_interface
+from numpy.typing import NDArray
+
+F64 = NDArray[np.float64]
+
+OBS_HEADER = ("stamp_ns", "observer", "target_kind", "target_id", "x_m", "y_m", "yaw_rad")
+MODES_HEADER = ("stamp_ns", "robot", "mode")
+
+
+class RunFolderError(ValueError):
+    """The run folder is missing or malformed; the message is one line naming the file."""
+
+
+@dataclass(frozen=True)
+class Observations:
+    """Relative observations published by the agents (one row each of ``observations.csv``).
+    ``stamp_s`` simulation seconds; ``target_id`` is a robot id when ``is_robot``,
+    else a landmark tag id."""
+
+    stamp_s: F64
+    observer: NDArray[np.int64]
+    is_robot: NDArray[np.bool_]
+    target_id: NDArray[np.int64]
+
+    @staticmethod
+    def empty() -> Observations:
+        return Observations(np.zeros(0), np.zeros(0, np.int64), np.zeros(0, bool), np.zeros(0, np.int64))
+
+
+@dataclass(frozen=True)
+class ModeSample:
+    """One row of ``modes.csv``: robot ``robot`` was in ``mode`` at ``stamp_s`` (sim seconds)."""
+
+    stamp_s: float
+    robot: int
+    mode: str
+
+
+@dataclass
+class RunData:
+    """A loaded run folder.  Trajectories are in the map frame; ``None`` means the file
+    is missing or holds no pose."""
+
+    path: Path
+    info: dict[str, Any]
+    robots: tuple[int, ...]
+    truth: dict[int, PoseTrajectory3D | None]
+    odom: dict[int, PoseTrajectory3D | None]
+    fused: dict[int, PoseTrajectory3D | None]
+    observations: Observations
+    modes: list[ModeSample]
+    warnings: list[str] = field(default_factory=list)
+
+    def estimate(self, kind: str, robot: int) -> PoseTrajectory3D | None:
+        """The ``kind`` ("fused"/"odom") trajectory of ``robot``."""
+        table = self.fused if kind == "fused" else self.odom
+        return table.get(robot)
+
+
+def read_tum(path: Path) -> PoseTrajectory3D | None:
+    """A TUM trajectory (``t x y z qx qy qz qw``, seconds/metres) read by evo, or
+    ``None`` if the file is missing or has no pose line.  Raises
+    :class:`RunFolderError` on a malformed file."""
+    if not path.is_file():
+        return None
+    try:
+        text = path.read_text()
+    except OSError as exc:
+        raise RunFolderError(f"cannot read {path}: {exc.strerror}") from None
+    # evo refuses empty files; an empty fused file is a legal "never localised"
+    if not any(line.strip() and not line.lstrip().startswith("#") for line in text.splitlines()):
+        return None
+    try:
+        traj = file_interface.read_tum_trajectory_file(str(path))
+    except (EvoException, ValueError) as exc:
+        raise RunFolderError(f"{path}: not a TUM trajectory ({exc})") from None
+    if not np.all(np.isfinite(traj.positions_xyz)) or not np.all(np.isfinite(traj.timestamps)):
+        raise RunFolderError(f"{path}: non-finite value in a pose")
+    if np.any(np.diff(traj.timestamps) < 0):
+        # evo's association assumes sorted stamps; sorting keeps a hand-made file usable
+        order = np.argsort(traj.timestamps, kind="stable")
+        traj.reduce_to_ids(order)
+    return traj
+
+
+def _read_csv(path: Path, header: tuple[str, ...], warnings: list[str]) -> list[dict[str, str]]:
+    if not path.is_file():
+        warnings.append(f"{path.name} is missing")
+        return []
+    try:
+        with path.open(newline="") as f:
+            reader = csv.DictReader(f)
+            fields = tuple(reader.fieldnames or ())
+            if fields[: len(header)] != header:
+                raise RunFolderError(f"{path}: header must start with {','.join(header)}, got {','.join(fields)}")
+            return list(reader)
+    except OSError as exc:
+        raise RunFolderError(f"cannot read {path}: {exc.strerror}") from None
+
+
+def _int(value: str, path: Path, line: int, name: str) -> int:
+    try:
+        return int(value)
+    except (TypeError, ValueError):
+        raise RunFolderError(f"{path}:{line}: {name} must be an integer, got {value!r}") from None
+
+
+def read_observations(path: Path, warnings: list[str]) -> Observations:
+    """``observations.csv`` (header :data:`OBS_HEADER`); only who saw whom and when is kept."""
+    rows = _read_csv(path, OBS_HEADER, warnings)
+    if not rows:
+        return Observations.empty()
+    stamps, observers, robot, target = [], [], [], []
+    for i, r in enumerate(rows, start=2):
+        stamps.append(_int(r["stamp_ns"], path, i, "stamp_ns") / 1e9)
+        observers.append(_int(r["observer"], path, i, "observer"))
+        kind = (r["target_kind"] or "").strip()
+        if kind not in ("robot", "landmark"):
+            raise RunFolderError(f"{path}:{i}: target_kind must be robot or landmark, got {kind!r}")
+        robot.append(kind == "robot")
+        target.append(_int(r["target_id"], path, i, "target_id"))
+    return Observations(np.array(stamps, float), np.array(observers, np.int64), np.array(robot, bool),
+                        np.array(target, np.int64))
+
+
+def read_modes(path: Path, warnings: list[str]) -> list[ModeSample]:
+    """``modes.csv`` (header :data:`MODES_HEADER`), sorted by time."""
+    out = []
+    for i, r in enumerate(_read_csv(path, MODES_HEADER, warnings), start=2):
+        out.append(ModeSample(_int(r["stamp_ns"], path, i, "stamp_ns") / 1e9, _int(r["robot"], path, i, "robot"),
+                              (r["mode"] or "").strip()))
+    return sorted(out, key=lambda s: (s.robot, s.stamp_s))
+
+
+def load_run(run_dir: Path) -> RunData:
+    """Read a run folder.  Raises :class:`RunFolderError` if it is not a directory, has
+    no readable ``run.json`` with a ``robots`` list, or holds a malformed file.  Missing
+    optional inputs (a robot's trajectories, the CSV files) become warnings."""
+    run_dir = Path(run_dir)
+    if not run_dir.is_dir():
+        raise RunFolderError(f"{run_dir} is not a run folder (no such directory)")
+    info_path = run_dir / "run.json"
+    if not info_path.is_file():
+        raise RunFolderError(f"{run_dir} is not a run folder (no run.json)")
+    try:
+        info = json.loads(info_path.read_text())
+    except (OSError, ValueError) as exc:
+        raise RunFolderError(f"{info_path}: cannot be parsed ({exc})") from None
+    if not isinstance(info, dict):
+        raise RunFolderError(f"{info_path}: must hold a JSON object")
+    robots = info.get("robots")
+    if not isinstance(robots, list) or not all(isinstance(r, int) and not isinstance(r, bool) for r in robots):
+        raise RunFolderError(f"{info_path}: 'robots' must be a list of robot ids")
+    warnings: list[str] = []
+    traj_dir = run_dir / "trajectories"
+    tables: dict[str, dict[int, PoseTrajectory3D | None]] = {"truth": {}, "odom": {}, "fused": {}}
+    for k in robots:
+        for kind, table in tables.items():
+            table[k] = read_tum(traj_dir / f"{kind}_{k}.tum")
+            if table[k] is None and kind != "fused":
+                warnings.append(f"robot {k}: no {kind} trajectory")
+    return RunData(
+        path=run_dir, info=info, robots=tuple(robots), truth=tables["truth"], odom=tables["odom"],
+        fused=tables["fused"], observations=read_observations(run_dir / "observations.csv", warnings),
+        modes=read_modes(run_dir / "modes.csv", warnings), warnings=warnings,
+    )

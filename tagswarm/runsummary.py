@@ -1,0 +1,111 @@
+"""Behaviour and cost of a run for :mod:`tagswarm.metrics`: the agents' counters and
+the world's rendered frames from ``run.json``, time per behaviour mode from
+``modes.csv``, and the real-time factor.
+
+Pure code; times are simulation seconds except ``wall_time_s``.  Values that are
+missing or of the wrong type in ``run.json`` become ``None`` (never raised): a run
+that crashed early still gets its metrics.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from typing import Any
+
+from tagswarm.runfolder import ModeSample, RunData
+
+AGENT_COUNTERS = ("fixes", "searches", "lost_events", "frames_processed", "frames_skipped")
+"""Per-robot counters copied from the agent's status (``run.json`` ``counters["agent/<k>"]``)."""
+SWARM_COUNTERS = ("fixes", "searches", "lost_events")
+"""Counters summed over robots into ``swarm``."""
+
+
+def mode_durations(samples: list[ModeSample], end_s: float | None) -> dict[int, dict[str, float]]:
+    """Seconds per mode per robot: each sample's mode holds until that robot's next
+    sample; the last one until ``end_s`` (nothing if ``end_s`` is ``None`` or earlier)."""
+    by_robot: dict[int, list[ModeSample]] = {}
+    for s in samples:
+        by_robot.setdefault(s.robot, []).append(s)
+    out: dict[int, dict[str, float]] = {}
+    for rid, rows in by_robot.items():
+        rows = sorted(rows, key=lambda s: s.stamp_s)
+        acc: dict[str, float] = {}
+        for cur, nxt in zip(rows, [*rows[1:], None], strict=True):
+            stop = nxt.stamp_s if nxt is not None else (end_s if end_s is not None else cur.stamp_s)
+            acc[cur.mode] = acc.get(cur.mode, 0.0) + max(0.0, stop - cur.stamp_s)
+        out[rid] = acc
+    return out
+
+
+def _num(value: Any) -> float | None:
+    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
+        return None
+    return float(value)
+
+
+def _dict(value: Any) -> dict[str, Any]:
+    return value if isinstance(value, dict) else {}
+
+
+def _counter(counters: dict[str, Any], name: str) -> int | None:
+    v = counters.get(name)
+    return int(v) if isinstance(v, int | float) and not isinstance(v, bool) else None
+
+
+def _sum(values: list[int | None]) -> int | None:
+    known = [v for v in values if v is not None]
+    return sum(known) if known else None
+
+
+def robot_behaviour(run: RunData, warnings: list[str]) -> dict[int, dict[str, Any]]:
+    """Per robot: :data:`AGENT_COUNTERS` (``None`` each if the agent reported none),
+    ``mode_time_s`` ``{mode: seconds}`` and ``time_lost_s``.  The last mode sample of
+    a robot holds until the end of the recorded truth (latest truth stamp of any
+    robot).  Without any mode sample a note goes to ``warnings``."""
+    counters = _dict(run.info.get("counters"))
+    truth_ends = [float(t.timestamps[-1]) for t in run.truth.values() if t is not None]
+    durations = mode_durations(run.modes, max(truth_ends) if truth_ends else None)
+    out: dict[int, dict[str, Any]] = {}
+    for k in run.robots:
+        agent = _dict(counters.get(f"agent/{k}"))
+        # agents report a Counter: a name it never incremented is absent, i.e. zero
+        r: dict[str, Any] = {name: _counter(agent, name) if name in agent or not agent else 0
+                             for name in AGENT_COUNTERS}
+        modes = durations.get(k, {})
+        r["mode_time_s"] = dict(sorted(modes.items()))
+        r["time_lost_s"] = float(modes.get("lost", 0.0))
+        out[k] = r
+    if not run.modes:
+        warnings.append("no mode samples: time_lost_s is 0")
+    return out
+
+
+def swarm_behaviour(robots: Sequence[int], per_robot: dict[int, dict[str, Any]]) -> dict[str, Any]:
+    """:data:`SWARM_COUNTERS` summed over ``robots`` (``None`` if none reported), and
+    ``mode_time_s`` / ``time_lost_s`` summed over them, from :func:`robot_behaviour`."""
+    out: dict[str, Any] = {name: _sum([per_robot[k][name] for k in robots]) for name in SWARM_COUNTERS}
+    total_modes: dict[str, float] = {}
+    for k in robots:
+        for mode, secs in per_robot[k]["mode_time_s"].items():
+            total_modes[mode] = total_modes.get(mode, 0.0) + secs
+    out["mode_time_s"] = dict(sorted(total_modes.items()))
+    out["time_lost_s"] = float(total_modes.get("lost", 0.0))
+    return out
+
+
+def cost(run: RunData, per_robot: dict[int, dict[str, Any]]) -> dict[str, Any]:
+    """``metrics.json`` ``cost``: wall and sim time (s), real-time factor (sim/wall,
+    ``None`` if wall time is 0 or unknown), frames rendered (world total and per
+    robot) and frames processed/skipped (sums over the agents, from :func:`robot_behaviour`)."""
+    sim_s, wall_s = _num(run.info.get("sim_time_s")), _num(run.info.get("wall_time_s"))
+    rendered = _counter(_dict(_dict(run.info.get("counters")).get("world")), "frames_rendered")
+    return {
+        "wall_time_s": wall_s,
+        "sim_time_s": sim_s,
+        "real_time_factor": sim_s / wall_s if sim_s is not None and wall_s else None,
+        "frames_rendered": rendered,
+        "frames_rendered_per_robot": rendered / len(run.robots) if rendered is not None and run.robots else None,
+        "frames_processed": _sum([per_robot[k]["frames_processed"] for k in run.robots]),
+        "frames_skipped": _sum([per_robot[k]["frames_skipped"] for k in run.robots]),
+    }

@@ -336,7 +336,7 @@ def test_planar_jacobian_and_mirror() -> None:
         assert ev is not None
         r, jac = ev
         # residuals: the corners projected with OpenCV at T_base_target = planar.matrix(p)
-        t_bt = planar.matrix(*p, 0.0)
+        t_bt = planar.matrix(p[0], p[1], p[2], 0.0)
         proj = [cv2.projectPoints(o, cv2.Rodrigues((tcb @ t_bt)[:3, :3])[0], (tcb @ t_bt)[:3, 3], k, None)[0]
                 for k, tcb, o, _ in views]
         np.testing.assert_allclose(r, np.concatenate(proj).ravel() - np.concatenate([v[3] for v in views]).ravel(),
@@ -353,10 +353,11 @@ def test_planar_jacobian_and_mirror() -> None:
     p = np.array([3.0, 0.4, math.pi + 0.3])
     m = planar.mirror(p, geom.centre, geom.normal, np.zeros(2))
     assert m is not None
-    c0, c1 = planar.matrix(*p, 0.0) @ np.append(geom.centre, 1), planar.matrix(*m, 0.0) @ np.append(geom.centre, 1)
+    t0, t1 = planar.matrix(p[0], p[1], p[2], 0.0), planar.matrix(*m, 0.0)
+    c0, c1 = t0 @ np.append(geom.centre, 1), t1 @ np.append(geom.centre, 1)
     np.testing.assert_allclose(c0, c1, atol=1e-12)
     sight = math.atan2(-c0[1], -c0[0])
-    n0, n1 = planar.matrix(*p, 0.0)[:3, :3] @ geom.normal, planar.matrix(*m, 0.0)[:3, :3] @ geom.normal
+    n0, n1 = t0[:3, :3] @ geom.normal, t1[:3, :3] @ geom.normal
     assert wrap_angle(math.atan2(n0[1], n0[0]) - sight) == pytest.approx(-wrap_angle(math.atan2(n1[1], n1[0]) - sight))
     top = est._geom[S.tag_ids(1)[tags.Face.TOP]]
     assert planar.mirror(p, top.centre, top.normal, np.zeros(2)) is None

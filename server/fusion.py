@@ -85,6 +85,30 @@ def _key(rid: int, chain: int, index: int) -> int:
     return int(gtsam.symbol("x", (rid << 40) | (chain << 24) | index))
 
 
+@dataclass
+class _Candidate:
+    """One stitched placement of a not-yet-placed robot: when, where its odometry
+    origin would sit in the map, how uncertain (trace), and the measurement itself
+    (``(observer, target, rel, cov)`` for a robot pair, ``(pose, cov_map)`` for a
+    landmark) so the chosen one can become the robot's first factor."""
+
+    stamp_ns: int
+    origin: Pose2
+    trace: float
+    meas: tuple  # type: ignore[type-arg]
+
+
+@dataclass
+class _Placement:
+    """The outcome of :meth:`Fusion._initial_pose`: the start pose now, the most
+    certain agreeing candidate, and whether the triggering measurement agreed."""
+
+    pose: Pose2
+    best: _Candidate
+    trigger: _Candidate
+    trigger_agrees: bool
+
+
 def odom_increment_cov(delta: Pose2, p: FusionParams) -> Cov:
     """(3, 3) covariance of an odometry increment ``delta`` (in the start frame)."""
     ds = math.hypot(delta[0], delta[1])
@@ -147,7 +171,7 @@ class Fusion:
         self.watermark_ns = -1
         self.updates = 0
         self._next_cov_ns = 0
-        self._init: dict[int, list[tuple[int, Pose2, float]]] = {}
+        self._init: dict[int, list[_Candidate]] = {}
 
     # ------------------------------------------------------------------ input
     def _push(self, stamp_ns: int, kind: Literal["odom", "obs", "landmark"], data: tuple) -> None:  # type: ignore[type-arg]
@@ -308,6 +332,7 @@ class Fusion:
                 return
         # the paper's stitching places a robot seen for the first time; one observation can be a
         # flipped single-tag pose, so wait for several that agree and start from the most certain
+        meas: list[tuple[int, int, Pose2, Cov]] = [(observer, target, rel, tangent_cov(rel, cov))]
         if po is None or pg is None:
             new = observer if po is None else target
             placed = stitch([Edge(observer, target, rel, cov)], target if po is None else observer,
@@ -316,47 +341,86 @@ class Fusion:
             # rank candidates by the position uncertainty they give the new robot: placing the
             # observer goes through the inverse, where the yaw error is levered by the range
             spread = inverse_cov(rel, cov) if po is None else cov
-            start = self._initial_pose(new, stamp_ns, placed, odom_new, float(spread[0, 0] + spread[1, 1]))
-            if start is None:
+            pl = self._initial_pose(new, stamp_ns, placed, odom_new, float(spread[0, 0] + spread[1, 1]),
+                                    (observer, target, rel, cov))
+            if pl is None:
                 return
             if po is None:
-                po = start
+                po = pl.pose
             else:
-                pg = start
+                pg = pl.pose
+            assert po is not None and pg is not None
+            meas = self._first_factors(new, pl, stamp_ns, {observer: (po, oo), target: (pg, go)}, meas)
         assert po is not None and pg is not None
-        ko, do, co = self._anchor(observer, stamp_ns, oo, po)
-        kg, dg, cg = self._anchor(target, stamp_ns, go, pg)
-        # the measurement between the two keyframes: observer's motion since its keyframe, the
-        # observation, then back along the target's motion since its keyframe
-        z = se2_compose(se2_compose(do, rel), se2_inverse(dg))
-        self._factors.add(gtsam.BetweenFactorPose2(ko, kg, gtsam.Pose2(*z),
-                                                   self._robust(tangent_cov(rel, cov) + co + cg)))
+        anchors = {observer: self._anchor(observer, stamp_ns, oo, po), target: self._anchor(target, stamp_ns, go, pg)}
+        for a, b, m_rel, m_cov in meas:
+            for rid in (a, b):
+                if rid not in anchors:  # the robot that saw (or was seen by) the new one in the chosen candidate
+                    r_odom = self._odom_at(rid, stamp_ns)
+                    r = self.robots[rid]
+                    assert r_odom is not None and r.estimate is not None
+                    anchors[rid] = self._anchor(rid, stamp_ns, r_odom,
+                                                se2_compose(r.estimate, se2_between(r.kf_odom, r_odom)))
+            (ka, da, ca), (kb, db, cb) = anchors[a], anchors[b]
+            # the measurement between the two keyframes: observer's motion since its keyframe, the
+            # observation, then back along the target's motion since its keyframe
+            z = se2_compose(se2_compose(da, m_rel), se2_inverse(db))
+            self._factors.add(gtsam.BetweenFactorPose2(ka, kb, gtsam.Pose2(*z), self._robust(m_cov + ca + cb)))
+        self.counters["accepted_observations"] += 1
         o.last_fix_ns = g.last_fix_ns = stamp_ns
         self.edges[(observer, target)] = stamp_ns
         o.accepted += 1
         g.accepted += 1
-        self.counters["accepted_observations"] += 1
 
-    def _initial_pose(self, rid: int, stamp_ns: int, placed: Pose2, odom_pose: Pose2, trace: float) -> Pose2 | None:
+    def _first_factors(self, new: int, pl: _Placement, stamp_ns: int, now: dict[int, tuple[Pose2, Pose2]],
+                       meas: list[tuple[int, int, Pose2, Cov]]) -> list[tuple[int, int, Pose2, Cov]]:
+        """The measurements that tie a just-placed robot into the graph (``now``: map pose
+        and odometry pose at ``stamp_ns`` of the robots of the triggering observation).
+        The start pose comes from the most certain agreeing candidate, so that candidate,
+        carried forward to now by odometry, becomes a factor; the triggering observation
+        joins it only if it agreed.  (Adding the trigger alone let one disagreeing
+        observation, e.g. a frontal face's yaw levered by the range, set the pose.)"""
+        out = list(meas) if pl.trigger_agrees else []
+        if not pl.trigger_agrees:
+            self.counters["init_trigger_dropped"] += 1
+        if pl.best is pl.trigger:
+            return out
+        b_obs, b_tgt, b_rel, b_cov = pl.best.meas
+        poses = {rid: pose for rid, (pose, _) in now.items()}
+        growth = np.zeros((3, 3))
+        for rid in (b_obs, b_tgt):
+            then, odom_now = self._odom_at(rid, pl.best.stamp_ns), self._odom_at(rid, stamp_ns)
+            if then is not None and odom_now is not None:
+                growth += odom_increment_cov(se2_between(then, odom_now), self.p)
+            if rid not in poses:
+                r = self.robots[rid]
+                if r.estimate is None or odom_now is None:
+                    return list(meas)  # cannot carry the candidate forward: fall back to the trigger
+                poses[rid] = se2_compose(r.estimate, se2_between(r.kf_odom, odom_now))
+        out.append((b_obs, b_tgt, se2_between(poses[b_obs], poses[b_tgt]), tangent_cov(b_rel, b_cov) + growth))
+        return out
+
+    def _initial_pose(self, rid: int, stamp_ns: int, placed: Pose2, odom_pose: Pose2, trace: float,
+                      meas: tuple) -> _Placement | None:  # type: ignore[type-arg]
         """Collect stitched placements of an unplaced robot; once ``init_min`` recent
         ones agree, return the most certain one carried forward by odometry to now."""
-        cands = [c for c in self._init.setdefault(rid, []) if stamp_ns - c[0] < self.p.init_window_s * 1e9]
+        cands = [c for c in self._init.setdefault(rid, []) if stamp_ns - c.stamp_ns < self.p.init_window_s * 1e9]
         # express every candidate as the pose of the odometry origin, so they compare across time
-        origin = se2_compose(placed, se2_inverse(odom_pose))
-        cands.append((stamp_ns, origin, trace))
+        trigger = _Candidate(stamp_ns, se2_compose(placed, se2_inverse(odom_pose)), trace, meas)
+        cands.append(trigger)
         self._init[rid] = cands
         if len(cands) < self.p.init_min:
             self.counters["deferred_init"] += 1
             return None
-        med = np.median(np.array([c[1][:2] for c in cands]), axis=0)
-        agree = [c for c in cands if math.dist(c[1][:2], med) < self.p.init_agree_m]
+        med = np.median(np.array([c.origin[:2] for c in cands]), axis=0)
+        agree = [c for c in cands if math.dist(c.origin[:2], med) < self.p.init_agree_m]
         if len(agree) < self.p.init_min:
             self.counters["deferred_init"] += 1
             return None
-        best = min(agree, key=lambda c: c[2])
+        best = min(agree, key=lambda c: c.trace)
         self.counters["init_discarded"] += len(cands) - len(agree)
         del self._init[rid]
-        return se2_compose(best[1], odom_pose)
+        return _Placement(se2_compose(best.origin, odom_pose), best, trigger, any(c is trigger for c in agree))
 
     def _anchor(self, rid: int, stamp_ns: int, odom_pose: Pose2, guess: Pose2) -> tuple[int, Pose2, Cov]:
         """Keyframe an observation at ``stamp_ns`` attaches to: the robot's latest
@@ -394,13 +458,26 @@ class Fusion:
             if self._gate(cur, pose, cov_map + r.cov) > self.p.chi2_gate:
                 self.counters["rejected_gate"] += 1
                 return
-        else:
-            start = self._initial_pose(observer, stamp_ns, pose, oo, float(cov_map[0, 0] + cov_map[1, 1]))
-            if start is None:
+        priors = [(pose, cov_map)]
+        if r.estimate is None:
+            pl = self._initial_pose(observer, stamp_ns, pose, oo, float(cov_map[0, 0] + cov_map[1, 1]),
+                                    (pose, cov_map))
+            if pl is None:
                 return
-            initial = start
+            initial = pl.pose
+            # as for robots (see _first_factors): the chosen candidate carried forward, and the
+            # trigger only if it agreed
+            priors = priors if pl.trigger_agrees else []
+            if pl.best is not pl.trigger:
+                then = self._odom_at(observer, pl.best.stamp_ns)
+                growth = np.zeros((3, 3)) if then is None else odom_increment_cov(se2_between(then, oo), self.p)
+                priors.append((pl.pose, pl.best.meas[1] + growth))
+            if not pl.trigger_agrees:
+                self.counters["init_trigger_dropped"] += 1
         key = self._new_keyframe(observer, stamp_ns, oo, initial=initial)
-        self._factors.add(gtsam.PriorFactorPose2(key, gtsam.Pose2(*pose), self._robust(cov_map + np.eye(3) * 1e-8)))
+        for prior, prior_cov in priors:
+            self._factors.add(gtsam.PriorFactorPose2(key, gtsam.Pose2(*prior),
+                                                     self._robust(prior_cov + np.eye(3) * 1e-8)))
         r.last_fix_ns = stamp_ns
         self.counters["accepted_landmarks"] += 1
 

@@ -133,7 +133,11 @@ def test_server_killed_mid_run_resumes_from_its_journal(tmp_path: Path) -> None:
         snapshot = tmp_path / "at_kill.journal"  # what the new server will find (it appends to the original)
         shutil.copyfile(journal, snapshot)
 
-        # ---- the swarm keeps running on odometry: the world ticks on, agents keep processing frames
+        # ---- the swarm keeps running on odometry: the world ticks on, agents keep processing frames.
+        # Counted from when every agent has noticed the loss: until then a sighting (or a correction
+        # in flight) is still a fix and may reset its odometry-only count
+        until(lambda: all(agents[r].counters.get("server_alive") == 0 and agents[r].stamp_ns > kill_ns
+                          for r in ROBOTS), 30, "agents never noticed the server was gone")
         agents_at_kill = {r: dict(a.counters) for r, a in agents.items()}
         for r in ROBOTS:
             modes[r].clear()  # from here on: the modes seen during the outage

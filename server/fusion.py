@@ -28,40 +28,13 @@ from typing import Literal
 
 import gtsam
 import numpy as np
-from numpy.typing import NDArray
 
 from protocol.geometry import Pose2, se2_between, se2_compose, se2_inverse
+from server.noise import CHI2_3DOF_999, Cov, FusionParams, inverse_cov, odom_increment_cov, tangent_cov
+from server.placement import Candidate, Placement, choose
 from server.stitch import Edge, stitch
 
-Cov = NDArray[np.float64]
-CHI2_3DOF_999 = 16.27
-
-
-@dataclass(frozen=True)
-class FusionParams:
-    """Tuning of the fusion; defaults suit the shipped scenarios."""
-
-    wheel_base_m: float = 0.22
-    odom_wheel_sigma: float = 0.02  # sqrt(m), as the agents' odometry model
-    odom_scale_sigma: float = 0.02  # extra per-metre systematic share (wheel radius/base miscalibration)
-    kf_dist_m: float = 0.2
-    kf_angle_rad: float = 0.2
-    kf_max_interval_s: float = 2.0
-    lag_s: float = 30.0
-    huber_k: float = 1.345
-    chi2_gate: float = CHI2_3DOF_999
-    gate_floor_m: float = 0.05  # gate tolerance never below this (estimates are never perfect)
-    gate_after: int = 8  # observations a robot needs in the graph before the chi² gate applies to it
-    origin_sigma: float = 1e-4
-    odom_buffer: int = 4096
-    cov_period_s: float = 1.0  # marginal covariances are recomputed at most this often (simulated time)
-    init_min: int = 3  # agreeing observations needed to place a robot for the first time
-    init_agree_m: float = 0.15
-    init_window_s: float = 3.0
-    # consecutive frames of one pair share their errors (same viewpoint, same tag pixels): fusing every
-    # frame buys little accuracy and costs graph size, so each (observer, target) pair is thinned to this
-    obs_min_interval_s: float = 0.3
-
+__all__ = ["CHI2_3DOF_999", "Cov", "Fusion", "FusionParams", "inverse_cov", "odom_increment_cov", "tangent_cov"]
 
 @dataclass
 class _Robot:
@@ -83,58 +56,6 @@ class _Robot:
 
 def _key(rid: int, chain: int, index: int) -> int:
     return int(gtsam.symbol("x", (rid << 40) | (chain << 24) | index))
-
-
-@dataclass
-class _Candidate:
-    """One stitched placement of a not-yet-placed robot: when, where its odometry
-    origin would sit in the map, how uncertain (trace), and the measurement itself
-    (``(observer, target, rel, cov)`` for a robot pair, ``(pose, cov_map)`` for a
-    landmark) so the chosen one can become the robot's first factor."""
-
-    stamp_ns: int
-    origin: Pose2
-    trace: float
-    meas: tuple  # type: ignore[type-arg]
-
-
-@dataclass
-class _Placement:
-    """The outcome of :meth:`Fusion._initial_pose`: the start pose now, the most
-    certain agreeing candidate, and whether the triggering measurement agreed."""
-
-    pose: Pose2
-    best: _Candidate
-    trigger: _Candidate
-    trigger_agrees: bool
-
-
-def odom_increment_cov(delta: Pose2, p: FusionParams) -> Cov:
-    """(3, 3) covariance of an odometry increment ``delta`` (in the start frame)."""
-    ds = math.hypot(delta[0], delta[1])
-    dth = abs(delta[2])
-    b = p.wheel_base_m
-    wheel = p.odom_wheel_sigma**2 * (ds + dth * b / 2)  # variance per wheel (sum of |dl|, |dr| / 2)
-    var_s = wheel / 2 + (p.odom_scale_sigma * ds) ** 2
-    var_th = 2 * wheel / b**2 + (p.odom_scale_sigma * (dth + ds / b)) ** 2
-    var_lat = var_th * ds**2 / 4
-    return np.diag([var_s + 1e-8, var_lat + 1e-8, var_th + 1e-8])
-
-
-def tangent_cov(rel: Pose2, cov: Cov) -> Cov:
-    """The agents' (3, 3) covariance of (x, y, yaw) — translation errors along the
-    observer's axes — expressed in GTSAM's tangent space of the Pose2 ``rel``, whose
-    translation part lives in rel's own (the target's) axes."""
-    c, s = math.cos(rel[2]), math.sin(rel[2])
-    j = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
-    return np.asarray(j @ cov @ j.T)
-
-
-def inverse_cov(rel: Pose2, cov: Cov) -> Cov:
-    """(3, 3) covariance of rel⁻¹ given that of ``rel`` (first order)."""
-    ci, si = math.cos(rel[2]), math.sin(rel[2])
-    j = -np.array([[ci, si, rel[0] * si - rel[1] * ci], [-si, ci, rel[0] * ci + rel[1] * si], [0, 0, 1.0]])
-    return np.asarray(j @ cov @ j.T)
 
 
 @dataclass(order=True)
@@ -171,7 +92,7 @@ class Fusion:
         self.watermark_ns = -1
         self.updates = 0
         self._next_cov_ns = 0
-        self._init: dict[int, list[_Candidate]] = {}
+        self._init: dict[int, list[Candidate]] = {}
 
     # ------------------------------------------------------------------ input
     def _push(self, stamp_ns: int, kind: Literal["odom", "obs", "landmark"], data: tuple) -> None:  # type: ignore[type-arg]
@@ -372,7 +293,7 @@ class Fusion:
         o.accepted += 1
         g.accepted += 1
 
-    def _first_factors(self, new: int, pl: _Placement, stamp_ns: int, now: dict[int, tuple[Pose2, Pose2]],
+    def _first_factors(self, new: int, pl: Placement, stamp_ns: int, now: dict[int, tuple[Pose2, Pose2]],
                        meas: list[tuple[int, int, Pose2, Cov]]) -> list[tuple[int, int, Pose2, Cov]]:
         """The measurements that tie a just-placed robot into the graph (``now``: map pose
         and odometry pose at ``stamp_ns`` of the robots of the triggering observation).
@@ -401,26 +322,22 @@ class Fusion:
         return out
 
     def _initial_pose(self, rid: int, stamp_ns: int, placed: Pose2, odom_pose: Pose2, trace: float,
-                      meas: tuple) -> _Placement | None:  # type: ignore[type-arg]
+                      meas: tuple) -> Placement | None:  # type: ignore[type-arg]
         """Collect stitched placements of an unplaced robot; once ``init_min`` recent
         ones agree, return the most certain one carried forward by odometry to now."""
         cands = [c for c in self._init.setdefault(rid, []) if stamp_ns - c.stamp_ns < self.p.init_window_s * 1e9]
         # express every candidate as the pose of the odometry origin, so they compare across time
-        trigger = _Candidate(stamp_ns, se2_compose(placed, se2_inverse(odom_pose)), trace, meas)
+        trigger = Candidate(stamp_ns, se2_compose(placed, se2_inverse(odom_pose)), trace, meas)
         cands.append(trigger)
         self._init[rid] = cands
-        if len(cands) < self.p.init_min:
+        chosen = choose(cands, self.p)
+        if chosen is None:
             self.counters["deferred_init"] += 1
             return None
-        med = np.median(np.array([c.origin[:2] for c in cands]), axis=0)
-        agree = [c for c in cands if math.dist(c.origin[:2], med) < self.p.init_agree_m]
-        if len(agree) < self.p.init_min:
-            self.counters["deferred_init"] += 1
-            return None
-        best = min(agree, key=lambda c: c.trace)
+        best, agree = chosen
         self.counters["init_discarded"] += len(cands) - len(agree)
         del self._init[rid]
-        return _Placement(se2_compose(best.origin, odom_pose), best, trigger, any(c is trigger for c in agree))
+        return Placement(se2_compose(best.origin, odom_pose), best, trigger, any(c is trigger for c in agree))
 
     def _anchor(self, rid: int, stamp_ns: int, odom_pose: Pose2, guess: Pose2) -> tuple[int, Pose2, Cov]:
         """Keyframe an observation at ``stamp_ns`` attaches to: the robot's latest

@@ -1,0 +1,69 @@
+"""Noise models of the fusion (pure maths): its tuning, the odometry increment
+covariance, and the observation covariance moved into GTSAM's tangent space."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from protocol.geometry import Pose2
+
+Cov = NDArray[np.float64]
+CHI2_3DOF_999 = 16.27
+
+
+@dataclass(frozen=True)
+class FusionParams:
+    """Tuning of the fusion; defaults suit the shipped scenarios."""
+
+    wheel_base_m: float = 0.22
+    odom_wheel_sigma: float = 0.02  # sqrt(m), as the agents' odometry model
+    odom_scale_sigma: float = 0.02  # extra per-metre systematic share (wheel radius/base miscalibration)
+    kf_dist_m: float = 0.2
+    kf_angle_rad: float = 0.2
+    kf_max_interval_s: float = 2.0
+    lag_s: float = 30.0
+    huber_k: float = 1.345
+    chi2_gate: float = CHI2_3DOF_999
+    gate_floor_m: float = 0.05  # gate tolerance never below this (estimates are never perfect)
+    gate_after: int = 8  # observations a robot needs in the graph before the chi² gate applies to it
+    origin_sigma: float = 1e-4
+    odom_buffer: int = 4096
+    cov_period_s: float = 1.0  # marginal covariances are recomputed at most this often (simulated time)
+    init_min: int = 3  # agreeing observations needed to place a robot for the first time
+    init_agree_m: float = 0.15
+    init_window_s: float = 3.0
+    # consecutive frames of one pair share their errors (same viewpoint, same tag pixels): fusing every
+    # frame buys little accuracy and costs graph size, so each (observer, target) pair is thinned to this
+    obs_min_interval_s: float = 0.3
+
+
+def odom_increment_cov(delta: Pose2, p: FusionParams) -> Cov:
+    """(3, 3) covariance of an odometry increment ``delta`` (in the start frame)."""
+    ds = math.hypot(delta[0], delta[1])
+    dth = abs(delta[2])
+    b = p.wheel_base_m
+    wheel = p.odom_wheel_sigma**2 * (ds + dth * b / 2)  # variance per wheel (sum of |dl|, |dr| / 2)
+    var_s = wheel / 2 + (p.odom_scale_sigma * ds) ** 2
+    var_th = 2 * wheel / b**2 + (p.odom_scale_sigma * (dth + ds / b)) ** 2
+    var_lat = var_th * ds**2 / 4
+    return np.diag([var_s + 1e-8, var_lat + 1e-8, var_th + 1e-8])
+
+
+def tangent_cov(rel: Pose2, cov: Cov) -> Cov:
+    """The agents' (3, 3) covariance of (x, y, yaw) — translation errors along the
+    observer's axes — expressed in GTSAM's tangent space of the Pose2 ``rel``, whose
+    translation part lives in rel's own (the target's) axes."""
+    c, s = math.cos(rel[2]), math.sin(rel[2])
+    j = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
+    return np.asarray(j @ cov @ j.T)
+
+
+def inverse_cov(rel: Pose2, cov: Cov) -> Cov:
+    """(3, 3) covariance of rel⁻¹ given that of ``rel`` (first order)."""
+    ci, si = math.cos(rel[2]), math.sin(rel[2])
+    j = -np.array([[ci, si, rel[0] * si - rel[1] * ci], [-si, ci, rel[0] * ci + rel[1] * si], [0, 0, 1.0]])
+    return np.asarray(j @ cov @ j.T)

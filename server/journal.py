@@ -12,19 +12,14 @@ up to 3e-7 m after 60 s of 16 robots, usually exactly 0).  Roster, origin, landm
 poses and fusion parameters come from the scenario; the header record stores
 them so that a journal is never replayed into a different map.
 
-File format (little endian)::
-
-    b"TSWJRNL1"                                   8-byte magic
-    [u32 length][u32 CRC32 of payload][payload]   one frame per record; payload is a
-    ...                                            msgpack-encoded tagged Struct (below)
-
-The first record is a :class:`Header`.  A crash can leave a torn last frame
-(power loss mid-write); a reader stops at the first frame that is short, too
-long, fails its CRC or does not decode, and :class:`Journal` truncates the file
-there before appending again.  Writes go to the OS at every :meth:`Journal.flush`
-(so a SIGKILLed server loses nothing it accepted); ``fsync`` (durability against
-power loss) is batched every ``sync_every`` records or ``sync_interval_s`` and
-runs in a thread of its own, so the server's loop never waits for the disk.
+The file format (magic, length + CRC32 framing, the record structs) and its
+reader live in :mod:`server.journal_format` and are re-exported here.  A crash can
+leave a torn last frame (power loss mid-write); reading stops at the first bad
+frame, and :class:`Journal` truncates the file there before appending again.
+Writes go to the OS at every :meth:`Journal.flush` (so a SIGKILLed server loses
+nothing it accepted); ``fsync`` (durability against power loss) is batched every
+``sync_every`` records or ``sync_interval_s`` and runs in a thread of its own, so
+the server's loop never waits for the disk.
 """
 
 from __future__ import annotations
@@ -33,96 +28,41 @@ import dataclasses
 import fcntl
 import logging
 import os
-import struct
 import threading
 import time
-import zlib
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
-from typing import Annotated, Any, Final, Literal
+from typing import Any
 
-import msgspec
 import numpy as np
 
 from server.fusion import Fusion
+from server.journal_format import (
+    MAGIC,
+    MAX_RECORD_BYTES,
+    VERSION,
+    Advance,
+    Header,
+    Observation,
+    Odometry,
+    Reader,
+    Record,
+    RobotId,
+    StampNs,
+    frame,
+    read_journal,
+)
+
+__all__ = [
+    "MAGIC", "MAX_RECORD_BYTES", "VERSION", "Advance", "Header", "Journal", "JournalError", "Observation",
+    "Odometry", "Reader", "Record", "RobotId", "StampNs", "apply", "frame", "header_for", "read_journal",
+]
 
 log = logging.getLogger("tagswarm.server.journal")
-
-MAGIC: Final = b"TSWJRNL1"
-VERSION: Final = 1
-_FRAME: Final = struct.Struct("<II")  # payload length in bytes, CRC32 of the payload
-MAX_RECORD_BYTES: Final = 1 << 20  # a header with a large roster fits; anything longer is corruption
-
-StampNs = Annotated[int, msgspec.Meta(ge=0)]
-RobotId = Annotated[int, msgspec.Meta(ge=0, le=100_000)]
-
-
-class Header(msgspec.Struct, frozen=True, kw_only=True, tag="header"):
-    """What the journal's records are valid for: the run id, the map (origin,
-    roster, landmark poses ``(x_m, y_m, yaw_rad)`` in the arena frame) and the
-    fusion parameters (``dataclasses.asdict(FusionParams)``)."""
-
-    version: int = VERSION
-    run: str
-    origin_id: int
-    robot_ids: tuple[int, ...]
-    landmarks: dict[int, tuple[float, float, float]]
-    params: dict[str, float]
-
-
-class Odometry(msgspec.Struct, frozen=True, kw_only=True, tag="odom"):
-    """Cumulative odometry of ``robot_id`` (base_link in its odom frame) at ``stamp_ns``."""
-
-    robot_id: RobotId
-    stamp_ns: StampNs
-    x_m: float
-    y_m: float
-    yaw_rad: float
-    distance_m: float
-
-
-class Observation(msgspec.Struct, frozen=True, kw_only=True, tag="obs"):
-    """Target (robot or landmark) in ``observer``'s base frame at ``stamp_ns``;
-    ``cov`` is the row-major (3, 3) covariance of (x_m, y_m, yaw_rad)."""
-
-    observer: RobotId
-    target_kind: Literal["robot", "landmark"]
-    target_id: int
-    stamp_ns: StampNs
-    x_m: float
-    y_m: float
-    yaw_rad: float
-    cov: Annotated[tuple[float, ...], msgspec.Meta(min_length=9, max_length=9)]
-
-
-class Advance(msgspec.Struct, frozen=True, kw_only=True, tag="advance"):
-    """``Fusion.advance(watermark_ns)`` was called here."""
-
-    watermark_ns: int
-
-
-Record = Header | Odometry | Observation | Advance
-
-
-def _enc_hook(obj: Any) -> Any:
-    # numpy scalars (from callers doing maths on poses) are stored as plain numbers
-    if isinstance(obj, np.floating | np.integer):
-        return obj.item()
-    raise NotImplementedError(f"cannot journal {type(obj).__name__}")
-
-
-_ENCODER: Final = msgspec.msgpack.Encoder(enc_hook=_enc_hook)
-_DECODER: Final = msgspec.msgpack.Decoder(Record)  # type: ignore[arg-type]
 
 
 class JournalError(ValueError):
     """The journal cannot be used (not a journal, or written for another map); one line."""
-
-
-def frame(record: Record) -> bytes:
-    """One record as it is stored: length, CRC32, msgpack payload."""
-    payload = _ENCODER.encode(record)
-    return _FRAME.pack(len(payload), zlib.crc32(payload)) + payload
 
 
 def apply(fusion: Fusion, record: Record) -> None:
@@ -140,67 +80,6 @@ def apply(fusion: Fusion, record: Record) -> None:
             fusion.add_landmark_observation(record.observer, record.target_id, record.stamp_ns, rel, cov)
     elif isinstance(record, Advance):
         fusion.advance(record.watermark_ns)
-
-
-class Reader:
-    """Iterates the records of a journal file, stopping at the first bad frame.
-
-    After iteration, ``valid_bytes`` is the length of the good prefix (magic
-    included) and ``problem`` says why reading stopped early (``None`` at a clean
-    end): ``"torn"`` (file ends inside a frame), ``"oversized"``, ``"crc"`` or
-    ``"malformed"`` (CRC fine but the payload is not a record).  ``bad_magic`` is
-    set if the file is not a journal at all (then nothing is yielded).
-    """
-
-    def __init__(self, path: str | os.PathLike[str]) -> None:
-        self.path = Path(path)
-        self.valid_bytes = 0
-        self.file_bytes = 0
-        self.problem: str | None = None
-        self.bad_magic = False
-
-    def __iter__(self) -> Iterator[Record]:
-        with open(self.path, "rb") as f:
-            self.file_bytes = os.fstat(f.fileno()).st_size
-            magic = f.read(len(MAGIC))
-            if magic != MAGIC:
-                # a file cut inside the magic is an empty journal, anything else is not ours
-                self.bad_magic = not MAGIC.startswith(magic)
-                self.problem = None if not magic else ("torn" if not self.bad_magic else "bad_magic")
-                return
-            self.valid_bytes = len(MAGIC)
-            while True:
-                head = f.read(_FRAME.size)
-                if not head:
-                    return
-                if len(head) < _FRAME.size:
-                    self.problem = "torn"
-                    return
-                length, crc = _FRAME.unpack(head)
-                if length > MAX_RECORD_BYTES:
-                    self.problem = "oversized"
-                    return
-                payload = f.read(length)
-                if len(payload) < length:
-                    self.problem = "torn"
-                    return
-                if zlib.crc32(payload) != crc:
-                    self.problem = "crc"
-                    return
-                try:
-                    record: Record = _DECODER.decode(payload)
-                except (msgspec.DecodeError, msgspec.ValidationError):
-                    self.problem = "malformed"
-                    return
-                self.valid_bytes += _FRAME.size + length
-                yield record
-
-
-def read_journal(path: str | os.PathLike[str]) -> tuple[list[Record], Reader]:
-    """Every good record of the journal at ``path`` (header first) and the reader
-    (for ``valid_bytes`` / ``problem``).  Never raises on bad content."""
-    reader = Reader(path)
-    return list(reader), reader
 
 
 def _mismatch(want: Header, got: Header) -> str | None:

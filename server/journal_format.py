@@ -1,0 +1,160 @@
+"""The journal's file format: record structs, framing and CRC, and a tolerant reader.
+
+Pure bytes-in/bytes-out (no fusion, no locking, no fsync): :mod:`server.journal`
+writes and replays through it, and tools (bench, tests) read journals with it.
+
+File format (little endian)::
+
+    b"TSWJRNL1"                                   8-byte magic
+    [u32 length][u32 CRC32 of payload][payload]   one frame per record; payload is a
+    ...                                            msgpack-encoded tagged Struct (below)
+
+The first record is a :class:`Header`.  A crash can leave a torn last frame
+(power loss mid-write); :class:`Reader` stops at the first frame that is short,
+too long, fails its CRC or does not decode, and reports how long the good prefix is.
+"""
+
+from __future__ import annotations
+
+import os
+import struct
+import zlib
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Annotated, Any, Final, Literal
+
+import msgspec
+import numpy as np
+
+MAGIC: Final = b"TSWJRNL1"
+VERSION: Final = 1
+_FRAME: Final = struct.Struct("<II")  # payload length in bytes, CRC32 of the payload
+MAX_RECORD_BYTES: Final = 1 << 20  # a header with a large roster fits; anything longer is corruption
+
+StampNs = Annotated[int, msgspec.Meta(ge=0)]
+RobotId = Annotated[int, msgspec.Meta(ge=0, le=100_000)]
+
+
+class Header(msgspec.Struct, frozen=True, kw_only=True, tag="header"):
+    """What the journal's records are valid for: the run id, the map (origin,
+    roster, landmark poses ``(x_m, y_m, yaw_rad)`` in the arena frame) and the
+    fusion parameters (``dataclasses.asdict(FusionParams)``)."""
+
+    version: int = VERSION
+    run: str
+    origin_id: int
+    robot_ids: tuple[int, ...]
+    landmarks: dict[int, tuple[float, float, float]]
+    params: dict[str, float]
+
+
+class Odometry(msgspec.Struct, frozen=True, kw_only=True, tag="odom"):
+    """Cumulative odometry of ``robot_id`` (base_link in its odom frame) at ``stamp_ns``."""
+
+    robot_id: RobotId
+    stamp_ns: StampNs
+    x_m: float
+    y_m: float
+    yaw_rad: float
+    distance_m: float
+
+
+class Observation(msgspec.Struct, frozen=True, kw_only=True, tag="obs"):
+    """Target (robot or landmark) in ``observer``'s base frame at ``stamp_ns``;
+    ``cov`` is the row-major (3, 3) covariance of (x_m, y_m, yaw_rad)."""
+
+    observer: RobotId
+    target_kind: Literal["robot", "landmark"]
+    target_id: int
+    stamp_ns: StampNs
+    x_m: float
+    y_m: float
+    yaw_rad: float
+    cov: Annotated[tuple[float, ...], msgspec.Meta(min_length=9, max_length=9)]
+
+
+class Advance(msgspec.Struct, frozen=True, kw_only=True, tag="advance"):
+    """``Fusion.advance(watermark_ns)`` was called here."""
+
+    watermark_ns: int
+
+
+Record = Header | Odometry | Observation | Advance
+
+
+def _enc_hook(obj: Any) -> Any:
+    # numpy scalars (from callers doing maths on poses) are stored as plain numbers
+    if isinstance(obj, np.floating | np.integer):
+        return obj.item()
+    raise NotImplementedError(f"cannot journal {type(obj).__name__}")
+
+
+_ENCODER: Final = msgspec.msgpack.Encoder(enc_hook=_enc_hook)
+_DECODER: Final = msgspec.msgpack.Decoder(Record)  # type: ignore[arg-type]
+
+
+def frame(record: Record) -> bytes:
+    """One record as it is stored: length, CRC32, msgpack payload."""
+    payload = _ENCODER.encode(record)
+    return _FRAME.pack(len(payload), zlib.crc32(payload)) + payload
+
+
+class Reader:
+    """Iterates the records of a journal file, stopping at the first bad frame.
+
+    After iteration, ``valid_bytes`` is the length of the good prefix (magic
+    included) and ``problem`` says why reading stopped early (``None`` at a clean
+    end): ``"torn"`` (file ends inside a frame), ``"oversized"``, ``"crc"`` or
+    ``"malformed"`` (CRC fine but the payload is not a record).  ``bad_magic`` is
+    set if the file is not a journal at all (then nothing is yielded).
+    """
+
+    def __init__(self, path: str | os.PathLike[str]) -> None:
+        self.path = Path(path)
+        self.valid_bytes = 0
+        self.file_bytes = 0
+        self.problem: str | None = None
+        self.bad_magic = False
+
+    def __iter__(self) -> Iterator[Record]:
+        with open(self.path, "rb") as f:
+            self.file_bytes = os.fstat(f.fileno()).st_size
+            magic = f.read(len(MAGIC))
+            if magic != MAGIC:
+                # a file cut inside the magic is an empty journal, anything else is not ours
+                self.bad_magic = not MAGIC.startswith(magic)
+                self.problem = None if not magic else ("torn" if not self.bad_magic else "bad_magic")
+                return
+            self.valid_bytes = len(MAGIC)
+            while True:
+                head = f.read(_FRAME.size)
+                if not head:
+                    return
+                if len(head) < _FRAME.size:
+                    self.problem = "torn"
+                    return
+                length, crc = _FRAME.unpack(head)
+                if length > MAX_RECORD_BYTES:
+                    self.problem = "oversized"
+                    return
+                payload = f.read(length)
+                if len(payload) < length:
+                    self.problem = "torn"
+                    return
+                if zlib.crc32(payload) != crc:
+                    self.problem = "crc"
+                    return
+                try:
+                    record: Record = _DECODER.decode(payload)
+                except (msgspec.DecodeError, msgspec.ValidationError):
+                    self.problem = "malformed"
+                    return
+                self.valid_bytes += _FRAME.size + length
+                yield record
+
+
+def read_journal(path: str | os.PathLike[str]) -> tuple[list[Record], Reader]:
+    """Every good record of the journal at ``path`` (header first) and the reader
+    (for ``valid_bytes`` / ``problem``).  Never raises on bad content."""
+    reader = Reader(path)
+    return list(reader), reader

@@ -96,6 +96,8 @@ def measure(robots: int, res: str, workers: int, seconds: float, warmup: float, 
     out = Path(tempfile.mkdtemp(prefix="tagswarm-speed-"))
     argv = [TAGSWARM, "up", "--clock", "realtime", "--listen", ep, "--run", run, "--out", str(out), "--no-live",
             "--no-report", "--robots", str(robots), "--duration", "100000", "--seed", "0",
+            # the paper scenario (robot 0 holds, the others patrol) on an even grid for any robot count
+            "--set", 'robots.placement="grid"',
             "--set", camera_override(w, h, hz), "--set", f"render.workers={workers}",
             "--set", f"clock.speed={speed}"]
     log = open((log_dir or out) / f"up_{robots}_{res}_{workers}.log", "w")
@@ -106,7 +108,7 @@ def measure(robots: int, res: str, workers: int, seconds: float, warmup: float, 
             images = bus.subscribe(keys.images(), capacity=1_000_000)
             corr = bus.subscribe(keys.correction(), capacity=1_000_000)
             status = bus.subscribe(keys.robot_status(), capacity=1_000_000)
-            if not bus.wait_for(lambda: len(ticks) > 0, 120):
+            if not bus.wait_for(lambda: len(ticks) > 0 or up.poll() is not None, 120) or up.poll() is not None:
                 raise RuntimeError(f"no ticks from {argv}; see {log.name}")
             deadline = time.monotonic() + 120
             # warm-up: every agent has reported and the world has run `warmup` wall seconds

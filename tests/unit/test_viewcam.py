@@ -66,7 +66,7 @@ def test_overlay_matches_the_detected_tag_corners(scene, x: float, y: float, yaw
 
 
 def test_tags_behind_the_camera_and_unknown_targets_are_not_drawn(scene) -> None:
-    s, r = scene
+    s, _renderer = scene
     cam = s.robot.cameras[0]
     frame = np.zeros((cam.height, cam.width), np.uint8)
     img = image_message(s, 0, cam, frame, seq=0, step=0, stamp_ns=1)

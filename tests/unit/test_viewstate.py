@@ -13,7 +13,7 @@ from protocol.geometry import se2_compose
 from protocol.keys import Keys
 from protocol.layout import arena_to_map, start_poses
 from protocol.scenario import load_scenario
-from tagswarm.viewstate import EDGE_TTL_NS, MAX_ROBOTS, ELLIPSE_SCALE_95, ViewState, covariance_ellipse
+from tagswarm.viewstate import EDGE_TTL_NS, ELLIPSE_SCALE_95, MAX_ROBOTS, ViewState, covariance_ellipse
 
 KEYS = Keys("vt")
 COV = (0.0004, 0.0, 0.0, 0.0, 0.0001, 0.0, 0.0, 0.0, 0.0009)

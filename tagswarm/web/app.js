@@ -87,10 +87,13 @@
     body.dataset.connected = view.connected ? "1" : "0";
   }
 
+  /** States received per second over the last 3 s (or since the first one, if later). */
   function updateRate() {
     const now = performance.now();
     view.rateTimes = view.rateTimes.filter((t) => now - t < 3000);
-    return view.rateTimes.length / 3;
+    const n = view.rateTimes.length;
+    if (n < 2) return 0;
+    return (n - 1) / Math.max((now - view.rateTimes[0]) / 1000, 0.001);
   }
 
   function handle(msg) {
@@ -403,14 +406,17 @@
     const ov = $("cam-overlay");
     ov.setAttribute("viewBox", `-0.5 -0.5 ${msg.width} ${msg.height}`);
     ov.replaceChildren();
-    const fs = msg.width / 26;
+    const fs = msg.width / 30;
     for (const d of msg.detections) {
       const c = d.kind === "robot" ? color(d.target) : "#ffffff";
       for (const p of d.polys) {
         el("polygon", { points: p.uv.map((q) => q.join(",")).join(" "), stroke: c, "data-tag": p.tag }, ov);
       }
-      el("text", { x: d.label[0], y: d.label[1] - fs * 0.4, fill: c, "font-size": fs, "text-anchor": "middle" }, ov)
-        .textContent = `${d.kind === "robot" ? "robot" : "tag"} ${d.target} · ${d.range_m.toFixed(2)} m`;
+      const text = `${d.kind === "robot" ? "robot" : "tag"} ${d.target} · ${d.range_m.toFixed(1)} m`;
+      const half = text.length * fs * 0.3;  // about half the label's width: keep it inside the frame
+      const x = Math.min(Math.max(d.label[0], half), msg.width - half);
+      const y = Math.max(d.label[1] - fs * 0.4, fs);
+      el("text", { x, y, fill: c, "font-size": fs, "text-anchor": "middle" }, ov).textContent = text;
     }
     const n = msg.detections.length;
     $("cam-caption").textContent = `robot ${msg.robot} · ${msg.camera} · t = ${(msg.stamp_ns / 1e9).toFixed(2)} s · ` +

@@ -60,6 +60,8 @@ def parser() -> OneLineParser:
     p.add_argument("--replay", type=Path, metavar="FILE.mcap",
                    help="no world: replay a recording's world streams in lockstep into fresh agents and server "
                         "(scenario: the recorded one unless --scenario)")
+    p.add_argument("--view", nargs="?", const=8765, type=int, metavar="PORT",
+                   help="also serve the live web view (tagswarm view) on http://127.0.0.1:PORT/ (default 8765)")
     return p
 
 
@@ -115,7 +117,7 @@ def _table(rec: Recorder, scenario: Scenario, wall_s: float, out: Path, endpoint
 
 def run_up(scenario: Scenario, out: Path, endpoint: str, run: str, *, live: bool, report: bool,
            stop: threading.Event, console: Console, record: Path | None = None, replay: Path | None = None,
-           child_args: Sequence[str] = ()) -> int:
+           child_args: Sequence[str] = (), view: int | None = None) -> int:
     """Start everything, record until the world ends or ``stop``, write the run folder.
     ``child_args`` go to every child (e.g. the ``--net-*`` fault-injection flags)."""
     out.mkdir(parents=True, exist_ok=True)
@@ -142,6 +144,11 @@ def run_up(scenario: Scenario, out: Path, endpoint: str, run: str, *, live: bool
         # a replay plays the world; it also waits for this process's token (up/0) so the run folder misses nothing
         world_cmd = [sys.executable, "-m", "tagswarm.replay", str(replay), "--lockstep", "--wait-for", "up/0"] \
             if replay else _script("tagswarm-world")
+        if view is not None:  # a read-only tool: never impaired by child_args, it sees what the run publishes
+            children.append(Child("view", [sys.executable, "-m", "tagswarm.view", "--scenario", str(scen_file),
+                                           "--run", run, "--connect", endpoint, "--port", str(view)],
+                                  logs / "view.log"))
+            console.print(f"live view: [cyan]http://127.0.0.1:{view}/[/]")
         world = Child("world", [*world_cmd, *common, "--listen", endpoint], logs / "world.log")
         children.append(world)
         console.print(f"[bold]tagswarm up[/]: {len(scenario.robot_ids)} robots, {scenario.clock.mode} clock, "
@@ -255,6 +262,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise ConfigError("--duration must be > 0")
         if args.robots is not None and args.robots < 1:
             raise ConfigError("--robots must be >= 1")
+        if args.view is not None and not 0 < args.view <= 65535:
+            raise ConfigError(f"--view: port must be 1..65535, got {args.view}")
         if args.record is not None and not args.record.parent.is_dir():
             raise ConfigError(f"--record: no such directory {str(args.record.parent)!r}")
         if args.replay is not None:
@@ -277,7 +286,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         try:
             return run_up(scenario, out, endpoint, run, live=not args.no_live and sys.stdout.isatty(),
                           report=not args.no_report, stop=stop, console=Console(), record=args.record,
-                          replay=args.replay, child_args=net_flags(args))
+                          replay=args.replay, child_args=net_flags(args), view=args.view)
         finally:
             signal.signal(signal.SIGINT, previous)
 

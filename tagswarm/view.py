@@ -432,3 +432,7 @@ class ViewNode:
 def main(argv: Sequence[str] | None = None) -> int:
     """Console entry for ``tagswarm view``."""
     return serve_node(PROG, lambda: build_config(argv), lambda _cfg: "view", ViewNode)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

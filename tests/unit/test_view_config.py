@@ -8,7 +8,7 @@ import pytest
 
 from protocol.config import ConfigError
 from protocol.keys import KeyError_
-from tagswarm import view
+from tagswarm import view, viewserver
 
 
 def test_defaults_and_precedence() -> None:
@@ -53,11 +53,11 @@ def test_bad_flags_exit_2(capsys: pytest.CaptureFixture[str]) -> None:
     (b"\xff\xfe", False),
 ])
 def test_select_messages_from_the_page(text: str | bytes, expect: object) -> None:
-    assert repr(view._select_message(text)) == repr(expect)  # False (ignored) must not pass for robot 0
+    assert repr(viewserver._select_message(text)) == repr(expect)  # False (ignored) must not pass for robot 0
 
 
 def test_hub_tracks_selections_and_versions() -> None:
-    hub = view.Hub(json.dumps({"type": "scene"}))
+    hub = viewserver.Hub(json.dumps({"type": "scene"}))
     a, b = hub.join(), hub.join()
     hub.select(a, 2)
     hub.select(b, None)

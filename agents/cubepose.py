@@ -148,8 +148,6 @@ class CubePoseEstimator:
         self.pixel_sigma_px = pixel_sigma_px
         self.choice_sigma_px = max(choice_sigma_px, pixel_sigma_px)
         self.max_rms_px = max_rms_px
-        self.z_tol_m = z_tol_m
-        self.tilt_tol_rad = tilt_tol_rad
         self.prior_sigma_xy_m = prior_sigma_xy_m
         self.prior_sigma_yaw_rad = prior_sigma_yaw_rad
         self.max_iterations = max_iterations

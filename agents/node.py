@@ -84,8 +84,7 @@ class AgentNode:
         self.server_alive_in = bus.watch_liveliness(self.keys.alive_role("server"))
         self.world_alive_in = bus.watch_liveliness(self.keys.alive_role("world"))
         self.server_alive = False
-        self.run_id: str | None = None  # the world instance whose ticks we follow
-        self._world_left = False  # its liveliness token vanished since: a new run_id may start
+        self.runs = codec.RunFollower()  # the world instance whose ticks we follow
         self.wait_for_server = any(p.startswith("server/") for p in s.clock.participants)
         self._reset_run()
         if config.fetch_map_timeout_s > 0:
@@ -130,20 +129,18 @@ class AgentNode:
                 log.info("a map server is back")
             self.server_alive = change.value
         for change in self.world_alive_in.drain():
-            if not change.value:
-                self._world_left = True
+            self.runs.world_presence(change.value)
 
     def _accept_tick(self, tick: m.Tick) -> bool:
         """Whether ``tick`` belongs to the run we follow; a new run_id after the world
         left starts a new run (reset), while the world is alive it is foreign."""
         self._drain_presence()
-        if tick.run_id == self.run_id:
-            return True
-        if self.run_id is not None and not self._world_left:
-            self.rejects.reject("foreign_run", f"tick of run {tick.run_id!r} while {self.run_id!r} is live")
+        previous = self.runs.run_id
+        verdict = self.runs.accept(tick.run_id)
+        if verdict == "foreign":
+            self.rejects.reject("foreign_run", f"tick of run {tick.run_id!r} while {previous!r} is live")
             return False
-        restart = self.run_id is not None
-        self.run_id, self._world_left = tick.run_id, False
+        restart = verdict == "restart"
         if restart:
             log.warning("the world restarted (new run %s): resetting odometry, behaviour and map pose", tick.run_id)
             self.counters["world_restarts"] += 1
@@ -157,6 +154,11 @@ class AgentNode:
 
     def _publish(self, key: str, msg: m.Msg) -> None:
         self.bus.put(key, codec.encode(msg))
+
+    @property
+    def run_id(self) -> str | None:
+        """The world run (Tick.run_id) this agent follows, None before the first tick."""
+        return self.runs.run_id
 
     @property
     def map_pose(self) -> Pose2 | None:

@@ -21,7 +21,7 @@ import logging
 import math
 from collections import Counter
 from collections.abc import Iterable, Iterator
-from typing import Any, Final, TypeVar
+from typing import Any, Final, Literal, TypeVar
 
 import msgspec
 import numpy as np
@@ -253,3 +253,28 @@ class Sequencer:
     def peek(self, key: str) -> int:
         """The number the next message on ``key`` will get, without taking it."""
         return self._seq[key]
+
+
+class RunFollower:
+    """Which world instance a node follows, from its ticks' ``run_id`` and the
+    world's liveliness.  The first run seen is followed; a new ``run_id`` after the
+    world's token vanished is a restarted world (the node resets); a new one while
+    the world is alive is foreign (rejected, so a forged tick cannot hijack it)."""
+
+    def __init__(self) -> None:
+        self.run_id: str | None = None
+        self.world_left = False
+
+    def world_presence(self, alive: bool) -> None:
+        """A liveliness change of the world's token."""
+        self.world_left = self.world_left or not alive
+
+    def accept(self, run_id: str) -> Literal["same", "first", "restart", "foreign"]:
+        """Classify a tick's ``run_id`` (and follow it unless foreign)."""
+        if run_id == self.run_id:
+            return "same"
+        if self.run_id is not None and not self.world_left:
+            return "foreign"
+        verdict: Literal["first", "restart"] = "first" if self.run_id is None else "restart"
+        self.run_id, self.world_left = run_id, False
+        return verdict

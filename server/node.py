@@ -72,8 +72,7 @@ class ServerNode:
         self.tick_in = bus.subscribe(self.keys.tick())
         self.alive_in = bus.watch_liveliness(self.keys.alive_role("agent"))
         self.world_alive_in = bus.watch_liveliness(self.keys.alive_role("world"))
-        self.run_id: str | None = None  # the world instance whose ticks we follow
-        self._world_left = False  # its liveliness token vanished since: a new run_id may start
+        self.runs = codec.RunFollower()  # the world instance whose ticks we follow
         self.query_in = bus.queryable(self.keys.map())
         # subscribed before the replay, so what arrives meanwhile waits in the inboxes; alive only after
         # it, so a lockstep world does not wait for acks from a server still rebuilding its graph
@@ -155,19 +154,18 @@ class ServerNode:
         world's liveliness token vanished is a restarted world (clock back at 0): start
         a fresh map.  A new run_id while the world is alive is foreign: rejected."""
         for change in self.world_alive_in.drain():
-            self._world_left = self._world_left or not change.value
-        if tick.run_id == self.run_id:
-            return True
-        if self.run_id is not None and not self._world_left:
-            self.rejects.reject("foreign_run", f"tick of run {tick.run_id!r} while {self.run_id!r} is live")
+            self.runs.world_presence(change.value)
+        previous = self.runs.run_id
+        verdict = self.runs.accept(tick.run_id)
+        if verdict == "foreign":
+            self.rejects.reject("foreign_run", f"tick of run {tick.run_id!r} while {previous!r} is live")
             return False
-        if self.run_id is not None:
+        if verdict == "restart":
             log.warning("the world restarted (new run %s): starting a fresh map", tick.run_id)
             self.counters["world_restarts"] += 1
             self.fusion = make_fusion(self.cfg)
             self.latest_rx.clear()
             self.time_ns = self._next_map_ns = self._next_update_ns = 0
-        self.run_id, self._world_left = tick.run_id, False
         return True
 
     def _accept(self, record: jr.Odometry | jr.Observation) -> None:

@@ -137,7 +137,7 @@ def test_a_restarted_world_resets_the_agent_and_a_foreign_run_is_rejected(rig: R
             assert moved > 0.1 and node.map_odom is not None and node.run_id == "run-a"
             rig.tick(world, 40, "intruder")  # while the world is alive: foreign, ignored
             assert node.rejects.as_counters()["rejected_foreign_run"] == 1 and node.run_id == "run-a"
-        rig.settle(lambda: node._world_left, "world loss never noticed")
+        rig.settle(lambda: node.runs.world_left, "world loss never noticed")
         with _peer(rig.ep, "world/0", keys) as world:
             # the new world's first counts may arrive before its first tick: not integrated as motion
             rig.encoders(world, 0, ticks=0)

@@ -519,3 +519,14 @@ def test_gap_counter_counts_lost_messages_per_label_and_survives_restarts() -> N
     assert g.seen("k/1", 0, "robot1") == 0  # a restarted publisher begins again
     assert g.seen("k/1", 3, "robot1") == 2
     assert g.as_counters() == {"seq_gaps_robot1": 6, "seq_gaps_robot2": 1}
+
+
+def test_run_follower_follows_one_world_and_accepts_a_new_one_only_after_it_left() -> None:
+    f = codec.RunFollower()
+    assert f.accept("a") == "first" and f.accept("a") == "same"
+    assert f.accept("b") == "foreign" and f.run_id == "a"  # the world is still alive: a forged tick
+    f.world_presence(True)
+    assert f.accept("b") == "foreign"
+    f.world_presence(False)
+    assert f.accept("b") == "restart" and f.run_id == "b"
+    assert f.accept("c") == "foreign"  # the new world is alive again (no departure since)

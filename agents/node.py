@@ -376,10 +376,16 @@ class AgentNode:
 
             def frames_in(tick: m.Tick = tick, mine: set[str] = mine) -> bool:
                 self._take_frames()
-                return all(n in self.pending_frames and self.pending_frames[n].step >= tick.step for n in mine)
+                self._drain_presence()
+                pending = self.pending_frames
+                return self.runs.world_left or all(n in pending and pending[n].step >= tick.step for n in mine)
 
             if mine and not self.bus.wait_for(frames_in, self.s.agent.frame_wait_s):
                 self.counters["frames_missing"] += 1
+            if self.runs.world_left:
+                # the world died mid-step: its run is over, nothing of this tick is wanted any more
+                self.counters["ticks_abandoned"] += 1
+                continue
             if self.wait_for_server and self._last_step is None:
                 # first tick: the world started, so the server is up; wait for its token so that
                 # the first corrections are waited for like every later one (determinism)
@@ -395,7 +401,7 @@ class AgentNode:
                 def corrected(prev: int = tick.stamp_ns - tick.dt_ns) -> bool:
                     self._drain_presence()
                     self._handle_corrections()
-                    return not self.server_alive or self.correction_stamp_ns >= prev
+                    return not self.server_alive or self.runs.world_left or self.correction_stamp_ns >= prev
 
                 if not self.bus.wait_for(corrected, self.s.agent.frame_wait_s):
                     self.counters["corrections_missing"] += 1

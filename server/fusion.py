@@ -94,6 +94,10 @@ class Fusion:
         self._next_cov_ns = 0
         self._init: dict[int, list[Candidate]] = {}
 
+    def reset(self) -> None:
+        """Forget everything: the empty fusion of the same map (a restarted world)."""
+        self.__init__(self.p, self.origin_id, tuple(self.robots), self.landmarks)  # type: ignore[misc]
+
     # ------------------------------------------------------------------ input
     def _push(self, stamp_ns: int, kind: Literal["odom", "obs", "landmark"], data: tuple) -> None:  # type: ignore[type-arg]
         if stamp_ns <= self.watermark_ns and kind != "odom":

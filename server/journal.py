@@ -43,6 +43,7 @@ from server.journal_format import (
     VERSION,
     Advance,
     Header,
+    NewRun,
     Observation,
     Odometry,
     Reader,
@@ -54,7 +55,7 @@ from server.journal_format import (
 )
 
 __all__ = [
-    "MAGIC", "MAX_RECORD_BYTES", "VERSION", "Advance", "Header", "Journal", "JournalError", "Observation",
+    "MAGIC", "MAX_RECORD_BYTES", "VERSION", "Advance", "Header", "Journal", "JournalError", "NewRun", "Observation",
     "Odometry", "Reader", "Record", "RobotId", "StampNs", "apply", "frame", "header_for", "read_journal",
 ]
 
@@ -80,6 +81,8 @@ def apply(fusion: Fusion, record: Record) -> None:
             fusion.add_landmark_observation(record.observer, record.target_id, record.stamp_ns, rel, cov)
     elif isinstance(record, Advance):
         fusion.advance(record.watermark_ns)
+    elif isinstance(record, NewRun):
+        fusion.reset()
 
 
 def _mismatch(want: Header, got: Header) -> str | None:
@@ -113,8 +116,8 @@ class Journal:
         self.sync_every = max(1, sync_every)
         self.sync_interval_s = sync_interval_s
         self.counters: dict[str, int] = dict.fromkeys(
-            ("records", "odometry", "observations", "advances", "replayed", "fsyncs", "bytes", "truncated_bytes",
-             "write_errors", "lost"), 0)
+            ("records", "odometry", "observations", "advances", "new_runs", "replayed", "fsyncs", "bytes",
+             "truncated_bytes", "write_errors", "lost"), 0)
         self.failed = False  # set by a write error: journalling stops, the server serves on
         self._pending: list[Record] = []  # queued, counted once written
         self.sync_s_total = 0.0  # wall time spent in fsync (bench/report only, never logic)
@@ -191,14 +194,17 @@ class Journal:
         if isinstance(record, Advance):
             self.counters["advances"] += 1
             return
+        if isinstance(record, NewRun):
+            self.counters["new_runs"] += 1
+            return
         self.counters["records"] += 1
         self.counters["odometry" if isinstance(record, Odometry) else "observations"] += 1
 
     # ------------------------------------------------------------------ writing
-    def append(self, record: Odometry | Observation | Advance) -> None:
+    def append(self, record: Odometry | Observation | Advance | NewRun) -> None:
         """Queue one record; it reaches the OS at the next :meth:`flush`."""
         if self.failed:
-            self.counters["lost"] += not isinstance(record, Advance)
+            self.counters["lost"] += isinstance(record, Odometry | Observation)
             return
         self._buffer += frame(record)
         self._pending.append(record)
@@ -232,7 +238,7 @@ class Journal:
         stop the server; what was queued and what follows is counted as lost."""
         self.failed = True
         self.counters["write_errors"] += 1
-        self.counters["lost"] += sum(not isinstance(r, Advance) for r in self._pending)
+        self.counters["lost"] += sum(isinstance(r, Odometry | Observation) for r in self._pending)
         self._pending.clear()
         self._buffer.clear()
         log.error("journal %s: %s; journalling stops here (the map is still served, but a restart would "

@@ -27,7 +27,7 @@ import msgspec
 import numpy as np
 
 MAGIC: Final = b"TSWJRNL1"
-VERSION: Final = 1
+VERSION: Final = 2  # 2: NewRun records
 _FRAME: Final = struct.Struct("<II")  # payload length in bytes, CRC32 of the payload
 MAX_RECORD_BYTES: Final = 1 << 20  # a header with a large roster fits; anything longer is corruption
 
@@ -79,7 +79,13 @@ class Advance(msgspec.Struct, frozen=True, kw_only=True, tag="advance"):
     watermark_ns: int
 
 
-Record = Header | Odometry | Observation | Advance
+class NewRun(msgspec.Struct, frozen=True, kw_only=True, tag="new_run"):
+    """The world restarted (new ``run_id``): the map starts afresh here (``Fusion.reset()``)."""
+
+    run_id: str
+
+
+Record = Header | Odometry | Observation | Advance | NewRun
 
 
 def _enc_hook(obj: Any) -> Any:

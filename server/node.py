@@ -17,7 +17,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from collections import Counter
+from collections import Counter, deque
 from collections.abc import Mapping, Sequence
 
 from protocol import codec
@@ -33,6 +33,9 @@ log = logging.getLogger("tagswarm.server")
 EDGE_MEMORY_NS = 5_000_000_000
 # realtime only: fresh observations trigger a fusion update at most this often (wall seconds)
 EAGER_UPDATE_MIN_S = 0.02
+# inputs kept since the last tick of the run we follow: a restarted world's first data can be
+# drained just before its first tick, and must then be carried into the fresh map
+RECENT_MAX = 4096
 
 
 def make_fusion(config: ServerConfig) -> Fusion:
@@ -67,6 +70,7 @@ class ServerNode:
         self.lockstep = s.clock.mode == "lockstep"
         self._obs_pending = False
         self._last_update_wall = 0.0
+        self._recent: deque[jr.Odometry | jr.Observation] = deque(maxlen=RECENT_MAX)
         self.obs_in = bus.subscribe(self.keys.observation())
         self.odom_in = bus.subscribe(self.keys.odometry())
         self.tick_in = bus.subscribe(self.keys.tick())
@@ -153,25 +157,33 @@ class ServerNode:
         """Whether ``tick`` belongs to the world run we follow.  A new run_id after the
         world's liveliness token vanished is a restarted world (clock back at 0): start
         a fresh map.  A new run_id while the world is alive is foreign: rejected."""
-        for change in self.world_alive_in.drain():
-            self.runs.world_presence(change.value)
+        self._world_left()
         previous = self.runs.run_id
         verdict = self.runs.accept(tick.run_id)
         if verdict == "foreign":
             self.rejects.reject("foreign_run", f"tick of run {tick.run_id!r} while {previous!r} is live")
             return False
         if verdict == "restart":
-            log.warning("the world restarted (new run %s): starting a fresh map", tick.run_id)
+            # the new run's inputs drained before this tick (stamped up to it: the old run's last ones
+            # are later) went into the old map; they belong to the new one
+            carried = [r for r in self._recent if r.stamp_ns <= tick.stamp_ns]
+            log.warning("the world restarted (new run %s): starting a fresh map (%d input(s) of the new run "
+                        "carried over)", tick.run_id, len(carried))
             self.counters["world_restarts"] += 1
-            self.fusion = make_fusion(self.cfg)
-            self.latest_rx.clear()
-            self.time_ns = self._next_map_ns = self._next_update_ns = 0
+            self.counters["restart_carried"] += len(carried)
+            record = jr.NewRun(run_id=tick.run_id)
+            if self.journal is not None:
+                self.journal.append(record)
+            self._replay(record)
+            for r in carried:
+                self._accept(r)
         return True
 
     def _accept(self, record: jr.Odometry | jr.Observation) -> None:
         """One input that passed every check: journal it first, then fuse it."""
         if self.journal is not None:
             self.journal.append(record)
+        self._recent.append(record)
         self._note(record)
         jr.apply(self.fusion, record)
 
@@ -191,6 +203,9 @@ class ServerNode:
             self.counters["accepted_observations"] += 1
         elif isinstance(record, jr.Advance):
             self.time_ns = max(self.time_ns, record.watermark_ns)
+        elif isinstance(record, jr.NewRun):
+            self.latest_rx.clear()
+            self.time_ns = self._next_map_ns = self._next_update_ns = 0
 
     def _replay(self, record: jr.Record) -> None:
         """Rebuild state from one journal record (its header matched this map)."""
@@ -272,7 +287,15 @@ class ServerNode:
         """Handle what has arrived; in lockstep, one fusion update per world tick."""
         obs_before = self.counters["observations"]
         # ticks first: a restarted world's first tick must reset the map before its data is fused
-        ticks = [t for _, t in self.rejects.decoded(self.tick_in.drain(), m.Tick) if self._accept_tick(t)]
+        ticks: list[m.Tick] = []
+        for _, tick in self.rejects.decoded(self.tick_in.drain(), m.Tick):
+            restarts = self.counters["world_restarts"]
+            if self._accept_tick(tick):
+                if self.counters["world_restarts"] != restarts:
+                    ticks.clear()  # ticks of the run that just ended are not waited for
+                ticks.append(tick)
+        if ticks:
+            self._recent.clear()
         self._drain()
         if self.lockstep:
             return self._step_lockstep(ticks)
@@ -299,15 +322,27 @@ class ServerNode:
         self._maybe_publish_map()
         return progressed
 
+    def _world_left(self) -> bool:
+        """Whether the world we follow has gone (its liveliness token vanished)."""
+        for change in self.world_alive_in.drain():
+            self.runs.world_presence(change.value)
+        return self.runs.world_left
+
     def _step_lockstep(self, ticks: list[m.Tick]) -> bool:
         for tick in ticks:
 
             def caught_up(stamp: int = tick.stamp_ns) -> bool:
                 self._drain()
-                return all(self.latest_rx.get(r, -1) >= stamp for r in self.alive)
+                return self._world_left() or all(self.latest_rx.get(r, -1) >= stamp for r in self.alive)
 
             if not self.bus.wait_for(caught_up, self.s.clock.ack_timeout_s):
                 self.counters["odometry_wait_timeouts"] += 1
+            if self._world_left():
+                # the world died after this tick reached us but before every agent answered it: its run is
+                # over, so neither fuse, correct nor acknowledge it (that would only feed stale poses to
+                # whoever listens while the next world starts)
+                self.counters["ticks_abandoned"] += 1
+                continue
             self.time_ns = max(self.time_ns, tick.stamp_ns)
             self._advance(tick.stamp_ns)
             self._publish_corrections(all_robots=True)

@@ -289,12 +289,16 @@ def main() -> int:
     p.add_argument("--variant-seeds", type=int, default=2, help="seeds of allmoving / leapfrog / landmarks")
     p.add_argument("--ablation-duration", type=float, default=120.0)
     p.add_argument("--jobs", type=int, default=1, help="runs at a time (each run is a whole lockstep system)")
-    p.add_argument("--quick", action="store_true", help="5 trials, 60 s, 1 seed, 60 s ablations")
+    p.add_argument("--quick", action="store_true", help="4 trials, 40 s, 1 seed, 30 s ablations")
     p.add_argument("--skip-ablations", action="store_true")
-    p.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "accuracy.json")
+    p.add_argument("--out", type=Path, default=None,
+                   help="JSON to write (default bench/results/accuracy.json, accuracy_quick.json with --quick); "
+                        "plots go beside it")
     a = p.parse_args()
+    if a.out is None:
+        a.out = ROOT / "bench" / "results" / ("accuracy_quick.json" if a.quick else "accuracy.json")
     if a.quick:
-        a.trials, a.duration, a.seeds, a.variant_seeds, a.ablation_duration = 5, 60.0, 1, 1, 60.0
+        a.trials, a.duration, a.seeds, a.variant_seeds, a.ablation_duration = 4, 40.0, 1, 1, 30.0
     console = Console()
     a.out.parent.mkdir(parents=True, exist_ok=True)
     result: dict[str, Any] = {
@@ -315,7 +319,7 @@ def main() -> int:
         result["static"] = summarise_static(static["whole cube"])
         result["static_single_tag"] = summarise_static(static["single tag"])
         console.print("static", json.dumps({k: result["static"][k] for k in ("stitch", "fusion")}, indent=1))
-        plot_static(static, a.out.parent / "accuracy_error_vs_distance.png")
+        plot_static(static, a.out.parent / f"{a.out.stem}_error_vs_distance.png")
         jobs = [(sc, seed) for sc in ("paper", "allmoving", "leapfrog", "landmarks")
                 for seed in range(a.seeds if sc == "paper" else a.variant_seeds)]
         dyn = _parallel(a.jobs, [lambda sc=sc, seed=seed: dynamic_run(sc, work, seed, a.duration, scenario=sc)
@@ -333,7 +337,7 @@ def main() -> int:
             result["ablations"] = abl
     result["dynamic_summary"] = summarise_dynamic(result["dynamic"] + result.get("ablations", []))
     result["wall_time_s"] = time.monotonic() - t_start
-    plot_dynamic(result["dynamic_summary"], a.out.parent / "accuracy_dynamic.png")
+    plot_dynamic(result["dynamic_summary"], a.out.parent / f"{a.out.stem}_dynamic.png")
     a.out.parent.mkdir(parents=True, exist_ok=True)
     a.out.write_text(json.dumps(result, indent=2))
     t = Table(title="dynamic runs (swarm, cm; mean over seeds)")

@@ -188,19 +188,24 @@ def main() -> int:
     p.add_argument("--seconds", type=float, default=15.0, help="measurement window per point (wall)")
     p.add_argument("--warmup", type=float, default=4.0)
     p.add_argument("--robots", type=int, nargs="+", default=[2, 4, 8, 16])
-    p.add_argument("--quick", action="store_true", help="4 and 8 robots at 320x240 only, 8 s windows")
+    p.add_argument("--quick", action="store_true",
+                   help="4 and 8 robots at 320x240 only, one render worker, 8 s windows")
     p.add_argument("--no-saturate", action="store_true", help="skip the efficiency (saturated) points")
-    p.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "speed.json")
+    p.add_argument("--out", type=Path, default=None,
+                   help="JSON to write (default bench/results/speed.json, speed_quick.json with --quick)")
     a = p.parse_args()
+    if a.out is None:
+        a.out = ROOT / "bench" / "results" / ("speed_quick.json" if a.quick else "speed.json")
     resolutions = list(RESOLUTIONS)
     if a.quick:
         a.robots, a.seconds, resolutions = [4, 8], 8.0, ["320x240@10Hz"]
+    workers_list = (1,) if a.quick else (1, 2)
     console = Console()
     log_dir = Path(tempfile.mkdtemp(prefix="tagswarm-speed-logs-"))
     rows = []
     for res in resolutions:
         for n in a.robots:
-            for workers in (1, 2):
+            for workers in workers_list:
                 rows.append(measure(n, res, workers, a.seconds, a.warmup, log_dir=log_dir))
                 console.print(rows[-1])
     efficiency = []

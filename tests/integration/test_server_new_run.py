@@ -170,3 +170,40 @@ def test_new_run_matches_a_fresh_server_whatever_the_interleaving(net: tuple[str
     with open_bus(BusConfig(listen=(ep2,))) as server_bus2, client(ep2) as agents2:
         late = _new_run(Rig(ep2, server_bus2, agents2, None), ep2, early=False)
     assert early == late
+
+
+def test_a_tick_whose_world_died_is_abandoned_not_waited_for(net: tuple[str, Bus, Bus]) -> None:
+    """The world dies after its tick reached the server but before the agents answered it: the
+    server stops waiting at once (not after ``ack_timeout_s``) and neither fuses, corrects nor
+    acknowledges that tick; the next world's run then starts normally."""
+    ep, server_bus, agents = net
+    rig = Rig(ep, server_bus, agents, None)
+    acks = agents.subscribe(rig.keys.ack("server/0"))
+    with client(ep) as world:
+        world.declare_token(rig.keys.alive("world/0"))
+        for k in range(3):
+            rig.inputs(k, 0.0, observe=True)
+            rig.wait_queued(3)
+            rig.tick(world, "old-1", k)
+        rig.put(world, rig.keys.tick(), _tick("old-1", 3))  # no agent answers this one
+        assert rig.node.bus.wait_for(lambda: len(rig.node.tick_in) > 0, 10), "tick never arrived"
+    assert rig.node.bus.wait_for(lambda: len(rig.node.world_alive_in) > 0, 10), "the old world never left"
+    rig.node.step()
+    assert rig.node.counters["ticks_abandoned"] == 1
+    assert rig.node.counters["odometry_wait_timeouts"] == 0
+    with client(ep) as world:
+        world.declare_token(rig.keys.alive("world/0"))
+        rig.inputs(0, 0.0, observe=True)
+        rig.wait_queued(3)
+        rig.tick(world, "new-2", 0)
+    assert rig.node.counters["world_restarts"] == 1
+    # the server's messages reach us in the order it sent them: every ack it sent came before the new one
+    got: list[tuple[int, int]] = []
+
+    def new_run_acked() -> bool:
+        got.extend((a.step, a.stamp_ns) for a in (codec.decode(m.TickAck, it.value) for it in acks.drain()))
+        return len(got) >= 4
+
+    assert agents.wait_for(new_run_acked, 10), got
+    assert [s for s, _ in got] == [0, 1, 2, 0]
+    assert 3 * DT not in [s for s, *_ in rig.corrections()]

@@ -26,6 +26,9 @@ class ServerConfig(msgspec.Struct, frozen=True, kw_only=True):
     journal: str | None = None  # write-ahead journal file; replayed at start if it exists
     journal_sync_every: int = 64  # fsync after this many records ...
     journal_sync_ms: float = 100.0  # ... or this long after the oldest unsynced one (wall time: I/O only)
+    # a checkpoint of the whole fusion state every this many simulated seconds (0: never), so that a
+    # restart replays at most this much of the journal
+    journal_checkpoint_s: float = 10.0
 
 
 def parser(prog: str = "tagswarm-server") -> argparse.ArgumentParser:
@@ -48,6 +51,10 @@ def parser(prog: str = "tagswarm-server") -> argparse.ArgumentParser:
                    help="fsync the journal after N records (default 64) ...")
     j.add_argument("--journal-sync-ms", type=float, default=100.0, metavar="MS",
                    help="... or MS milliseconds after the oldest record not yet on disk (default 100)")
+    j.add_argument("--journal-checkpoint", type=float, default=None, metavar="S",
+                   help="write a checkpoint of the whole map state every S simulated seconds, so that a restarted "
+                        "server replays at most S seconds of the journal (env TAGSWARM_JOURNAL_CHECKPOINT; "
+                        "default 10; 0 = never: a restart replays the whole journal)")
     return p
 
 
@@ -75,9 +82,17 @@ def build_config(argv: Sequence[str] | None = None, environ: Mapping[str, str] |
         raise ConfigError("--journal-sync-every must be >= 1")
     if not args.journal_sync_ms >= 0:
         raise ConfigError("--journal-sync-ms must be >= 0")
+    raw_checkpoint = pick(args, env, "journal_checkpoint", 10.0)
+    try:
+        checkpoint_s = float(raw_checkpoint)
+    except ValueError:
+        raise ConfigError(f"--journal-checkpoint: {raw_checkpoint!r} is not a number") from None
+    if not 0 <= checkpoint_s < float("inf"):
+        raise ConfigError("--journal-checkpoint must be >= 0 seconds (0 = no checkpoints)")
     run = pick(args, env, "run", "default")
     Keys(run)
     return ServerConfig(scenario=scenario, bus=bus_from(args, env), run=run,
                         log_level=pick(args, env, "log_level", "INFO"), map_rate_hz=args.map_rate,
                         update_rate_hz=args.update_rate, lag_s=args.lag, journal=_journal_path(args, env),
-                        journal_sync_every=args.journal_sync_every, journal_sync_ms=args.journal_sync_ms)
+                        journal_sync_every=args.journal_sync_every, journal_sync_ms=args.journal_sync_ms,
+                        journal_checkpoint_s=checkpoint_s)

@@ -20,12 +20,25 @@ Writes go to the OS at every :meth:`Journal.flush` (so a SIGKILLed server loses
 nothing it accepted); ``fsync`` (durability against power loss) is batched every
 ``sync_every`` records or ``sync_interval_s`` and runs in a thread of its own, so
 the server's loop never waits for the disk.
+
+Checkpoints bound the rebuild time.  A :class:`Checkpoint` record holds the whole
+fusion state (:mod:`server.checkpoint`) plus the server's bookkeeping and the
+journal's record counts up to it; opening a journal replays from its last complete
+checkpoint, and the records before it are not even read.  To find it without
+reading the file, the offsets of the two newest checkpoints are kept in a small
+side file ``PATH.index`` (rewritten, not fsynced, after each checkpoint); it is only
+a hint — an entry counts only if a checkpoint with that number really starts
+there — and without a usable one the file is scanned (decoding only, no fusion).
+A torn or corrupt newest checkpoint falls back to the previous one, and a
+checkpoint that does not restore to the one before it or to a full replay.  The
+file itself is never rewritten or split: it stays the single source of truth.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import fcntl
+import json
 import logging
 import os
 import threading
@@ -36,12 +49,14 @@ from typing import Any
 
 import numpy as np
 
+from server import checkpoint as ckpt
 from server.fusion import Fusion
 from server.journal_format import (
     MAGIC,
     MAX_RECORD_BYTES,
     VERSION,
     Advance,
+    Checkpoint,
     Header,
     NewRun,
     Observation,
@@ -55,11 +70,15 @@ from server.journal_format import (
 )
 
 __all__ = [
-    "MAGIC", "MAX_RECORD_BYTES", "VERSION", "Advance", "Header", "Journal", "JournalError", "NewRun", "Observation",
-    "Odometry", "Reader", "Record", "RobotId", "StampNs", "apply", "frame", "header_for", "read_journal",
+    "MAGIC", "MAX_RECORD_BYTES", "VERSION", "Advance", "Checkpoint", "Header", "Journal", "JournalError", "NewRun",
+    "Observation", "Odometry", "Reader", "Record", "RobotId", "StampNs", "apply", "frame", "header_for",
+    "make_checkpoint", "read_journal",
 ]
 
 log = logging.getLogger("tagswarm.server.journal")
+# the record counters a checkpoint carries (everything in the file before it)
+COUNTED = ("records", "odometry", "observations", "advances", "new_runs", "checkpoints")
+INDEX_KEEP = 2  # checkpoint offsets kept in the side file: the newest, and one to fall back to
 
 
 class JournalError(ValueError):
@@ -83,6 +102,29 @@ def apply(fusion: Fusion, record: Record) -> None:
         fusion.advance(record.watermark_ns)
     elif isinstance(record, NewRun):
         fusion.reset()
+    elif isinstance(record, Checkpoint):
+        ckpt.restore(fusion, record.fusion)
+
+
+def make_checkpoint(journal: Journal, fusion: Fusion, node: dict[str, int], latest_rx: dict[int, int]) -> Checkpoint:
+    """The checkpoint record of the state now (call right after ``fusion.advance``, with
+    its Advance already appended).  The server appends it and then *applies* it to its
+    own fusion, so the live state and any later rebuild go through the same restore."""
+    return Checkpoint(seq=journal.last_seq + 1, watermark_ns=fusion.watermark_ns, counts=journal.record_counts(),
+                      node=dict(node), latest_rx=dict(latest_rx), fusion=ckpt.snapshot(fusion))
+
+
+def _count(counters: dict[str, int], record: Record) -> None:
+    """Count one record (not the header) into ``counters``."""
+    if isinstance(record, Advance):
+        counters["advances"] += 1
+    elif isinstance(record, NewRun):
+        counters["new_runs"] += 1
+    elif isinstance(record, Checkpoint):
+        counters["checkpoints"] += 1
+    elif isinstance(record, Odometry | Observation):
+        counters["records"] += 1
+        counters["odometry" if isinstance(record, Odometry) else "observations"] += 1
 
 
 def _mismatch(want: Header, got: Header) -> str | None:
@@ -103,9 +145,12 @@ class Journal:
     """An open journal: validates and replays what is there, then appends.
 
     ``replay`` is called for every record after the header, in order (the
-    server rebuilds its state with it).  Raises :class:`JournalError` if the file
-    is not a journal or belongs to another map; truncates a torn or corrupt tail
-    (counted in ``counters["truncated_bytes"]``).
+    server rebuilds its state with it), starting at the last usable checkpoint if
+    there is one (``counters["replay_skipped"]`` records before it are not read;
+    ``replay`` must raise :class:`~server.checkpoint.CheckpointError` without
+    changing anything if a checkpoint does not restore).  Raises
+    :class:`JournalError` if the file is not a journal or belongs to another map;
+    truncates a torn or corrupt tail (counted in ``counters["truncated_bytes"]``).
     """
 
     def __init__(self, path: str | os.PathLike[str], header: Header, *,
@@ -116,8 +161,13 @@ class Journal:
         self.sync_every = max(1, sync_every)
         self.sync_interval_s = sync_interval_s
         self.counters: dict[str, int] = dict.fromkeys(
-            ("records", "odometry", "observations", "advances", "new_runs", "replayed", "fsyncs", "bytes",
-             "truncated_bytes", "write_errors", "lost"), 0)
+            (*COUNTED, "replayed", "replay_skipped", "bad_checkpoints", "fsyncs", "bytes", "truncated_bytes",
+             "write_errors", "lost", "index_errors"), 0)
+        self.index_path = Path(f"{self.path}.index")
+        self.checkpoints: list[tuple[int, int]] = []  # (offset, seq) of the newest checkpoints in the file
+        self.last_seq = 0  # of the newest checkpoint in the file (or queued)
+        self._queued_checkpoints: list[tuple[int, int]] = []
+        self._bad: set[int] = set()  # offsets of checkpoints that did not restore
         self.failed = False  # set by a write error: journalling stops, the server serves on
         self._pending: list[Record] = []  # queued, counted once written
         self.sync_s_total = 0.0  # wall time spent in fsync (bench/report only, never logic)
@@ -141,7 +191,10 @@ class Journal:
                 os.ftruncate(self._fd, keep)
             os.lseek(self._fd, keep, os.SEEK_SET)
             if keep == 0:
-                # a new journal: the header goes to disk (and the file's directory entry) at once
+                # a new journal: the header goes to disk (and the file's directory entry) at once; an index
+                # left by an earlier journal of this name means nothing for this one
+                self.checkpoints, self.last_seq = [], 0
+                self._write_index()
                 data = MAGIC + frame(header)
                 os.write(self._fd, data)
                 self.counters["bytes"] = len(data)
@@ -155,11 +208,11 @@ class Journal:
             self._syncer = _Syncer(self)
 
     def _open_existing(self, replay: Callable[[Record], None] | None) -> int:
-        """Check the header, replay the records; returns the length of the good prefix."""
+        """Check the header, replay from the last usable checkpoint (or the start);
+        returns the length of the good prefix."""
         reader = Reader(self.path)
         t0 = time.perf_counter()
-        it = iter(reader)
-        first = next(it, None)
+        first = next(iter(reader), None)
         if reader.bad_magic:
             raise JournalError(f"journal {self.path} is not a tagswarm journal; refusing to overwrite it")
         if first is None:  # empty, or torn before the header was complete: start afresh
@@ -173,39 +226,118 @@ class Journal:
         why = _mismatch(self.header, first)
         if why is not None:
             raise JournalError(f"journal {self.path} was written for another map: {why}")
-        for record in it:
+        body = reader.valid_bytes  # where the first record after the header starts
+        # checkpoints: those the index names that really are there, then any later ones in the file
+        hinted = self._read_index(body)
+        scan = Reader(self.path, hinted[-1][0] if hinted else body)
+        found = [(scan.offset, rec.seq) for rec in scan if isinstance(rec, Checkpoint)]
+        candidates = sorted(set(hinted) | set(found))
+        self.last_seq = max((seq for _, seq in candidates), default=0)
+        for start in [*reversed(candidates), (body, 0)]:
+            replayed = self._replay_from(start[0], start[0] == body, replay)
+            if replayed is not None:
+                break
+            self._bad.add(start[0])
+            candidates.remove(start)
+            log.warning("journal %s: checkpoint %d at byte %d does not restore; falling back to %s", self.path,
+                        start[1], start[0], "the previous one" if candidates else "a full replay")
+        assert replayed is not None  # the full replay never fails
+        self.counters["bad_checkpoints"] = len(self._bad)
+        self.replay_s = time.perf_counter() - t0
+        if replayed.problem is not None:
+            lost = replayed.file_bytes - replayed.valid_bytes
+            self.counters["truncated_bytes"] = lost
+            log.warning("journal %s: %s record after %d good ones; truncating %d bytes", self.path,
+                        replayed.problem, self.counters["replayed"], lost)
+        kept = [c for c in candidates if c[0] < replayed.valid_bytes][-INDEX_KEEP:]
+        if kept != hinted[-INDEX_KEEP:] or not self.index_path.exists():
+            self.checkpoints = kept
+            self._write_index()
+        self.checkpoints = kept
+        return replayed.valid_bytes
+
+    def _replay_from(self, offset: int, full: bool, replay: Callable[[Record], None] | None) -> Reader | None:
+        """Replay the records from ``offset`` (the first record after the header when
+        ``full``, else a checkpoint) to the end of the good prefix; None if the
+        checkpoint there does not restore (nothing was replayed then)."""
+        reader = Reader(self.path, offset)
+        for key in (*COUNTED, "replayed", "replay_skipped"):
+            self.counters[key] = 0
+        for record in reader:
             if isinstance(record, Header):  # only ever the first record
                 reader.problem = "malformed"
                 break
-            self._count(record)
-            self.counters["replayed"] += 1
+            starting = not full and reader.offset == offset
+            if starting:
+                assert isinstance(record, Checkpoint)
+                for key in COUNTED:
+                    self.counters[key] = record.counts.get(key, 0)
+                self.counters["replay_skipped"] = sum(record.counts.get(k, 0) for k in COUNTED if k != "records")
             if replay is not None:
-                replay(record)
-        self.replay_s = time.perf_counter() - t0
-        if reader.problem is not None:
-            lost = reader.file_bytes - reader.valid_bytes
-            self.counters["truncated_bytes"] = lost
-            log.warning("journal %s: %s record after %d good ones; truncating %d bytes", self.path, reader.problem,
-                        self.counters["replayed"], lost)
-        return reader.valid_bytes
+                try:
+                    replay(record)
+                except ckpt.CheckpointError as exc:
+                    if starting:
+                        return None
+                    # in the middle of a replay the state is rebuilt from the records anyway
+                    if reader.offset not in self._bad:
+                        self._bad.add(reader.offset)
+                        log.warning("journal %s: skipping a checkpoint that does not restore (%s)", self.path, exc)
+            _count(self.counters, record)
+            self.counters["replayed"] += 1
+        return reader
 
-    def _count(self, record: Record) -> None:
-        """Count a record that is in the file."""
-        if isinstance(record, Advance):
-            self.counters["advances"] += 1
-            return
-        if isinstance(record, NewRun):
-            self.counters["new_runs"] += 1
-            return
-        self.counters["records"] += 1
-        self.counters["odometry" if isinstance(record, Odometry) else "observations"] += 1
+    def _read_index(self, body: int) -> list[tuple[int, int]]:
+        """The (offset, seq) entries of the side index that point at a checkpoint with
+        that seq in this file, oldest first (missing or unreadable index: none)."""
+        try:
+            entries = json.loads(self.index_path.read_text())["checkpoints"]
+            pairs = [(int(o), int(s)) for o, s in entries]
+        except (OSError, ValueError, KeyError, TypeError):
+            return []
+        good = []
+        for offset, seq in sorted(pairs):
+            if offset < body:
+                continue
+            rec = next(iter(Reader(self.path, offset)), None)
+            if isinstance(rec, Checkpoint) and rec.seq == seq:
+                good.append((offset, seq))
+        return good
+
+    def _write_index(self) -> None:
+        """Replace the side index with ``self.checkpoints`` (atomically; not fsynced: a
+        lost or stale index only makes the next open scan more of the file)."""
+        tmp = self.index_path.with_name(self.index_path.name + ".tmp")
+        try:
+            if not self.checkpoints:
+                self.index_path.unlink(missing_ok=True)
+                return
+            tmp.write_text(json.dumps({"journal": self.path.name,
+                                       "checkpoints": [list(c) for c in self.checkpoints]}) + "\n")
+            os.replace(tmp, self.index_path)
+        except OSError as exc:
+            if not self.counters["index_errors"]:
+                log.warning("journal %s: cannot write its index %s (%s); a restart will scan the journal",
+                            self.path, self.index_path, exc)
+            self.counters["index_errors"] += 1
+
+    def record_counts(self) -> dict[str, int]:
+        """The record counters of everything appended so far, written or still queued
+        (what a checkpoint stores)."""
+        counts = {k: self.counters[k] for k in COUNTED}
+        for record in self._pending:
+            _count(counts, record)
+        return counts
 
     # ------------------------------------------------------------------ writing
-    def append(self, record: Odometry | Observation | Advance | NewRun) -> None:
+    def append(self, record: Odometry | Observation | Advance | NewRun | Checkpoint) -> None:
         """Queue one record; it reaches the OS at the next :meth:`flush`."""
         if self.failed:
             self.counters["lost"] += isinstance(record, Odometry | Observation)
             return
+        if isinstance(record, Checkpoint):
+            self._queued_checkpoints.append((self.counters["bytes"] + len(self._buffer), record.seq))
+            self.last_seq = max(self.last_seq, record.seq)
         self._buffer += frame(record)
         self._pending.append(record)
         if not self._unsynced:
@@ -229,8 +361,12 @@ class Journal:
                 return
             self.counters["bytes"] += len(data)
             for record in self._pending:
-                self._count(record)
+                _count(self.counters, record)
             self._pending.clear()
+            if self._queued_checkpoints:
+                self.checkpoints = (self.checkpoints + self._queued_checkpoints)[-INDEX_KEEP:]
+                self._queued_checkpoints.clear()
+                self._write_index()
         self.maybe_sync()
 
     def _fail(self, exc: OSError) -> None:
@@ -241,6 +377,7 @@ class Journal:
         self.counters["lost"] += sum(isinstance(r, Odometry | Observation) for r in self._pending)
         self._pending.clear()
         self._buffer.clear()
+        self._queued_checkpoints.clear()
         log.error("journal %s: %s; journalling stops here (the map is still served, but a restart would "
                   "rebuild it only up to this point)", self.path, exc)
 

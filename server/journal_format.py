@@ -12,6 +12,9 @@ File format (little endian)::
 The first record is a :class:`Header`.  A crash can leave a torn last frame
 (power loss mid-write); :class:`Reader` stops at the first frame that is short,
 too long, fails its CRC or does not decode, and reports how long the good prefix is.
+A :class:`Reader` can also start at any frame boundary (a checkpoint's offset).
+
+Versions: 2 added NewRun records, 3 Checkpoint records.
 """
 
 from __future__ import annotations
@@ -27,9 +30,11 @@ import msgspec
 import numpy as np
 
 MAGIC: Final = b"TSWJRNL1"
-VERSION: Final = 2  # 2: NewRun records
+VERSION: Final = 3  # 2: NewRun records, 3: Checkpoint records
 _FRAME: Final = struct.Struct("<II")  # payload length in bytes, CRC32 of the payload
-MAX_RECORD_BYTES: Final = 1 << 20  # a header with a large roster fits; anything longer is corruption
+FRAME_BYTES: Final = _FRAME.size
+# a checkpoint of a large swarm's 30 s window is a few MB (4 robots: ~0.2 MB); anything longer is corruption
+MAX_RECORD_BYTES: Final = 1 << 26
 
 StampNs = Annotated[int, msgspec.Meta(ge=0)]
 RobotId = Annotated[int, msgspec.Meta(ge=0, le=100_000)]
@@ -85,7 +90,26 @@ class NewRun(msgspec.Struct, frozen=True, kw_only=True, tag="new_run"):
     run_id: str
 
 
-Record = Header | Odometry | Observation | Advance | NewRun
+class Checkpoint(msgspec.Struct, frozen=True, kw_only=True, tag="checkpoint"):
+    """The server's whole state right after ``Fusion.advance(watermark_ns)``: a restarted
+    server replays from its last checkpoint instead of from the first record.
+
+    ``seq`` numbers the journal's checkpoints from 1.  ``counts`` are the journal's record
+    counters (``records``, ``odometry``, ``observations``, ``advances``, ``new_runs``,
+    ``checkpoints``) of everything before this record, so totals stay right without
+    reading it.  ``node`` is the server's own bookkeeping (``time_ns`` and its
+    ``accepted_*`` counters), ``latest_rx`` each robot's newest odometry stamp (ns), and
+    ``fusion`` the snapshot of :mod:`server.checkpoint` (compressed, opaque here)."""
+
+    seq: Annotated[int, msgspec.Meta(ge=1)]
+    watermark_ns: int
+    counts: dict[str, int]
+    node: dict[str, int]
+    latest_rx: dict[int, int]
+    fusion: bytes
+
+
+Record = Header | Odometry | Observation | Advance | NewRun | Checkpoint
 
 
 def _enc_hook(obj: Any) -> Any:
@@ -113,12 +137,18 @@ class Reader:
     end): ``"torn"`` (file ends inside a frame), ``"oversized"``, ``"crc"`` or
     ``"malformed"`` (CRC fine but the payload is not a record).  ``bad_magic`` is
     set if the file is not a journal at all (then nothing is yielded).
+
+    With ``start`` (a frame boundary past the magic, e.g. a checkpoint's offset) the
+    magic is still checked, then reading begins there; ``offset`` is where the last
+    yielded record's frame starts.
     """
 
-    def __init__(self, path: str | os.PathLike[str]) -> None:
+    def __init__(self, path: str | os.PathLike[str], start: int = 0) -> None:
         self.path = Path(path)
+        self.start = start
         self.valid_bytes = 0
         self.file_bytes = 0
+        self.offset = 0
         self.problem: str | None = None
         self.bad_magic = False
 
@@ -132,6 +162,12 @@ class Reader:
                 self.problem = None if not magic else ("torn" if not self.bad_magic else "bad_magic")
                 return
             self.valid_bytes = len(MAGIC)
+            if self.start > len(MAGIC):
+                if self.start > self.file_bytes:
+                    self.problem = "torn"
+                    return
+                f.seek(self.start)
+                self.valid_bytes = self.start
             while True:
                 head = f.read(_FRAME.size)
                 if not head:
@@ -155,6 +191,7 @@ class Reader:
                 except (msgspec.DecodeError, msgspec.ValidationError):
                     self.problem = "malformed"
                     return
+                self.offset = self.valid_bytes
                 self.valid_bytes += _FRAME.size + length
                 yield record
 

@@ -58,7 +58,9 @@ def test_server_killed_mid_run_resumes_from_its_journal(tmp_path: Path) -> None:
     keys = Keys(run)
     scen = _scenario_args()
     journal = tmp_path / "server.journal"
-    server_argv = [script("tagswarm-server"), *links, "--run", run, *scen, "--journal", str(journal)]
+    # checkpoints every 4 simulated s: the restart replays from the last one before the kill (at >= 10 s)
+    server_argv = [script("tagswarm-server"), *links, "--run", run, *scen, "--journal", str(journal),
+                   "--journal-checkpoint", "4"]
     config = build_config(server_argv[1:], {})
     t_map_arena = arena_to_map(config.scenario)
     with ExitStack() as st:
@@ -179,14 +181,16 @@ def test_server_killed_mid_run_resumes_from_its_journal(tmp_path: Path) -> None:
             assert err_after[r] < err_before[r] + 0.10, (r, err_before, err_after)
 
         # ---- the rebuilt graph is the dead server's: replaying the journal copied at the kill
-        # reproduces its last published correction of every robot (to rounding)
+        # reproduces its last published correction of every robot (to rounding).  The replay starts at
+        # the last checkpoint, which holds the state right after its update (the Advance before it is
+        # not replayed)
         fusion = make_fusion(config)
         rebuilt: dict[int, Pose2] = {}
         want = {r: before[r].stamp_ns for r in ROBOTS}
 
         def on_record(rec: jr.Record) -> None:
             jr.apply(fusion, rec)
-            if isinstance(rec, jr.Advance):
+            if isinstance(rec, jr.Advance | jr.Checkpoint):
                 for r, stamp in want.items():
                     est = fusion.pose(r)
                     if rec.watermark_ns == stamp and est is not None:
@@ -207,11 +211,14 @@ def test_server_killed_mid_run_resumes_from_its_journal(tmp_path: Path) -> None:
               f"final status {status} vs {measurements} journal records")
         assert status["accepted"] == status["journal_records"] == measurements
         assert status["accepted"] > status_before["accepted"] and status["journal_truncated_bytes"] == 0
+        # the restart replayed from a checkpoint, not from the start
+        assert status["journal_replay_skipped"] > 0 and status["journal_checkpoints"] >= 2, status
         # and the agents took the new server's corrections
         assert all(agents[r].counters.get("corrections", 0) > corrections_in_outage[r] for r in ROBOTS), \
             (corrections_in_outage, {r: agents[r].counters for r in ROBOTS})
         print(json.dumps({"kill_at_s": kill_ns / 1e9, "resume_wall_s": round(resume_wall_s, 2),
                           "resume_sim_s": round(resume_sim_s, 3), "replayed": status["journal_replayed"],
-                          "replay_ms": status["journal_replay_ms"], "jump_m": jumps, "err_before_m": err_before,
+                          "replay_ms": status["journal_replay_ms"], "replay_skipped": status["journal_replay_skipped"],
+                          "jump_m": jumps, "err_before_m": err_before,
                           "err_after_m": err_after, "accepted": status["accepted"], "journal_records": measurements,
                           "fsyncs": status["journal_fsyncs"], "outage_modes": outage_modes}))

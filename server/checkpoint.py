@@ -1,0 +1,263 @@
+"""Fusion checkpoints: the whole state of a :class:`~server.fusion.Fusion` as bytes, and back.
+
+A checkpoint lets a restarted server skip the journal records before it (see
+:mod:`server.journal`).  It is a *full* snapshot, not a summary: the smoother's
+factor graph (odometry, observation and prior factors of the lag window, and the
+``LinearContainerFactor`` marginals of what was marginalised), its linearisation
+point and key timestamps, in GTSAM's own serialisation (boost text archive, doubles
+printed with 17 significant digits, so they read back bit-exact), plus the Python
+side of the fusion: per-robot keyframe/odometry bookkeeping, queued events,
+placement candidates, edges, watermark and counters.
+
+:func:`restore` rebuilds a fusion from a snapshot by feeding the saved graph to a
+fresh ``IncrementalFixedLagSmoother`` (one batch update from the saved
+linearisation point).  That is not bit-identical to the smoother that was saved
+(its Bayes tree, partial relinearisation and update count are not carried over),
+so the server restores its *own* fusion from every checkpoint it writes: live and
+replayed fusions then go through the same restore and stay identical, and the
+cost is a sub-millimetre step of the live estimates at each checkpoint (measured
+in bench/journal.py and tests/unit/test_checkpoint.py).
+
+Odometry history is trimmed to what later inputs can still ask for: observations
+are only accepted after the watermark, and placement candidates live
+``init_window_s``, so samples older than that (plus a margin) are never read.
+
+Encoding: msgpack (msgspec) of :class:`FusionState`, zlib-compressed.  The blob is
+opaque to :mod:`server.journal_format` (a ``bytes`` field of the Checkpoint record).
+"""
+
+from __future__ import annotations
+
+import zlib
+from collections import Counter, deque
+from typing import Final, Literal
+
+import gtsam
+import msgspec
+import numpy as np
+
+from protocol.geometry import Pose2
+from server.fusion import Fusion, _Event, _Robot
+from server.placement import Candidate
+
+P3 = tuple[float, float, float]
+# odometry kept before the watermark beyond the placement window: _odom_at tolerates 0.2 s
+ODOM_MARGIN_S: Final = 1.0
+ZLIB_LEVEL: Final = 1
+
+
+class CheckpointError(ValueError):
+    """A snapshot blob that does not decode (never raised for a journal that passed its CRC
+    unless the writer was a different version)."""
+
+
+class RobotState(msgspec.Struct, frozen=True, array_like=True):
+    """One robot's bookkeeping (see ``server.fusion._Robot``); covariances row-major (9)."""
+
+    odom: list[tuple[int, float, float, float]]  # (stamp_ns, x_m, y_m, yaw_rad) in the robot's odom frame
+    chain: int
+    kf_index: int
+    kf_key: int | None
+    kf_stamp: int
+    kf_odom: P3
+    estimate: P3 | None
+    cov: tuple[float, ...]
+    drift_cov: tuple[float, ...]
+    latest_odom: tuple[int, float, float, float] | None
+    last_fix_ns: int
+    accepted: int
+    last_distance: float
+    reset_hint: P3 | None
+
+
+class EventState(msgspec.Struct, frozen=True, array_like=True):
+    """A queued (not yet applied) input: ``ints`` are the robot/landmark ids, ``floats``
+    the pose and distance (odometry) or relative pose and row-major covariance."""
+
+    stamp_ns: int
+    rank: int
+    order: tuple[int, ...]
+    kind: Literal["odom", "obs", "landmark"]
+    ints: tuple[int, ...]
+    floats: tuple[float, ...]
+
+
+class CandidateState(msgspec.Struct, frozen=True, array_like=True):
+    """A first-placement candidate; ``kind`` says which measurement shape ``meas`` had."""
+
+    stamp_ns: int
+    origin: P3
+    trace: float
+    kind: Literal["robot", "landmark"]
+    ints: tuple[int, ...]  # (observer, target) for a robot pair, () for a landmark
+    floats: tuple[float, ...]  # relative pose (robot) or map pose (landmark), then covariance (9)
+
+
+class FusionState(msgspec.Struct, frozen=True, kw_only=True):
+    """Everything a :class:`Fusion` holds beyond its constructor arguments."""
+
+    robots: dict[int, RobotState]
+    events: list[EventState]
+    order: int
+    counters: dict[str, int]
+    edges: list[tuple[int, int, int]]  # (observer, target, last stamp_ns), in insertion order
+    watermark_ns: int
+    updates: int
+    next_cov_ns: int
+    init: dict[int, list[CandidateState]]
+    factors: str  # gtsam NonlinearFactorGraph.serialize() of the smoother's live factors
+    theta: str  # gtsam Values.serialize() of the smoother's linearisation point
+    stamps: list[tuple[int, float]]  # (key, seconds) of every variable in the smoother
+
+
+_ENC: Final = msgspec.msgpack.Encoder()
+_DEC: Final = msgspec.msgpack.Decoder(FusionState)
+
+
+def _p3(p: Pose2) -> P3:
+    return (float(p[0]), float(p[1]), float(p[2]))
+
+
+def _flat(cov: np.ndarray) -> tuple[float, ...]:
+    return tuple(float(v) for v in np.asarray(cov, float).ravel())
+
+
+def _mat(values: tuple[float, ...] | list[float]) -> np.ndarray:
+    return np.asarray(values, float).reshape(3, 3)
+
+
+def _robot_state(r: _Robot, keep_from_ns: int) -> RobotState:
+    samples = list(r.odom)
+    first = 0
+    for i in range(len(samples) - 1, -1, -1):  # newest first: keep one sample older than keep_from_ns
+        if samples[i][0] < keep_from_ns:
+            first = i
+            break
+    odom = [(int(t), *_p3(p)) for t, p in samples[first:]]
+    lo = None if r.latest_odom is None else (int(r.latest_odom[0]), *_p3(r.latest_odom[1]))
+    return RobotState(odom=odom, chain=r.chain, kf_index=r.kf_index, kf_key=r.kf_key, kf_stamp=r.kf_stamp,
+                      kf_odom=_p3(r.kf_odom), estimate=None if r.estimate is None else _p3(r.estimate),
+                      cov=_flat(r.cov), drift_cov=_flat(r.drift_cov), latest_odom=lo, last_fix_ns=r.last_fix_ns,
+                      accepted=r.accepted, last_distance=float(r.last_distance),
+                      reset_hint=None if r.reset_hint is None else _p3(r.reset_hint))
+
+
+def _event_state(ev: _Event) -> EventState:
+    if ev.kind == "odom":
+        rid, pose, distance = ev.data
+        return EventState(ev.stamp_ns, ev.rank, ev.order, ev.kind, (rid,), (*_p3(pose), float(distance)))
+    a, b, rel, cov = ev.data
+    return EventState(ev.stamp_ns, ev.rank, ev.order, ev.kind, (a, b), (*_p3(rel), *_flat(cov)))
+
+
+def _candidate_state(c: Candidate) -> CandidateState:
+    if len(c.meas) == 4:  # (observer, target, rel, cov)
+        obs, tgt, rel, cov = c.meas
+        return CandidateState(c.stamp_ns, _p3(c.origin), float(c.trace), "robot", (obs, tgt),
+                              (*_p3(rel), *_flat(cov)))
+    pose, cov_map = c.meas  # landmark: (pose in the map, covariance)
+    return CandidateState(c.stamp_ns, _p3(c.origin), float(c.trace), "landmark", (), (*_p3(pose), *_flat(cov_map)))
+
+
+def _live_factors(smoother: gtsam.IncrementalFixedLagSmoother) -> gtsam.NonlinearFactorGraph:
+    """The smoother's factors without the empty slots marginalisation leaves behind."""
+    graph = smoother.getFactors()
+    out = gtsam.NonlinearFactorGraph()
+    for i in range(graph.size()):
+        if graph.exists(i):
+            out.add(graph.at(i))
+    return out
+
+
+def snapshot(fusion: Fusion) -> bytes:
+    """The state of ``fusion`` as a compressed blob.  Call it right after
+    :meth:`Fusion.advance` (nothing staged for the smoother); raises otherwise."""
+    if fusion._factors.size() or fusion._values.size():
+        raise RuntimeError("snapshot with factors staged for the smoother: take it right after advance()")
+    keep_from = fusion.watermark_ns - int((fusion.p.init_window_s + ODOM_MARGIN_S) * 1e9)
+    stamps = [(int(k), float(t)) for k, t in sorted(fusion.smoother.timestamps().items())]
+    state = FusionState(
+        robots={rid: _robot_state(r, keep_from) for rid, r in fusion.robots.items()},
+        events=[_event_state(ev) for ev in fusion._events],  # heap order as is: a valid heap again
+        order=fusion._order, counters=dict(fusion.counters),
+        edges=[(a, b, t) for (a, b), t in fusion.edges.items()], watermark_ns=fusion.watermark_ns,
+        updates=fusion.updates, next_cov_ns=fusion._next_cov_ns,
+        init={rid: [_candidate_state(c) for c in cands] for rid, cands in fusion._init.items()},
+        factors=_live_factors(fusion.smoother).serialize() if stamps else "",
+        theta=fusion.smoother.getLinearizationPoint().serialize() if stamps else "", stamps=stamps)
+    return zlib.compress(_ENC.encode(state), ZLIB_LEVEL)
+
+
+def decode(blob: bytes) -> FusionState:
+    """The :class:`FusionState` in a snapshot blob; :class:`CheckpointError` if it does not decode."""
+    try:
+        return _DEC.decode(zlib.decompress(blob))
+    except (zlib.error, msgspec.DecodeError, msgspec.ValidationError) as exc:
+        raise CheckpointError(f"checkpoint does not decode: {exc}") from None
+
+
+def _robot(s: RobotState, maxlen: int) -> _Robot:
+    return _Robot(odom=deque(((t, (x, y, a)) for t, x, y, a in s.odom), maxlen=maxlen), chain=s.chain,
+                  kf_index=s.kf_index, kf_key=s.kf_key, kf_stamp=s.kf_stamp, kf_odom=s.kf_odom,
+                  estimate=s.estimate, cov=_mat(s.cov), drift_cov=_mat(s.drift_cov),
+                  latest_odom=None if s.latest_odom is None else (s.latest_odom[0], s.latest_odom[1:]),
+                  last_fix_ns=s.last_fix_ns, accepted=s.accepted, last_distance=s.last_distance,
+                  reset_hint=s.reset_hint)
+
+
+def _event(s: EventState) -> _Event:
+    f = s.floats
+    if s.kind == "odom":
+        data: tuple = (s.ints[0], f[:3], f[3])  # type: ignore[type-arg]
+    else:
+        data = (s.ints[0], s.ints[1], f[:3], _mat(f[3:]))
+    return _Event(s.stamp_ns, s.rank, s.order, s.kind, data)
+
+
+def _candidate(s: CandidateState) -> Candidate:
+    f = s.floats
+    meas: tuple = (s.ints[0], s.ints[1], f[:3], _mat(f[3:])) if s.kind == "robot" else (f[:3], _mat(f[3:]))  # type: ignore[type-arg]
+    return Candidate(s.stamp_ns, s.origin, s.trace, meas)
+
+
+def _smoother_input(state: FusionState) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values,
+                                                   gtsam.FixedLagSmootherKeyTimestampMap]:
+    graph, theta = gtsam.NonlinearFactorGraph(), gtsam.Values()
+    stamps = gtsam.FixedLagSmootherKeyTimestampMap()
+    if state.stamps:
+        try:
+            graph.deserialize(state.factors)
+            theta.deserialize(state.theta)
+        except Exception as exc:  # boost archive errors surface as assorted RuntimeErrors
+            raise CheckpointError(f"checkpoint graph does not load: {exc}") from None
+        for key, t in state.stamps:
+            stamps.insert((key, t))
+    return graph, theta, stamps
+
+
+def restore(fusion: Fusion, blob: bytes | FusionState) -> None:
+    """Make ``fusion`` (same parameters, origin, roster and landmarks as the one
+    snapshotted: the journal header guarantees it) continue from the snapshot.
+    Per-robot estimates are the saved ones until the next update reads the new
+    smoother, so the published poses do not move at the restore itself.
+    Raises :class:`CheckpointError` before touching ``fusion`` if the blob is unusable."""
+    state = decode(blob) if isinstance(blob, bytes) else blob
+    unknown = set(state.robots) - set(fusion.robots)
+    if unknown:
+        raise CheckpointError(f"checkpoint holds robots {sorted(unknown)} outside the roster")
+    graph, theta, stamps = _smoother_input(state)
+    fusion.reset()
+    for rid, rs in state.robots.items():
+        fusion.robots[rid] = _robot(rs, fusion.p.odom_buffer)
+    fusion._events = [_event(e) for e in state.events]
+    fusion._order = state.order
+    fusion.counters = Counter(state.counters)
+    fusion.edges = {(a, b): t for a, b, t in state.edges}
+    fusion.watermark_ns = state.watermark_ns
+    fusion.updates = state.updates
+    fusion._next_cov_ns = state.next_cov_ns
+    fusion._init = {rid: [_candidate(c) for c in cands] for rid, cands in state.init.items()}
+    if state.stamps:
+        # every variable is within the lag of the newest one (older ones were marginalised when the
+        # snapshot was taken), so this update marginalises nothing
+        fusion.smoother.update(graph, theta, stamps)

@@ -38,10 +38,8 @@ from __future__ import annotations
 
 import dataclasses
 import fcntl
-import json
 import logging
 import os
-import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -66,8 +64,11 @@ from server.journal_format import (
     RobotId,
     StampNs,
     frame,
+    read_index,
     read_journal,
+    write_index,
 )
+from server.journal_sync import Syncer, fsync_dir
 
 __all__ = [
     "MAGIC", "MAX_RECORD_BYTES", "VERSION", "Advance", "Checkpoint", "Header", "Journal", "JournalError", "NewRun",
@@ -174,7 +175,7 @@ class Journal:
         self._buffer = bytearray()
         self._unsynced = 0
         self._unsynced_since = 0.0
-        self._syncer: _Syncer | None = None
+        self._syncer: Syncer | None = None
         self.replay_s = 0.0
         existed = self.path.exists()
         self._fd = os.open(self.path, os.O_WRONLY | os.O_CREAT, 0o644)
@@ -199,13 +200,13 @@ class Journal:
                 os.write(self._fd, data)
                 self.counters["bytes"] = len(data)
                 self._fsync()
-                _fsync_dir(self.path.parent)
+                fsync_dir(self.path.parent)
         except BaseException:
             os.close(self._fd)
             self._fd = -1
             raise
         if background_sync:
-            self._syncer = _Syncer(self)
+            self._syncer = Syncer(self._fsync)
 
     def _open_existing(self, replay: Callable[[Record], None] | None) -> int:
         """Check the header, replay from the last usable checkpoint (or the start);
@@ -228,7 +229,7 @@ class Journal:
             raise JournalError(f"journal {self.path} was written for another map: {why}")
         body = reader.valid_bytes  # where the first record after the header starts
         # checkpoints: those the index names that really are there, then any later ones in the file
-        hinted = self._read_index(body)
+        hinted = read_index(self.path, self.index_path, body)
         scan = Reader(self.path, hinted[-1][0] if hinted else body)
         found = [(scan.offset, rec.seq) for rec in scan if isinstance(rec, Checkpoint)]
         candidates = sorted(set(hinted) | set(found))
@@ -287,34 +288,11 @@ class Journal:
             self.counters["replayed"] += 1
         return reader
 
-    def _read_index(self, body: int) -> list[tuple[int, int]]:
-        """The (offset, seq) entries of the side index that point at a checkpoint with
-        that seq in this file, oldest first (missing or unreadable index: none)."""
-        try:
-            entries = json.loads(self.index_path.read_text())["checkpoints"]
-            pairs = [(int(o), int(s)) for o, s in entries]
-        except (OSError, ValueError, KeyError, TypeError):
-            return []
-        good = []
-        for offset, seq in sorted(pairs):
-            if offset < body:
-                continue
-            rec = next(iter(Reader(self.path, offset)), None)
-            if isinstance(rec, Checkpoint) and rec.seq == seq:
-                good.append((offset, seq))
-        return good
-
     def _write_index(self) -> None:
-        """Replace the side index with ``self.checkpoints`` (atomically; not fsynced: a
-        lost or stale index only makes the next open scan more of the file)."""
-        tmp = self.index_path.with_name(self.index_path.name + ".tmp")
+        """Replace the side index with ``self.checkpoints`` (not fsynced: a lost or stale
+        index only makes the next open scan more of the file)."""
         try:
-            if not self.checkpoints:
-                self.index_path.unlink(missing_ok=True)
-                return
-            tmp.write_text(json.dumps({"journal": self.path.name,
-                                       "checkpoints": [list(c) for c in self.checkpoints]}) + "\n")
-            os.replace(tmp, self.index_path)
+            write_index(self.index_path, self.checkpoints)
         except OSError as exc:
             if not self.counters["index_errors"]:
                 log.warning("journal %s: cannot write its index %s (%s); a restart will scan the journal",
@@ -437,64 +415,6 @@ class Journal:
         out = {prefix + k: v for k, v in self.counters.items()}
         out[prefix + "replay_ms"] = round(self.replay_s * 1e3)
         return out
-
-
-class _Syncer:
-    """fsyncs a journal in a thread of its own when asked, so that the server's
-    loop never waits for the disk (an fsync takes 0.2-5 ms here, more under I/O
-    load).  Requests made while one runs coalesce into one more fsync; the first
-    error is kept for the journal to act on.  Only this thread touches the
-    journal's ``fsyncs`` counter and ``sync_s_total`` while it runs."""
-
-    def __init__(self, journal: Journal) -> None:
-        self._journal = journal
-        self._wake = threading.Condition()
-        self._wanted = False
-        self._stopping = False
-        self.error: OSError | None = None
-        self._thread = threading.Thread(target=self._run, name="journal-fsync", daemon=True)
-        self._thread.start()
-
-    def request(self) -> None:
-        """Ask for an fsync of everything written so far (returns at once)."""
-        with self._wake:
-            self._wanted = True
-            self._wake.notify()
-
-    def stop(self) -> None:
-        """Do a pending fsync, then end the thread."""
-        with self._wake:
-            self._stopping = True
-            self._wake.notify()
-        self._thread.join()
-
-    def _run(self) -> None:
-        while True:
-            with self._wake:
-                while not self._wanted and not self._stopping:
-                    self._wake.wait()
-                if not self._wanted:
-                    return
-                self._wanted = False
-            try:
-                self._journal._fsync()
-            except OSError as exc:
-                self.error = exc
-                return
-
-
-def _fsync_dir(folder: Path) -> None:
-    """Make a new file's directory entry durable (POSIX; a no-op where unsupported)."""
-    try:
-        fd = os.open(folder, os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        os.fsync(fd)
-    except OSError:
-        pass
-    finally:
-        os.close(fd)
 
 
 def header_for(run: str, fusion: Fusion) -> Header:

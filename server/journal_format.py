@@ -14,11 +14,14 @@ The first record is a :class:`Header`.  A crash can leave a torn last frame
 too long, fails its CRC or does not decode, and reports how long the good prefix is.
 A :class:`Reader` can also start at any frame boundary (a checkpoint's offset).
 
-Versions: 2 added NewRun records, 3 Checkpoint records.
+Versions: 2 added NewRun records, 3 Checkpoint records.  The side index
+(``PATH.index``, :func:`read_index` / :func:`write_index`) names where the newest
+checkpoints start; it is a hint, the journal is the truth.
 """
 
 from __future__ import annotations
 
+import json
 import os
 import struct
 import zlib
@@ -194,6 +197,38 @@ class Reader:
                 self.offset = self.valid_bytes
                 self.valid_bytes += _FRAME.size + length
                 yield record
+
+
+def read_index(path: str | os.PathLike[str], index_path: str | os.PathLike[str], body: int) -> list[tuple[int, int]]:
+    """The ``(offset, seq)`` entries of a journal's side index (JSON ``{"checkpoints":
+    [[offset, seq], ...]}``) that point at a checkpoint with that ``seq`` in the journal at
+    ``path``, past its header (which ends at ``body``), oldest first.  The index is only a
+    hint: a missing, unreadable, stale or foreign one yields no (or fewer) entries."""
+    try:
+        entries = json.loads(Path(index_path).read_text())["checkpoints"]
+        pairs = [(int(o), int(s)) for o, s in entries]
+    except (OSError, ValueError, KeyError, TypeError):
+        return []
+    good = []
+    for offset, seq in sorted(set(pairs)):
+        if offset < body:
+            continue
+        rec = next(iter(Reader(path, offset)), None)
+        if isinstance(rec, Checkpoint) and rec.seq == seq:
+            good.append((offset, seq))
+    return good
+
+
+def write_index(index_path: str | os.PathLike[str], checkpoints: list[tuple[int, int]]) -> None:
+    """Replace the side index with ``checkpoints`` (``(offset, seq)``, oldest first)
+    atomically (temporary file, then rename); no entries removes it.  Raises OSError."""
+    index = Path(index_path)
+    if not checkpoints:
+        index.unlink(missing_ok=True)
+        return
+    tmp = index.with_name(index.name + ".tmp")
+    tmp.write_text(json.dumps({"checkpoints": [list(c) for c in checkpoints]}) + "\n")
+    os.replace(tmp, index)
 
 
 def read_journal(path: str | os.PathLike[str]) -> tuple[list[Record], Reader]:

@@ -271,6 +271,15 @@ def test_journal_flags_are_validated(tmp_path: Path) -> None:
     for argv, msg in ((["--journal", str(tmp_path)], "is a directory"),
                       (["--journal", str(tmp_path / "no" / "j")], "does not exist"),
                       (["--journal-sync-every", "0"], "journal-sync-every"),
-                      (["--journal-sync-ms", "-1"], "journal-sync-ms")):
+                      (["--journal-sync-ms", "-1"], "journal-sync-ms"),
+                      (["--journal-checkpoint", "-1"], "journal-checkpoint"),
+                      (["--journal-checkpoint", "inf"], "journal-checkpoint")):
         with pytest.raises(ConfigError, match=msg):
             build_config(argv, {})
+    # checkpoints: every 10 simulated s unless told otherwise (flag over env), 0 = off
+    assert build_config([], {}).journal_checkpoint_s == 10.0
+    assert build_config(["--journal-checkpoint", "0"], {}).journal_checkpoint_s == 0.0
+    assert build_config([], {"TAGSWARM_JOURNAL_CHECKPOINT": "2.5"}).journal_checkpoint_s == 2.5
+    assert build_config(["--journal-checkpoint", "4"], {"TAGSWARM_JOURNAL_CHECKPOINT": "2.5"}).journal_checkpoint_s == 4
+    with pytest.raises(ConfigError, match="not a number"):
+        build_config([], {"TAGSWARM_JOURNAL_CHECKPOINT": "often"})

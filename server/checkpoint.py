@@ -17,7 +17,7 @@ always bit-identical to the smoother that was saved; the server therefore restor
 its *own* fusion from every checkpoint it writes: live and replayed fusions go
 through the same restore and stay identical (same decisions, same estimates), and
 the live fusion stays within ~1 mm of one that was never restored (measured in
-bench/journal.py: 0.24 mm over 300 s of 4 robots, 1.1 mm over 60 s of 16 robots).
+bench/journal.py: at most 0.4 mm over 600 s of 4 robots, 1.1 mm over 60 s of 16 robots).
 
 Odometry history is trimmed to what later inputs can still ask for: observations
 are only accepted after the watermark, and placement candidates live
@@ -25,6 +25,11 @@ are only accepted after the watermark, and placement candidates live
 
 Encoding: msgpack (msgspec) of :class:`FusionState`, zlib-compressed.  The blob is
 opaque to :mod:`server.journal_format` (a ``bytes`` field of the Checkpoint record).
+
+This module reads and writes the fusion's private state on purpose: it is the
+fusion's persistence, kept out of fusion.py only for size.  A field added to
+``Fusion`` or ``_Robot`` must be added here too (tests/unit/test_checkpoint.py
+compares a restored fusion with the live one at every update).
 """
 
 from __future__ import annotations

@@ -24,8 +24,8 @@ LAG_S = 10.0
 RATE_HZ = 10
 EVERY_S = 10.0
 SECONDS = 45  # four checkpoints (10, 20, 30, 40 s), then 5 s of records after the last one
-# between the fusion restored every 10 s and one never restored: 0 here (bit-identical), at most 0.24 mm
-# over 300 s of 4 robots and 1.1 mm over 60 s of 16 robots at 30 Hz (bench/journal.py); the issue allows 10 cm
+# between the fusion restored every 10 s and one never restored: 0 here (bit-identical), at most 0.4 mm
+# over 600 s of 4 robots and 1.1 mm over 60 s of 16 robots at 30 Hz (bench/journal.py); the issue allows 10 cm
 UNINTERRUPTED_TOL_M = 0.001
 
 Poses = dict[int, tuple[float, ...] | None]

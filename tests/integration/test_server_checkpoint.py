@@ -75,3 +75,34 @@ def test_a_restarted_node_resumes_from_its_last_checkpoint(tmp_path: Path) -> No
         second.close()
     records = jr.read_journal(journal)[0]
     assert [r.watermark_ns for r in records if isinstance(r, jr.Checkpoint)] == [k * 5 * DT for k in range(1, 7)]
+
+
+def test_a_new_world_run_restarts_the_checkpoint_schedule(tmp_path: Path) -> None:
+    """After a world restart (NewRun: clock back at 0) the next checkpoint is due
+    ``--journal-checkpoint`` into the new run, and a restart rebuilds the new run's map."""
+    journal = tmp_path / "server.journal"
+    ep = endpoint()
+    with open_bus(BusConfig(listen=(ep,))) as bus:
+        first = ServerNode(build_config(_argv(ep, journal), {}), bus)
+        for k in range(12):  # checkpoints at 0.5 and 1.0 s of the first run
+            _feed(first, k)
+        record = jr.NewRun(run_id="world-2")  # what _accept_tick journals and applies on a new run
+        assert first.journal is not None
+        first.journal.append(record)
+        first._replay(record)
+        for k in range(8):  # 0.7 s of the new run: one checkpoint, at 0.5 s
+            _feed(first, k)
+        assert first.counters["checkpoints"] == 3
+        first.close()
+        before = (first.global_map(), dict(first.latest_rx), first.time_ns)
+    records = jr.read_journal(journal)[0]
+    kinds = [type(r).__name__ for r in records]
+    assert kinds.count("Checkpoint") == 3 and kinds.index("NewRun") < len(kinds) - 1 - kinds[::-1].index("Checkpoint")
+    assert [r.watermark_ns for r in records if isinstance(r, jr.Checkpoint)] == [5 * DT, 10 * DT, 5 * DT]
+    ep = endpoint()
+    with open_bus(BusConfig(listen=(ep,))) as bus:
+        second = ServerNode(build_config(_argv(ep, journal), {}), bus)
+        # the new run's checkpoint, then ticks 6 (odometry x2, observation, update) and 7 (odometry x2, update)
+        assert second.journal is not None and second.journal.counters["replayed"] == 1 + (2 + 1 + 1) + (2 + 1)
+        assert (second.global_map(), dict(second.latest_rx), second.time_ns) == before
+        second.close()

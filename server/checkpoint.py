@@ -246,30 +246,35 @@ def restore(fusion: Fusion, blob: bytes | FusionState) -> None:
     snapshotted: the journal header guarantees it) continue from the snapshot.
     Per-robot estimates are the saved ones until the next update reads the new
     smoother, so the published poses do not move at the restore itself.
-    Raises :class:`CheckpointError` before touching ``fusion`` if the blob is unusable."""
+    All or nothing: raises :class:`CheckpointError`, leaving ``fusion`` as it was,
+    if the blob is unusable or the smoother cannot take the saved graph."""
     state = decode(blob) if isinstance(blob, bytes) else blob
     unknown = set(state.robots) - set(fusion.robots)
     if unknown:
         raise CheckpointError(f"checkpoint holds robots {sorted(unknown)} outside the roster")
     graph, theta, stamps = _smoother_input(state)
-    fusion.reset()
+    new = Fusion(fusion.p, fusion.origin_id, tuple(fusion.robots), fusion.landmarks)  # built aside
     for rid, rs in state.robots.items():
-        fusion.robots[rid] = _robot(rs, fusion.p.odom_buffer)
-    fusion._events = [_event(e) for e in state.events]
-    fusion._order = state.order
-    fusion.counters = Counter(state.counters)
-    fusion.edges = {(a, b): t for a, b, t in state.edges}
-    fusion.watermark_ns = state.watermark_ns
-    fusion.updates = state.updates
-    fusion._next_cov_ns = state.next_cov_ns
-    fusion._init = {rid: [_candidate(c) for c in cands] for rid, cands in state.init.items()}
+        new.robots[rid] = _robot(rs, new.p.odom_buffer)
+    new._events = [_event(e) for e in state.events]
+    new._order = state.order
+    new.counters = Counter(state.counters)
+    new.edges = {(a, b): t for a, b, t in state.edges}
+    new.watermark_ns = state.watermark_ns
+    new.updates = state.updates
+    new._next_cov_ns = state.next_cov_ns
+    new._init = {rid: [_candidate(c) for c in cands] for rid, cands in state.init.items()}
     if state.stamps:
-        # iSAM2 relinearises on every relinearizeSkip-th update; keep that phase (a fresh smoother
-        # counts from 0), or a large correction lands some updates earlier or later than it would
-        # have (measured: transient 10 cm gaps with 16 robots).  Empty updates only count.
-        skip = max(1, int(fusion.smoother.params().relinearizeSkip))
-        for _ in range((state.updates - 1) % skip):
-            fusion.smoother.update()
-        # every variable is within the lag of the newest one (older ones were marginalised when the
-        # snapshot was taken), so this update marginalises nothing
-        fusion.smoother.update(graph, theta, stamps)
+        try:
+            # iSAM2 relinearises on every relinearizeSkip-th update; keep that phase (a fresh smoother
+            # counts from 0), or a large correction lands some updates earlier or later than it would
+            # have (measured: transient 10 cm gaps with 16 robots).  Empty updates only count.
+            skip = max(1, int(new.smoother.params().relinearizeSkip))
+            for _ in range((state.updates - 1) % skip):
+                new.smoother.update()
+            # every variable is within the lag of the newest one (older ones were marginalised when the
+            # snapshot was taken), so this update marginalises nothing
+            new.smoother.update(graph, theta, stamps)
+        except RuntimeError as exc:  # e.g. an indeterminant system
+            raise CheckpointError(f"the smoother does not take the checkpoint's graph: {exc}") from None
+    vars(fusion).update(vars(new))

@@ -70,8 +70,11 @@ from server.journal_format import (
 )
 from server.journal_sync import Syncer, fsync_dir
 
+CheckpointError = ckpt.CheckpointError
+
 __all__ = [
-    "MAGIC", "MAX_RECORD_BYTES", "VERSION", "Advance", "Checkpoint", "Header", "Journal", "JournalError", "NewRun",
+    "MAGIC", "MAX_RECORD_BYTES", "VERSION", "Advance", "Checkpoint", "CheckpointError", "Header", "Journal",
+    "JournalError", "NewRun",
     "Observation", "Odometry", "Reader", "Record", "RobotId", "StampNs", "apply", "frame", "header_for",
     "make_checkpoint", "read_journal",
 ]
@@ -230,18 +233,23 @@ class Journal:
         body = reader.valid_bytes  # where the first record after the header starts
         # checkpoints: those the index names that really are there, then any later ones in the file
         hinted = read_index(self.path, self.index_path, body)
-        scan = Reader(self.path, hinted[-1][0] if hinted else body)
-        found = [(scan.offset, rec.seq) for rec in scan if isinstance(rec, Checkpoint)]
-        candidates = sorted(set(hinted) | set(found))
+        scan_from = hinted[-1][0] if hinted else body
+        candidates = sorted(set(hinted) | set(self._scan(scan_from)))
         self.last_seq = max((seq for _, seq in candidates), default=0)
-        for start in [*reversed(candidates), (body, 0)]:
-            replayed = self._replay_from(start[0], start[0] == body, replay)
-            if replayed is not None:
-                break
-            self._bad.add(start[0])
-            candidates.remove(start)
-            log.warning("journal %s: checkpoint %d at byte %d does not restore; falling back to %s", self.path,
-                        start[1], start[0], "the previous one" if candidates else "a full replay")
+        replayed = None
+        while replayed is None:
+            if not candidates and scan_from > body:  # every known one failed: look for older ones
+                candidates = [c for c in self._scan(body) if c[0] < scan_from and c[0] not in self._bad]
+                scan_from = body
+            start = candidates.pop() if candidates else (body, 0)
+            replayed = self._replay_from(start[0], start[1] == 0, replay)
+            if replayed is None:
+                self._bad.add(start[0])
+                log.warning("journal %s: checkpoint %d at byte %d does not restore; falling back to %s", self.path,
+                            start[1], start[0], "the previous one" if candidates else
+                            "an earlier one" if scan_from > body else "a full replay")
+            elif start[1]:
+                candidates.append(start)
         assert replayed is not None  # the full replay never fails
         self.counters["bad_checkpoints"] = len(self._bad)
         self.replay_s = time.perf_counter() - t0
@@ -256,6 +264,12 @@ class Journal:
             self._write_index()
         self.checkpoints = kept
         return replayed.valid_bytes
+
+    def _scan(self, offset: int) -> list[tuple[int, int]]:
+        """(offset, seq) of every checkpoint from ``offset`` to the end of the good prefix
+        (decoding only: no replay)."""
+        reader = Reader(self.path, offset)
+        return [(reader.offset, rec.seq) for rec in reader if isinstance(rec, Checkpoint)]
 
     def _replay_from(self, offset: int, full: bool, replay: Callable[[Record], None] | None) -> Reader | None:
         """Replay the records from ``offset`` (the first record after the header when

@@ -213,7 +213,14 @@ class ServerNode:
         record = jr.make_checkpoint(self.journal, self.fusion, node, self.latest_rx)
         self.journal.append(record)
         self.journal.flush()
-        self._replay(record)
+        try:
+            self._replay(record)
+        except jr.CheckpointError as exc:
+            # nothing changed: carry on unrestored, as a rebuild will (it skips a checkpoint that does not restore)
+            self.counters["checkpoint_errors"] += 1
+            log.error("checkpoint at t=%.2f s does not restore (%s); continuing without it", self.time_ns / 1e9, exc)
+            self._next_checkpoint_ns = record.watermark_ns + self._checkpoint_every_ns
+            return
         self.counters["checkpoints"] += 1
 
     def _note(self, record: jr.Record) -> None:

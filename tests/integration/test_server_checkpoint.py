@@ -11,7 +11,10 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+import pytest
+
 from protocol.bus import BusConfig, open_bus
+from server import checkpoint as ckpt
 from server import journal as jr
 from server.config import build_config
 from server.node import ServerNode
@@ -105,4 +108,32 @@ def test_a_new_world_run_restarts_the_checkpoint_schedule(tmp_path: Path) -> Non
         # the new run's checkpoint, then ticks 6 (odometry x2, observation, update) and 7 (odometry x2, update)
         assert second.journal is not None and second.journal.counters["replayed"] == 1 + (2 + 1 + 1) + (2 + 1)
         assert (second.global_map(), dict(second.latest_rx), second.time_ns) == before
+        second.close()
+
+
+def test_a_checkpoint_that_does_not_restore_is_skipped_live_and_on_rebuild(tmp_path: Path,
+                                                                          monkeypatch: pytest.MonkeyPatch) -> None:
+    """If restoring from a checkpoint just written fails (it should not), the server carries
+    on unrestored; a rebuild skips that checkpoint too and so ends in the same state."""
+    journal = tmp_path / "server.journal"
+    ep = endpoint()
+    real = ckpt.snapshot
+    with open_bus(BusConfig(listen=(ep,))) as bus:
+        first = ServerNode(build_config(_argv(ep, journal), {}), bus)
+        for k in range(TICKS - 2):
+            if k == 20:  # the checkpoints at 2.0 and 2.5 s are unusable
+                monkeypatch.setattr(ckpt, "snapshot", lambda fusion: b"\x78\x01garbage")
+            _feed(first, k)
+        assert first.counters["checkpoints"] == 3 and first.counters["checkpoint_errors"] == 2
+        first.close()
+        before = (first.global_map(), dict(first.latest_rx), first.time_ns, first.fusion.counters.copy())
+    monkeypatch.setattr(ckpt, "snapshot", real)
+    ep = endpoint()
+    with open_bus(BusConfig(listen=(ep,))) as bus:
+        second = ServerNode(build_config(_argv(ep, journal), {}), bus)
+        assert second.journal is not None
+        c = second.journal.counters
+        assert c["bad_checkpoints"] == 2 and c["checkpoints"] == 5
+        assert c["replay_skipped"] == 16 * 3 + 8 + 2  # before the 1.5 s checkpoint: ticks 0..15, 2 checkpoints
+        assert (second.global_map(), dict(second.latest_rx), second.time_ns, second.fusion.counters) == before
         second.close()

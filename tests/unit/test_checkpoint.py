@@ -11,6 +11,8 @@ import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import gtsam
+import msgspec
 import numpy as np
 import pytest
 
@@ -269,6 +271,24 @@ def test_snapshot_round_trip_keeps_the_python_state(written: tuple[Live, jr.Jour
         f = _fusion()
         f._apply_odom(0, 0, (0.0, 0.0, 0.0), 0.0)  # the origin's first keyframe, not yet given to the smoother
         ckpt.snapshot(f)
+
+
+def test_a_restore_is_all_or_nothing(written: tuple[Live, jr.Journal]) -> None:
+    live, _ = written
+    state = ckpt.decode(ckpt.snapshot(live.fusion))
+    graph = gtsam.NonlinearFactorGraph()
+    graph.deserialize(state.factors)
+    graph.add(gtsam.BetweenFactorPose2(gtsam.symbol("z", 1), gtsam.symbol("z", 2), gtsam.Pose2(),
+                                       gtsam.noiseModel.Isotropic.Sigma(3, 0.1)))  # variables it does not have
+    target = _fusion()
+    ckpt.restore(target, state)
+    before, smoother = _poses(target), target.smoother
+    for bad in (msgspec.structs.replace(state, factors=graph.serialize()),
+                msgspec.structs.replace(state, theta="22 serialization::archive 20 garbage"),
+                msgspec.structs.replace(state, robots={**state.robots, 99: state.robots[0]})):
+        with pytest.raises(ckpt.CheckpointError):
+            ckpt.restore(target, bad)
+        assert target.smoother is smoother and _poses(target) == before
 
 
 def msgspec_fields(s: ckpt.FusionState) -> dict[str, object]:

@@ -29,9 +29,10 @@ reading the file, the offsets of the two newest checkpoints are kept in a small
 side file ``PATH.index`` (rewritten, not fsynced, after each checkpoint); it is only
 a hint — an entry counts only if a checkpoint with that number really starts
 there — and without a usable one the file is scanned (decoding only, no fusion).
-A torn or corrupt newest checkpoint falls back to the previous one, and a
-checkpoint that does not restore to the one before it or to a full replay.  The
-file itself is never rewritten or split: it stays the single source of truth.
+A torn or corrupt newest checkpoint falls back to the previous one; a checkpoint
+that does not restore is skipped (the replay starts at an earlier one, or at the
+first record, and passes over it, as the live server did).  The file itself is
+never rewritten or split: it stays the single source of truth.
 """
 
 from __future__ import annotations

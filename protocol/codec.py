@@ -79,29 +79,58 @@ _COV_SYM_RTOL: Final = 1e-6  # GTSAM marginals and J P J^T products are symmetri
 _COV_PSD_RTOL: Final = 1e-9
 
 
+_isfinite = math.isfinite
+_PLAIN: Final = (int, str, bool, bytes, type(None))
+
+
 def _all_finite(value: Any) -> bool:
-    if isinstance(value, float):
-        return math.isfinite(value)
+    # every decoded message passes through here: floats inline and tuples of numbers in one C loop
+    # (the generic recursion cost more than the decode itself)
+    t = type(value)
+    if t is float:
+        return _isfinite(value)
     if isinstance(value, msgspec.Struct):
-        return all(_all_finite(getattr(value, f)) for f in value.__struct_fields__)
-    if isinstance(value, (tuple, list)):
-        return all(_all_finite(v) for v in value)
+        for f in value.__struct_fields__:
+            v = getattr(value, f)
+            tv = type(v)
+            if tv is float:
+                if not _isfinite(v):
+                    return False
+            elif tv not in _PLAIN and not _all_finite(v):
+                return False
+        return True
+    if t is tuple or t is list:
+        try:
+            return all(map(_isfinite, value))
+        except TypeError:  # not all numbers (structs, strings): one by one
+            return all(_all_finite(v) for v in value)
     return True
+
+
+def _clearly_positive_definite(a: tuple[float, ...]) -> bool:
+    """Whether the symmetric 3x3 ``a`` (row-major, entries in [-1, 1]) is positive definite by
+    a wide margin (Sylvester: every leading minor above 1e-6, far beyond rounding), checked in
+    plain floats: the common case, accepted without an eigen decomposition."""
+    a00, a01, a02, _, a11, a12, _, _, a22 = a
+    m2 = a00 * a11 - a01 * a01
+    det = a00 * (a11 * a22 - a12 * a12) - a01 * (a01 * a22 - a12 * a02) + a02 * (a01 * a12 - a11 * a02)
+    return a00 > 1e-6 and m2 > 1e-6 and det > 1e-6
 
 
 def _cov_problem(cov: tuple[float, ...]) -> str | None:
     """Why ``cov`` (row-major 3x3, finite) cannot be a covariance, or None."""
     if len(cov) != 9:
         return f"covariance has {len(cov)} entries, expected 9"
-    raw = np.asarray(cov, dtype=float).reshape(3, 3)
-    scale = float(np.abs(raw).max())
+    scale = max(map(abs, cov))
     if scale == 0.0:
         return None  # "unknown yet" (e.g. a Correction with localised=False)
-    a = raw / scale  # entries in [-1, 1]: no overflow in the eigen decomposition even for 1e308 inputs
-    if float(np.abs(a - a.T).max()) > _COV_SYM_RTOL:
+    a = tuple(v / scale for v in cov)  # entries in [-1, 1]: no overflow in the eigen decomposition even for 1e308
+    if max(abs(a[1] - a[3]), abs(a[2] - a[6]), abs(a[5] - a[7])) > _COV_SYM_RTOL:
         return "covariance is not symmetric"
+    if _clearly_positive_definite(a):
+        return None
     # a negative variance turns into NaN sigmas inside GTSAM (no exception), poisoning the whole map
-    if float(np.linalg.eigvalsh(a).min()) < -_COV_PSD_RTOL:
+    if float(np.linalg.eigvalsh(np.asarray(a, dtype=float).reshape(3, 3)).min()) < -_COV_PSD_RTOL:
         return "covariance is not positive semi-definite"
     return None
 

@@ -8,6 +8,7 @@ import typing
 from typing import Any
 
 import msgspec
+import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
@@ -530,3 +531,55 @@ def test_run_follower_follows_one_world_and_accepts_a_new_one_only_after_it_left
     f.world_presence(False)
     assert f.accept("b") == "restart" and f.run_id == "b"
     assert f.accept("c") == "foreign"  # the new world is alive again (no departure since)
+
+
+# --------------------------------------------------------------------------- covariance checks
+def _reference_cov_problem(cov: tuple[float, ...]) -> str | None:
+    """The plain definition: symmetric to 1e-6 and no eigenvalue below -1e-9, relative to the largest entry."""
+    a = np.asarray(cov, dtype=float).reshape(3, 3)
+    scale = float(np.abs(a).max())
+    if scale == 0.0:
+        return None
+    a = a / scale
+    if float(np.abs(a - a.T).max()) > 1e-6:
+        return "covariance is not symmetric"
+    if float(np.linalg.eigvalsh(a).min()) < -1e-9:
+        return "covariance is not positive semi-definite"
+    return None
+
+
+@pytest.mark.parametrize("cov, why", [
+    ((1e-4, 0, 0, 0, 1e-4, 0, 0, 0, 1e-5), None),                       # the common case (fast path)
+    ((1.0, 0, 0, 0, 1e-9, 0, 0, 0, 1.0), None),                         # PSD, nearly singular: exact path
+    ((1.0, 1.0, 0, 1.0, 1.0, 0, 0, 0, 1.0), None),                       # singular PSD (eigenvalue 0)
+    ((1.0, 1.1, 0, 1.1, 1.0, 0, 0, 0, 1.0), "not positive semi-definite"),  # leading minor < 0
+    ((1.0, 0, 0, 0, 1.0, 0, 0, 0, -1e-3), "not positive semi-definite"),   # negative variance last
+    ((-1e-3, 0, 0, 0, 1.0, 0, 0, 0, 1.0), "not positive semi-definite"),   # negative variance first
+    ((1.0, 0, 0.5, 0, 1.0, 0, 0, 0, 1.0), "not symmetric"),
+    ((1e300, 0, 0, 0, 1e300, 0, 0, 0, 1e300), None),                     # huge but valid: no overflow
+    ((0.0,) * 9, None),                                                   # "unknown yet"
+])
+def test_cov_check_cases(cov: tuple[float, ...], why: str | None) -> None:
+    got = codec._cov_problem(tuple(float(v) for v in cov))
+    assert (got is None) == (why is None), got
+    if why is not None:
+        assert got is not None and why in got
+    assert got == _reference_cov_problem(cov)
+
+
+def test_cov_check_agrees_with_the_eigenvalue_definition_on_random_matrices() -> None:
+    # the fast path (Sylvester with a margin) must never accept what the eigenvalue test rejects
+    rng = np.random.default_rng(7)
+    seen = {None: 0, "covariance is not positive semi-definite": 0}
+    for i in range(3000):
+        q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+        eig = rng.normal(size=3) * 10.0 ** rng.uniform(-12, 0, size=3)
+        if i % 3 == 0:
+            eig = np.abs(eig)  # PSD, often badly conditioned
+        a = q @ np.diag(eig) @ q.T
+        a = 0.5 * (a + a.T) * 10.0 ** rng.uniform(-8, 3)
+        cov = tuple(float(v) for v in a.ravel())
+        got = codec._cov_problem(cov)
+        assert got == _reference_cov_problem(cov), (cov, got)
+        seen[got] = seen.get(got, 0) + 1
+    assert min(seen.values()) > 300  # both answers well represented

@@ -131,6 +131,7 @@ def run_up(scenario: Scenario, out: Path, endpoint: str, run: str, *, live: bool
     may_die = {f"agent/{r}" for r in scenario.robots.may_die}
     t0 = time.monotonic()
     recording = None
+    view_child: Child | None = None  # never ends on its own: stopped (first) once the run is over
     try:
         # the server's write-ahead journal (restart it by hand with the same --journal to resume the map);
         # a run folder is rewritten, and a journal of an earlier run would be refused by the server
@@ -145,9 +146,9 @@ def run_up(scenario: Scenario, out: Path, endpoint: str, run: str, *, live: bool
         world_cmd = [sys.executable, "-m", "tagswarm.replay", str(replay), "--lockstep", "--wait-for", "up/0"] \
             if replay else _script("tagswarm-world")
         if view is not None:  # a read-only tool: never impaired by child_args, it sees what the run publishes
-            children.append(Child("view", [sys.executable, "-m", "tagswarm.view", "--scenario", str(scen_file),
-                                           "--run", run, "--connect", endpoint, "--port", str(view)],
-                                  logs / "view.log"))
+            view_child = Child("view", [sys.executable, "-m", "tagswarm.view", "--scenario", str(scen_file),
+                                        "--run", run, "--connect", endpoint, "--port", str(view)], logs / "view.log")
+            children.append(view_child)
             console.print(f"live view: [cyan]http://127.0.0.1:{view}/[/]")
         world = Child("world", [*world_cmd, *common, "--listen", endpoint], logs / "world.log")
         children.append(world)
@@ -187,11 +188,14 @@ def run_up(scenario: Scenario, out: Path, endpoint: str, run: str, *, live: bool
                         break
                 # let agents and the server finish their last tick, then collect what they sent
                 deadline = time.monotonic() + 5.0
-                while time.monotonic() < deadline and any(c.proc.poll() is None for c in children) and not failure:
+                while time.monotonic() < deadline and not failure and \
+                        any(c.proc.poll() is None for c in children if c is not view_child):
                     bus.wait(0.2)
                     rec.poll()
                 rec.poll()
     finally:
+        if view_child is not None:
+            view_child.stop()  # first: browsers see the page's WebSocket close as soon as the run is over
         for c in children:
             c.stop()
         if recording is not None:

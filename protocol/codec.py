@@ -109,12 +109,12 @@ def _all_finite(value: Any) -> bool:
 
 def _clearly_positive_definite(a: tuple[float, ...]) -> bool:
     """Whether the symmetric 3x3 ``a`` (row-major, entries in [-1, 1]) is positive definite by
-    a wide margin (Sylvester: every leading minor above 1e-6, far beyond rounding), checked in
+    a wide margin (Sylvester: every leading minor above 1e-12, 10^4 times the rounding of these products), checked in
     plain floats: the common case, accepted without an eigen decomposition."""
     a00, a01, a02, _, a11, a12, _, _, a22 = a
     m2 = a00 * a11 - a01 * a01
     det = a00 * (a11 * a22 - a12 * a12) - a01 * (a01 * a22 - a12 * a02) + a02 * (a01 * a12 - a11 * a02)
-    return a00 > 1e-6 and m2 > 1e-6 and det > 1e-6
+    return a00 > 1e-12 and m2 > 1e-12 and det > 1e-12
 
 
 def _cov_problem(cov: tuple[float, ...]) -> str | None:

@@ -39,6 +39,12 @@ EAGER_UPDATE_MIN_S = 0.02
 # inputs kept since the last tick of the run we follow: a restarted world's first data can be
 # drained just before its first tick, and must then be carried into the fresh map
 RECENT_MAX = 4096
+# lockstep: an agent publishes its odometry of a tick before its ack of that tick, on one session, so
+# once the ack is here the odometry is either here too or lost on the way.  This grace (wall seconds;
+# plus any receive delay injected on this process) only covers the two taking different network paths
+# (e.g. right after start-up, while the peers are still meshing); it bounds what a lost odometry
+# message costs the run, instead of ``clock.ack_timeout_s``
+ODOMETRY_GRACE_S = 0.03
 
 
 def make_fusion(config: ServerConfig) -> Fusion:
@@ -79,6 +85,10 @@ class ServerNode:
         self.obs_in = bus.subscribe(self.keys.observation())
         self.odom_in = bus.subscribe(self.keys.odometry())
         self.tick_in = bus.subscribe(self.keys.tick())
+        # each roster agent's tick acks (lockstep): they tell a lost odometry message from a late one
+        self.ack_in = {rid: bus.subscribe(self.keys.ack(f"agent/{rid}")) for rid in sorted(self.roster)}
+        self.acked: dict[int, tuple[int, int]] = {}  # robot -> (step, stamp_ns) of its agent's newest ack
+        self.odometry_grace_s = ODOMETRY_GRACE_S + config.bus.delay_ms / 1e3
         self.alive_in = bus.watch_liveliness(self.keys.alive_role("agent"))
         self.world_alive_in = bus.watch_liveliness(self.keys.alive_role("world"))
         self.runs = codec.RunFollower()  # the world instance whose ticks we follow
@@ -133,9 +143,26 @@ class ServerNode:
                 else:
                     self.alive.discard(agent)
                     log.info("robot %d's agent is gone; its last pose stays in the map", agent)
+        # acks before odometry: an agent's odometry of a tick was enqueued before its ack of that tick
+        # (one session, one receive thread), so it is drained below, however late this drain runs
+        for rid, inbox in self.ack_in.items():
+            for item, ack in self.rejects.decoded(inbox.drain(), m.TickAck):
+                if ack.participant != f"agent/{rid}":
+                    self.rejects.reject("spoofed", f"{item.key} carries participant {ack.participant!r}")
+                    continue
+                # only ever compared with the tick being waited for: an ack of any other step (a forged one
+                # of a future step too) excuses no odometry
+                self.acked[rid] = (ack.step, ack.stamp_ns)
         for item, od in self.rejects.decoded(self.odom_in.drain(), m.OdometryEstimate):
             sender = self._robot_from_key(item.key, od.robot_id)
             if sender is None:
+                continue
+            if od.stamp_ns <= self.fusion.latest_odom_ns(sender) and not self._world_left():
+                # older than this robot's odometry already fused (e.g. taken for lost in lockstep, then late):
+                # the poses are cumulative, so the newer one holds its increment; applying it now would put
+                # the robot's odometry out of order.  (Before the gap count: its old number is no restart.)
+                # Once the world has left, an early stamp is a restarted world's: kept, to be carried over.
+                self.counters["odometry_late"] += 1
                 continue
             self.gaps.seen(item.key, od.seq, f"odometry_robot{sender}")
             self._accept(jr.Odometry(robot_id=sender, stamp_ns=od.stamp_ns, x_m=od.x_m, y_m=od.y_m,
@@ -233,6 +260,8 @@ class ServerNode:
         elif isinstance(record, jr.Advance):
             self.time_ns = max(self.time_ns, record.watermark_ns)
         elif isinstance(record, jr.NewRun):
+            # (self.acked is kept: a new run's first acks may be in already; an old one matches no tick of
+            # the new run before the agent's next ack replaces it)
             self.latest_rx.clear()
             self.time_ns = self._next_map_ns = self._next_update_ns = 0
             self._next_checkpoint_ns = self._checkpoint_every_ns
@@ -364,15 +393,58 @@ class ServerNode:
             self.runs.world_presence(change.value)
         return self.runs.world_left
 
+    def _await_odometry(self, tick: m.Tick) -> None:
+        """Wait until every live robot's odometry of ``tick`` has arrived or is known to be
+        lost: its agent acknowledged ``tick`` and the odometry, published before that ack,
+        is still missing ``odometry_grace_s`` later (counted in ``odometry_lost``; fusion
+        then merges that increment with the next, see :mod:`server.fusion`).  A robot
+        whose agent does not answer at all is waited for up to ``clock.ack_timeout_s``
+        (``odometry_wait_timeouts``), as the world waits for its ack."""
+        stamp, step = tick.stamp_ns, tick.step
+        deadline = time.monotonic() + self.s.clock.ack_timeout_s
+        acked_at: dict[int, float] = {}  # robot -> when its ack of this tick was first seen here (wall)
+        done = [False]
+        next_at = [deadline]  # the earliest moment a grace runs out, else the deadline
+        armed = [deadline]  # what the current wait runs until
+
+        def settled() -> bool:
+            self._drain()
+            now = time.monotonic()
+            next_at[0] = deadline
+            done[0] = True
+            if self._world_left():
+                return True
+            for r in self.alive:
+                if self.latest_rx.get(r, -1) >= stamp:
+                    continue
+                if self.acked.get(r) == (step, stamp):
+                    until = acked_at.setdefault(r, now) + self.odometry_grace_s
+                    if now >= until:
+                        continue  # lost
+                    next_at[0] = min(next_at[0], until)
+                done[0] = False
+            return done[0]
+
+        def woken() -> bool:  # settled, or a grace began that ends before the current wait does
+            return settled() or next_at[0] < armed[0]
+
+        while True:
+            arrived = self.bus.wait_for(woken, max(0.0, armed[0] - time.monotonic()))
+            if done[0]:
+                break
+            if not arrived and armed[0] >= deadline:
+                self.counters["odometry_wait_timeouts"] += 1
+                break
+            armed[0] = next_at[0]
+        if self._world_left():
+            return
+        for r in sorted(self.alive):
+            if self.latest_rx.get(r, -1) < stamp and self.acked.get(r) == (step, stamp):
+                self.counters["odometry_lost"] += 1
+
     def _step_lockstep(self, ticks: list[m.Tick]) -> bool:
         for tick in ticks:
-
-            def caught_up(stamp: int = tick.stamp_ns) -> bool:
-                self._drain()
-                return self._world_left() or all(self.latest_rx.get(r, -1) >= stamp for r in self.alive)
-
-            if not self.bus.wait_for(caught_up, self.s.clock.ack_timeout_s):
-                self.counters["odometry_wait_timeouts"] += 1
+            self._await_odometry(tick)
             if self._world_left():
                 # the world died after this tick reached us but before every agent answered it: its run is
                 # over, so neither fuse, correct nor acknowledge it (that would only feed stale poses to

@@ -16,8 +16,9 @@ agent<k>      publish robot k's observation, odometry, status, wheel command and
               the ack ``agent/<k>``; receive robot k's images, encoders,
               correction, goal and the clock; query the map
 server        publish the map, its status, every robot's correction and the ack
-              ``server/0``; receive observations, odometry and the clock; answer
-              map queries
+              ``server/0``; receive observations, odometry, the clock and the
+              agents' acks ``agent/<k>`` (lockstep: an ack without its odometry
+              tells the server that odometry was lost); answer map queries
 viewer        receive everything of the run, query the map (spy, recorder, alive)
 operator      what viewer may, plus publish goals (``tagswarm goto``)
 ============  =====================================================================
@@ -106,7 +107,7 @@ def grants(keys: Keys, robot_ids: Sequence[int]) -> dict[str, Grant]:
             watch=(keys.alive_all(),)),
         SERVER: Grant(
             put=(keys.map(), keys.server_status(), keys.correction(), keys.ack("server/0")),
-            sub=(keys.observation(), keys.odometry(), keys.tick()),
+            sub=(keys.observation(), keys.odometry(), keys.tick(), _siblings(keys.ack("agent/0"))),
             serve=(keys.map(),),
             token=(keys.alive("server/0"),),
             watch=(keys.alive_all(),)),

@@ -144,6 +144,21 @@ def test_viewer_only_watches_and_operator_may_send_goals(net: Net) -> None:
         assert collect(agent, goals, k.goal(1)) == [k.goal(1)]
 
 
+def test_the_server_hears_the_agents_acks_but_not_the_render_workers(net: Net) -> None:
+    """A lockstep server tells a lost odometry message from a late one by the agent's tick ack."""
+    k = net.keys
+    with sessions(net, "agent1", "world", "server") as (agent, world, server):
+        acks = server.subscribe(k.ack("agent/1"))
+        render = server.subscribe(k.ack("render/0"))  # declaration denied by the router
+        synced(agent, k.ack("agent/1"), server, acks)
+        world.put(k.ack("render/0"), b"not for the server")
+        # a round trip through the router after the render ack: it has handled (and not forwarded) it
+        assert world.alive_now(k.alive_all()) == []
+        agent.put(k.ack("agent/1"), b"control")
+        assert collect(server, acks, k.ack("agent/1")) == [k.ack("agent/1")]
+        assert render.received == 0
+
+
 def test_map_queries_reach_the_server_only_from_allowed_roles(net: Net) -> None:
     k = net.keys
     with sessions(net, "server", "agent2", "world") as (server, agent, world):

@@ -47,6 +47,10 @@ def test_world_server_viewer_and_operator() -> None:
     assert allowed(g["server"].put, K.correction(1)) and allowed(g["server"].put, K.map())
     assert not allowed(g["server"].put, K.observation(1)) and not allowed(g["server"].put, K.cmd(1))
     assert g["server"].serve == (K.map(),)
+    # the server hears the agents' tick acks (an ack without its odometry: that odometry was lost), not the
+    # render workers' or its own
+    assert allowed(g["server"].sub, K.ack("agent/1")) and allowed(g["server"].sub, K.ack("agent/15"))
+    assert not allowed(g["server"].sub, K.ack("render/0")) and not allowed(g["server"].sub, K.ack("server/0"))
     assert g["viewer"].put == () and g["viewer"].token == () and g["viewer"].serve == ()
     assert allowed(g["viewer"].sub, K.truth(1)) and allowed(g["viewer"].sub, K.image(1, "front"))
     assert g["operator"].put == (K.goal(),)

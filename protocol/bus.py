@@ -81,16 +81,18 @@ class BusConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields
 
 def default_fault_keys() -> tuple[str, ...]:
     """Key expressions (any run) that faults apply to unless told otherwise: small
-    must-arrive messages that no process waits for (encoders, wheel commands, goals,
-    observations, map).  Left out: the lockstep clock (tick, acks, render requests:
-    losing one stalls the run), odometry and corrections (lockstep sync points too:
-    the server waits up to ``clock.ack_timeout_s`` for each agent's odometry of a
-    tick, an agent up to ``agent.frame_wait_s`` for the correction of the last one,
-    so every loss would cost that timeout; name them in ``fault_keys`` to impair
-    them, e.g. in realtime runs), camera images (already DROP / newest-only), ground
-    truth and statuses (evaluation and monitoring, not the system under test)."""
+    must-arrive messages whose loss the system absorbs (encoders, wheel commands,
+    goals, observations, odometry, map).  A lockstep server does not wait for a lost
+    odometry message: the agent's ack of the tick, sent after it, tells it the
+    message is gone (``odometry_lost`` in its status).  Left out: the lockstep clock
+    (tick, acks, render requests: losing one stalls the run), corrections (a sync
+    point too: a lockstep agent waits up to ``agent.frame_wait_s`` for the
+    correction of the last tick, so every loss would cost that timeout; name them in
+    ``fault_keys`` to impair them, e.g. in realtime runs), camera images (already
+    DROP / newest-only), ground truth and statuses (evaluation and monitoring, not
+    the system under test)."""
     k = Keys("any")
-    data = (k.encoders(), k.cmd(), k.goal(), k.observation(), k.map())
+    data = (k.encoders(), k.cmd(), k.goal(), k.observation(), k.odometry(), k.map())
     return tuple(f"{ROOT}/*/{key[len(k.prefix) + 1:]}" for key in data)
 
 

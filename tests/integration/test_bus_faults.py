@@ -1,5 +1,6 @@
 """Fault injection through real Zenoh sessions on loopback: a lossy, late subscriber
-next to a clean one, the clock untouched, the loss pattern the same on every run."""
+next to a clean one, the clock untouched, the loss pattern the same on every run, and
+odometry lost by default while the acks sent after it all arrive, never before it."""
 
 from __future__ import annotations
 
@@ -8,6 +9,7 @@ import time
 
 from protocol.bus import Bus, BusConfig, Inbox, open_bus
 from protocol.keys import Keys
+from protocol.netfaults import NetFaults
 from tests.harness import endpoint
 
 N = 600
@@ -85,3 +87,42 @@ def test_delay_holds_matching_samples_but_not_the_clock() -> None:
         assert time.monotonic() - sent >= delay_ms / 1000  # never early (no upper bound: noisy machine)
         assert got == list(range(10))
         assert sub.fault_stats() == {"net_dropped": 0, "net_delayed": 10}
+
+
+def test_odometry_is_lost_by_default_and_never_overtakes_the_ack_sent_after_it() -> None:
+    """What a lockstep server relies on to stop waiting for a lost odometry message: an agent's
+    odometry of a tick goes out before its ack of that tick on one session, acks are never
+    impaired, and an odometry message that is not lost is in its inbox by the time the ack is in
+    its own (drained acks first, then odometry)."""
+    ep = endpoint()
+    lossy = BusConfig(connect=(ep,), loss=LOSS, fault_seed=5)
+    with open_bus(BusConfig(listen=(ep,))) as agent, open_bus(lossy) as server:
+        odom, acks = server.subscribe(KEYS.odometry()), server.subscribe(KEYS.ack("agent/1"))
+        probe = server.subscribe(KEYS.robot_status(1))
+        for _ in range(100):
+            agent.put(KEYS.robot_status(1), b"0")
+            if server.wait_for(lambda: len(probe) > 0, 0.1):
+                break
+        for i in range(N):
+            agent.put(KEYS.odometry(1), str(i).encode())
+            agent.put(KEYS.ack("agent/1"), str(i).encode())
+        # the seeded pattern the server's injector follows (protocol/netfaults.py), replayed here
+        pattern = NetFaults(loss=LOSS, delay_s=0.0, seed=5, matches=lambda key: True)
+        dropped = {i for i in range(N) if not pattern.admit(KEYS.odometry(), KEYS.odometry(1))}
+        got_odom: set[int] = set()
+        got_acks: list[int] = []
+
+        def done() -> bool:
+            new_acks = [int(item.value) for item in acks.drain()]  # acks first ...
+            got_odom.update(int(item.value) for item in odom.drain())  # ... then what was sent before them
+            for i in new_acks:  # the odometry message sent before this ack is here already, or lost for good
+                assert (i in got_odom) != (i in dropped), i
+            got_acks.extend(new_acks)
+            return len(got_acks) >= N and len(got_odom) + odom.fault_dropped >= N
+
+        assert server.wait_for(done, 30), (len(got_acks), len(got_odom), odom.fault_dropped)
+        assert got_acks == list(range(N))  # the clock is never impaired by default
+        assert got_odom == set(range(N)) - dropped
+        lost = N - len(got_odom)
+        assert lost == odom.fault_dropped == server.fault_stats()["net_dropped"]
+        assert abs(lost - N * LOSS) <= 5 * math.sqrt(N * LOSS * (1 - LOSS)), lost

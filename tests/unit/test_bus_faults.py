@@ -135,15 +135,18 @@ def test_default_keys_spare_the_clock_its_sync_points_images_truth_and_statuses(
     def faulty(key: str) -> bool:
         return any(key_matches(p, key) for p in defaults)
 
-    for key in (k.encoders(2), k.cmd(0), k.goal(1), k.observation(3), k.map()):
+    # odometry too: a lockstep server learns of a lost one from the agent's ack and does not wait for it
+    for key in (k.encoders(2), k.cmd(0), k.goal(1), k.observation(3), k.odometry(0), k.odometry(12), k.map()):
         assert faulty(key), key
-    # the clock, and what lockstep participants wait for (odometry, corrections), are spared
-    for key in (k.tick(), k.ack("agent/1"), k.ack("server/0"), k.render(0), k.image(1, "front"), k.truth(1),
-                k.odometry(0), k.correction(5), k.robot_status(1), k.world_status(), k.server_status(),
+    # the clock (acks included: the server relies on them to tell a lost odometry message from a late one),
+    # and the corrections a lockstep agent waits for, are spared
+    for key in (k.tick(), k.ack("agent/1"), k.ack("server/0"), k.ack("render/0"), k.render(0), k.image(1, "front"),
+                k.truth(1), k.correction(5), k.robot_status(1), k.world_status(), k.server_status(),
                 k.alive("agent/1")):
         assert not faulty(key), key
     f = net_faults(BusConfig(loss=0.5))
-    assert f.matches(k.observation()) and not f.matches(k.images()) and not f.matches(k.tick())
+    assert f.matches(k.observation()) and f.matches(k.odometry())
+    assert not f.matches(k.images()) and not f.matches(k.tick()) and not f.matches(k.acks())
 
 
 # --------------------------------------------------------------------------- flags and environment

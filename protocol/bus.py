@@ -36,6 +36,24 @@ from protocol.netfaults import NetFaults
 log = logging.getLogger(__name__)
 T = TypeVar("T")
 MAX_DELAY_MS = 60_000.0
+# Zenoh link lease (transport/link/tx/lease): a process announces it to its peers, which
+# close the link, and so drop its liveliness tokens, when nothing (data or keep-alive)
+# arrived from it for that long; what counts is the lease the silent process announced.
+# A SIGKILL closes the socket and is seen in ~20 ms either way; the lease is what bounds
+# detection of a frozen, hung or partitioned process: Zenoh's 10 s default would be far
+# too late to mark an agent not alive within 2 s.  The floor is the longest a *receiving*
+# process may stall: its Zenoh receive thread runs our callbacks, which need the GIL (and
+# the lock Bus.wait_for holds), so while another thread holds the GIL in one long C call
+# (a gtsam optimisation, a pybullet scene load) or the process gets no CPU on a loaded
+# 2-core machine, the link is not read, and a stall longer than the lease drops a healthy
+# peer (measured: a 1.1 s stall drops a 1 s lease).  1500 ms detects a frozen process in
+# ~1.5 s (it sends every tick; when idle, keep-alives every 375 ms: 1.1-1.5 s) and
+# tolerates stalls 3x the longest seen in the e2e runs (0.47 s: the world loading its
+# scene right after opening its session; nodes otherwise < 0.3 s).
+DEFAULT_LEASE_MS = 1500
+MIN_LEASE_MS = 100
+MAX_LEASE_MS = 600_000
+KEEP_ALIVE = 4  # keep-alives per lease (Zenoh's default and recommendation: the lease is 4 missed ones)
 
 
 class BusError(Exception):
@@ -62,6 +80,10 @@ class BusConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields
     arrive on keys matching ``fault_keys`` (key expressions; empty = the
     :func:`default_fault_keys`) are lost with probability ``loss`` (0..1) and
     delivered ``delay_ms`` milliseconds late; ``fault_seed`` fixes the pattern.
+
+    ``lease_ms`` is the Zenoh link lease this process announces (applied on top of a
+    config file, like the other fields): its peers drop it, and its liveliness tokens,
+    after that long without hearing from it (see :data:`DEFAULT_LEASE_MS`).
     """
 
     mode: Literal["peer", "client", "router"] = "peer"
@@ -77,6 +99,7 @@ class BusConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields
     delay_ms: Annotated[float, msgspec.Meta(ge=0.0, le=MAX_DELAY_MS)] = 0.0
     fault_keys: tuple[str, ...] = ()
     fault_seed: int = 0
+    lease_ms: Annotated[int, msgspec.Meta(ge=MIN_LEASE_MS, le=MAX_LEASE_MS)] = DEFAULT_LEASE_MS
 
 
 def default_fault_keys() -> tuple[str, ...]:
@@ -135,6 +158,8 @@ def zenoh_config(cfg: BusConfig) -> zenoh.Config:
         if cfg.connect:
             conf.insert_json5("connect/endpoints", json.dumps(list(cfg.connect)))
         conf.insert_json5("scouting/multicast/enabled", json.dumps(cfg.multicast_scouting))
+        conf.insert_json5("transport/link/tx/lease", json.dumps(cfg.lease_ms))
+        conf.insert_json5("transport/link/tx/keep_alive", json.dumps(KEEP_ALIVE))
     except Exception as exc:  # zenoh raises ZError with a readable message
         raise BusError(f"bad Zenoh configuration: {exc}") from None
     if (cfg.user is None) != (cfg.password_file is None):
@@ -342,7 +367,13 @@ class Bus:
             self._wake.wait(timeout_s)
 
     def wait_for(self, predicate: Any, timeout_s: float) -> bool:
-        """Block until ``predicate()`` is true (re-checked on every arrival)."""
+        """Block until ``predicate()`` is true (re-checked on every arrival).
+
+        ``predicate`` runs with the inboxes' lock held, so what it drains from several
+        inboxes is one consistent snapshot; meanwhile Zenoh's receive thread waits on
+        that lock.  Keep it short (a receive thread stalled longer than a peer's lease
+        drops that peer), and never make a blocking Zenoh call such as :meth:`get` in
+        it: its reply could not be delivered until the call timed out."""
         deadline = time.monotonic() + timeout_s
         with self._wake:
             while not predicate():

@@ -19,7 +19,17 @@ import threading
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any, NoReturn, Protocol, TypeVar
 
-from protocol.bus import MAX_DELAY_MS, Bus, BusConfig, BusError, check_key_expr, open_bus
+from protocol.bus import (
+    DEFAULT_LEASE_MS,
+    MAX_DELAY_MS,
+    MAX_LEASE_MS,
+    MIN_LEASE_MS,
+    Bus,
+    BusConfig,
+    BusError,
+    check_key_expr,
+    open_bus,
+)
 from protocol.keys import KeyError_
 from protocol.scenario import Scenario, ScenarioError, convert, load_scenario
 
@@ -64,6 +74,10 @@ def add_common_args(p: argparse.ArgumentParser) -> None:
                    help="Zenoh user presented to the router (env TAGSWARM_ZENOH_USER; see docs/security.md)")
     n.add_argument("--zenoh-password-file", metavar="FILE",
                    help="file holding that user's password (env TAGSWARM_ZENOH_PASSWORD_FILE)")
+    n.add_argument("--zenoh-lease-ms", metavar="MS",
+                   help="Zenoh link lease this process announces: peers drop it (and its liveliness) after "
+                        f"that long without hearing from it ({MIN_LEASE_MS}..{MAX_LEASE_MS}; env "
+                        f"TAGSWARM_ZENOH_LEASE_MS; default {DEFAULT_LEASE_MS})")
     f = p.add_argument_group("network fault injection (on what this process receives; for tests and demos)")
     f.add_argument("--net-loss", metavar="SHARE", help="share of matching messages lost, 0..1 (env TAGSWARM_NET_LOSS)")
     f.add_argument("--net-delay-ms", metavar="MS", help="delay added to matching messages in milliseconds "
@@ -127,6 +141,9 @@ def bus_from(args: argparse.Namespace, env: Mapping[str, str]) -> BusConfig:
         table["config_file"] = cfg_file
     table.update(_credentials(args, env))
     table.update(_faults(args, env))
+    lease = pick(args, env, "zenoh_lease_ms")
+    if lease is not None:
+        table["lease_ms"] = _integer(lease, "--zenoh-lease-ms", MIN_LEASE_MS, MAX_LEASE_MS, "milliseconds")
     try:
         bus: BusConfig = convert(table, BusConfig, "network")
     except ScenarioError as exc:
@@ -183,6 +200,16 @@ def _number(raw: Any, flag: str, low: float, high: float, what: str) -> float:
         value = float("nan")
     if not low <= value <= high:  # also rejects nan
         raise ConfigError(f"{flag} {raw}: must be {what}")
+    return value
+
+
+def _integer(raw: Any, flag: str, low: int, high: int, what: str) -> int:
+    try:
+        value = int(str(raw).strip())
+    except ValueError:
+        raise ConfigError(f"{flag} {raw!r}: must be an integer ({what}, {low}..{high})") from None
+    if not low <= value <= high:
+        raise ConfigError(f"{flag} {raw}: must be {what}, {low}..{high}")
     return value
 
 

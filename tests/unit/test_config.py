@@ -9,6 +9,7 @@ from pathlib import Path
 
 import pytest
 
+from protocol.bus import DEFAULT_LEASE_MS, zenoh_config
 from protocol.config import ConfigError, env_of
 from protocol.keys import KeyError_
 from protocol.scenario import ScenarioError, load_scenario
@@ -149,6 +150,26 @@ def test_listen_mode_and_scouting() -> None:
     assert cfg(TAGSWARM_MULTICAST_SCOUTING="0").bus.multicast_scouting is False
 
 
+def test_zenoh_lease_default_env_and_cli() -> None:
+    # the default detects a frozen process within 2 s (Zenoh's own default is 10 s); see protocol/bus.py
+    assert cfg().bus.lease_ms == DEFAULT_LEASE_MS
+    assert 1000 <= DEFAULT_LEASE_MS <= 1800
+    assert cfg(TAGSWARM_ZENOH_LEASE_MS="4000").bus.lease_ms == 4000
+    assert cfg(["--zenoh-lease-ms", "2500"], TAGSWARM_ZENOH_LEASE_MS="4000").bus.lease_ms == 2500
+    assert cfg(["--zenoh-lease-ms", " 900 "]).bus.lease_ms == 900
+
+
+def test_zenoh_lease_reaches_the_zenoh_config(tmp_path: Path) -> None:
+    conf = zenoh_config(cfg(["--zenoh-lease-ms", "1234"]).bus)
+    assert conf.get_json("transport/link/tx/lease") == "1234"
+    assert conf.get_json("transport/link/tx/keep_alive") == "4"
+    # on top of a config file, like the other bus fields
+    path = tmp_path / "zenoh.json5"
+    path.write_text('{transport: {link: {tx: {lease: 10000}}}}')
+    conf = zenoh_config(cfg(["--zenoh-config", str(path)]).bus)
+    assert conf.get_json("transport/link/tx/lease") == str(DEFAULT_LEASE_MS)
+
+
 def test_zenoh_config_file(tmp_path: Path) -> None:
     path = tmp_path / "zenoh.json5"
     path.write_text("{}")
@@ -196,6 +217,12 @@ def test_build_config_does_not_mutate_environ() -> None:
         (["--render-workers", "-1"], {}, "--render-workers"),
         (["--status-period", "0"], {}, "--status-period"),
         (["--zenoh-config", "/nonexistent/zenoh.json5"], {}, "--zenoh-config"),
+        (["--zenoh-lease-ms", "fast"], {}, "--zenoh-lease-ms"),
+        (["--zenoh-lease-ms", "1.5"], {}, "--zenoh-lease-ms"),
+        (["--zenoh-lease-ms", "99"], {}, "--zenoh-lease-ms"),
+        (["--zenoh-lease-ms", "600001"], {}, "--zenoh-lease-ms"),
+        ([], {"TAGSWARM_ZENOH_LEASE_MS": "0"}, "--zenoh-lease-ms"),
+        ([], {"TAGSWARM_ZENOH_LEASE_MS": ""}, "--zenoh-lease-ms"),
     ],
 )
 def test_bad_values_raise_one_line_errors(argv: list[str], environ: dict[str, str], needle: str) -> None:
@@ -243,6 +270,7 @@ def _run_world(argv: list[str], capsys: pytest.CaptureFixture[str],
         (["--clock", "warp"], "--clock"),
         (["--run", "a/b"], "run id"),
         (["--render-workers", "-2"], "--render-workers"),
+        (["--zenoh-lease-ms", "-5"], "--zenoh-lease-ms"),
     ],
 )
 def test_world_main_exits_2_with_one_line(argv: list[str], needle: str, capsys: pytest.CaptureFixture[str]) -> None:

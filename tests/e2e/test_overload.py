@@ -1,7 +1,9 @@
 """A deliberately slow agent (``--inject-frame-delay``) in a realtime run: it skips
 camera frames instead of queueing them, its memory stays flat, and the world keeps
-its pace.  Rates are only reported (the machine is shared): the assertions are on
-skip counts, frame age and memory growth."""
+its pace: its step rate (realtime, 30 Hz) with the slow agent is within 10 % of the rate
+before, both measured the same way over windows of 8-12 s (a least-squares slope of step
+against the wall time each world status arrived, so one status read late at either end of
+a window moves it by well under 1 %)."""
 
 from __future__ import annotations
 
@@ -34,8 +36,11 @@ def test_slow_agent_skips_frames_keeps_flat_memory_and_the_world_keeps_pace(tmp_
         world: dict[str, int] = {}
 
         def rate(since: float) -> float:
-            pts = [(w, s) for w, s in steps if w >= since]
-            return (pts[-1][1] - pts[0][1]) / (pts[-1][0] - pts[0][0])
+            """World steps per wall second since ``since``: the slope fitted through every status (one a
+            simulated second), not the two end points, so a status drained late barely moves it."""
+            pts = np.array([(w, s) for w, s in steps if w >= since], float)
+            assert len(pts) >= 6, pts
+            return float(np.polyfit(pts[:, 0], pts[:, 1], 1)[0])
 
         def track() -> None:
             for it in world_status.drain():
@@ -48,7 +53,7 @@ def test_slow_agent_skips_frames_keeps_flat_memory_and_the_world_keeps_pace(tmp_
 
         sw.wait(lambda: sim_past(2.0), 60, "the world never started")
         t_normal = time.monotonic()
-        sw.wait(lambda: sim_past(7.0), 60, "the world stalled")
+        sw.wait(lambda: sim_past(10.0), 60, "the world stalled")
         normal_rate = rate(t_normal)
 
         # the same robot's agent again, now with a slow detector
@@ -93,8 +98,11 @@ def test_slow_agent_skips_frames_keeps_flat_memory_and_the_world_keeps_pace(tmp_
     # the skipped frames are gone, not parked: keeping them would hold 77 kB x 6 frames/s x 12 s ~ 5.5 MB
     assert len(mem) >= 20 and growth < 2.0, mem.round(2).tolist()
     slope = float(np.polyfit([w for w, _ in rss], mem, 1)[0])
+    # the realtime world keeps its pace with a slow agent on the network
+    rate_change = slow_rate / normal_rate - 1
+    assert abs(rate_change) < 0.10, (normal_rate, slow_rate)
     report = {"world_steps_per_s_normal": normal_rate, "world_steps_per_s_with_slow_agent": slow_rate,
-              "rate_change": slow_rate / normal_rate - 1, "realtime_overruns": world.get("realtime_overruns", 0),
+              "rate_change": rate_change, "realtime_overruns": world.get("realtime_overruns", 0),
               "frames_received": received, "frames_processed": processed, "frames_skipped": skipped,
               "frame_age_max_ms": counters["frame_age_max_ms"], "rss_mb_start": float(mem[0]),
               "rss_growth_mb": growth, "rss_slope_mb_per_s": slope, "rss_samples": len(mem)}

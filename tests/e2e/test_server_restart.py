@@ -86,6 +86,8 @@ def test_server_killed_mid_run_resumes_from_its_journal(tmp_path: Path) -> None:
         modes: dict[int, set[str]] = {r: set() for r in ROBOTS}
         first_after: dict[int, m.Correction] = {}
         restart_from_ns = -1
+        wall0 = 0.0
+        first_wall: dict[int, float] = {}  # wall s from the restart to each robot's first new correction
 
         def pump() -> None:
             nonlocal now_ns
@@ -100,6 +102,7 @@ def test_server_killed_mid_run_resumes_from_its_journal(tmp_path: Path) -> None:
                     last[c.robot_id] = c
                     if restart_from_ns >= 0 and c.robot_id not in first_after:
                         first_after[c.robot_id] = c
+                        first_wall[c.robot_id] = round(time.monotonic() - wall0, 2)
             for it in status_in.drain():
                 status.clear()
                 status.update(codec.decode(m.AgentStatus, it.value).counters)
@@ -153,16 +156,30 @@ def test_server_killed_mid_run_resumes_from_its_journal(tmp_path: Path) -> None:
         before = dict(last)
         assert all(c.stamp_ns <= kill_ns + 1e8 for c in before.values()), (kill_ns, before)
         outage_modes = {r: sorted(modes[r]) for r in ROBOTS}
+        # every agent said so in its status: on odometry alone, not searching or lost
+        assert outage_modes == {r: ["odometry"] for r in ROBOTS}, outage_modes
         corrections_in_outage = {r: agents[r].counters.get("corrections", 0) for r in ROBOTS}
 
         # ---- a new server on the same journal
         restart_from_ns = now_ns
         wall0 = time.monotonic()
         server = st.enter_context(process(server_argv, tmp_path / "server2.log"))
-        until(lambda: set(first_after) == set(ROBOTS), 30, "the restarted server never corrected every robot")
+        token_wall_s = -1.0  # start-up, imports, journal replay: until its liveliness token is back
+
+        def resumed() -> bool:
+            nonlocal token_wall_s
+            if token_wall_s < 0 and any(c.value for c in server_alive.drain()):
+                token_wall_s = time.monotonic() - wall0
+            return set(first_after) == set(ROBOTS)
+
+        until(resumed, 30, "the restarted server never corrected every robot")
         resume_wall_s = time.monotonic() - wall0
         resume_sim_s = (max(c.stamp_ns for c in first_after.values()) - restart_from_ns) / 1e9
         assert resume_sim_s < 3.0, resume_sim_s
+        # In wall time (reported, not asserted): 0.9-2.5 s from the restart to every robot's correction with one
+        # test at a time on this 2-core machine, 3-4 s with two more swarms running.  Nearly all of it is the new
+        # process starting (interpreter and imports: ~0.6 s alone, gtsam ~0.15 s of it) before its token is back;
+        # the journal rebuild is 50-100 ms (asserted below) and the first corrections follow the token in ~40 ms
 
         jumps, err_before, err_after = {}, {}, {}
         for r in ROBOTS:
@@ -211,12 +228,14 @@ def test_server_killed_mid_run_resumes_from_its_journal(tmp_path: Path) -> None:
               f"final status {status} vs {measurements} journal records")
         assert status["accepted"] == status["journal_records"] == measurements
         assert status["accepted"] > status_before["accepted"] and status["journal_truncated_bytes"] == 0
-        # the restart replayed from a checkpoint, not from the start
+        # the restart replayed from a checkpoint, not from the start, and quickly
         assert status["journal_replay_skipped"] > 0 and status["journal_checkpoints"] >= 2, status
+        assert status["journal_replay_ms"] < 1000, status
         # and the agents took the new server's corrections
         assert all(agents[r].counters.get("corrections", 0) > corrections_in_outage[r] for r in ROBOTS), \
             (corrections_in_outage, {r: agents[r].counters for r in ROBOTS})
         print(json.dumps({"kill_at_s": kill_ns / 1e9, "resume_wall_s": round(resume_wall_s, 2),
+                          "token_back_wall_s": round(token_wall_s, 2), "first_correction_wall_s": first_wall,
                           "resume_sim_s": round(resume_sim_s, 3), "replayed": status["journal_replayed"],
                           "replay_ms": status["journal_replay_ms"], "replay_skipped": status["journal_replay_skipped"],
                           "jump_m": jumps, "err_before_m": err_before,

@@ -45,6 +45,7 @@ RECENT_MAX = 4096
 # (e.g. right after start-up, while the peers are still meshing); it bounds what a lost odometry
 # message costs the run, instead of ``clock.ack_timeout_s``
 ODOMETRY_GRACE_S = 0.03
+ACKS_KEPT = 8
 
 
 def make_fusion(config: ServerConfig) -> Fusion:
@@ -87,7 +88,9 @@ class ServerNode:
         self.tick_in = bus.subscribe(self.keys.tick())
         # each roster agent's tick acks (lockstep): they tell a lost odometry message from a late one
         self.ack_in = {rid: bus.subscribe(self.keys.ack(f"agent/{rid}")) for rid in sorted(self.roster)}
-        self.acked: dict[int, tuple[int, int]] = {}  # robot -> (step, stamp_ns) of its agent's newest ack
+        # robot -> (step, stamp_ns) of its agent's newest acks (a few: forged ones cannot push out the one
+        # of the tick being waited for as easily)
+        self.acked: dict[int, deque[tuple[int, int]]] = {rid: deque(maxlen=ACKS_KEPT) for rid in self.roster}
         self.odometry_grace_s = ODOMETRY_GRACE_S + config.bus.delay_ms / 1e3
         self.alive_in = bus.watch_liveliness(self.keys.alive_role("agent"))
         self.world_alive_in = bus.watch_liveliness(self.keys.alive_role("world"))
@@ -152,7 +155,7 @@ class ServerNode:
                     continue
                 # only ever compared with the tick being waited for: an ack of any other step (a forged one
                 # of a future step too) excuses no odometry
-                self.acked[rid] = (ack.step, ack.stamp_ns)
+                self.acked[rid].append((ack.step, ack.stamp_ns))
         for item, od in self.rejects.decoded(self.odom_in.drain(), m.OdometryEstimate):
             sender = self._robot_from_key(item.key, od.robot_id)
             if sender is None:
@@ -261,7 +264,7 @@ class ServerNode:
             self.time_ns = max(self.time_ns, record.watermark_ns)
         elif isinstance(record, jr.NewRun):
             # (self.acked is kept: a new run's first acks may be in already; an old one matches no tick of
-            # the new run before the agent's next ack replaces it)
+            # the new run before the agent's next acks replace it)
             self.latest_rx.clear()
             self.time_ns = self._next_map_ns = self._next_update_ns = 0
             self._next_checkpoint_ns = self._checkpoint_every_ns
@@ -417,7 +420,7 @@ class ServerNode:
             for r in self.alive:
                 if self.latest_rx.get(r, -1) >= stamp:
                     continue
-                if self.acked.get(r) == (step, stamp):
+                if (step, stamp) in self.acked[r]:
                     until = acked_at.setdefault(r, now) + self.odometry_grace_s
                     if now >= until:
                         continue  # lost
@@ -439,7 +442,7 @@ class ServerNode:
         if self._world_left():
             return
         for r in sorted(self.alive):
-            if self.latest_rx.get(r, -1) < stamp and self.acked.get(r) == (step, stamp):
+            if self.latest_rx.get(r, -1) < stamp and (step, stamp) in self.acked[r]:
                 self.counters["odometry_lost"] += 1
 
     def _step_lockstep(self, ticks: list[m.Tick]) -> bool:

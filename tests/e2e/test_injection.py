@@ -139,9 +139,10 @@ def build_plan(keys: Keys, seed: int = 7) -> Plan:
         # acks -> world
         who = f"agent/{rid}"
         key = keys.ack(who)
-        bad_bytes(key, m.TickAck, rid, world)
-        plan.add(key, _oversized(m.TickAck, rng), "oversized", {"world": "oversized"})
-        plan.add(key, _r(m.TickAck, participant=f"agent/{liar}"), "spoofed", {"world": "spoofed"})
+        # (the server hears agent acks too: a lost odometry message is known once the ack after it is in)
+        bad_bytes(key, m.TickAck, rid, [*world, *server])
+        plan.add(key, _oversized(m.TickAck, rng), "oversized", {"world": "oversized", "server": "oversized"})
+        plan.add(key, _r(m.TickAck, participant=f"agent/{liar}"), "spoofed", {"world": "spoofed", "server": "spoofed"})
         plan.add(key, _r(m.TickAck, participant=who, step=10**9), "inconsistent", {"world": "inconsistent"})
         # encoders -> agent
         key = keys.encoders(rid)

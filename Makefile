@@ -12,15 +12,14 @@ test:
 demo:
 	bash scripts/demo.sh
 
-# issue 6: accuracy (paper Fig. 5 + section 2.2, variants, ablations) and realtime speed; ~30 min
+# issue 6: accuracy (paper Fig. 5 + section 2.2, variants, ablations) then realtime speed; the
+# time each took goes to bench/results/all.json (budget: 30 min on the 2-core machine)
 bench: setup
-	$(PY) bench/accuracy.py --jobs 2
-	$(PY) bench/speed.py
+	$(PY) bench/all.py --jobs 2
 
-# the same, smaller: ~5 min
+# the same, smaller (budget: 5 min); bench/results/all_quick.json
 bench-quick: setup
-	$(PY) bench/accuracy.py --quick --jobs 2
-	$(PY) bench/speed.py --quick
+	$(PY) bench/all.py --quick --jobs 2
 
 # component benchmarks: render workers, detection + pose, fusion update cost
 bench-components: setup

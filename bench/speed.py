@@ -25,7 +25,7 @@ scene and resolution): frames processed by the agents per second over that bare
 rate.  That is the share of the machine's rendering limit the full pipeline
 (render, send, detect, estimate, fuse) delivers.
 
-Usage: python bench/speed.py [--seconds 15] [--quick]
+Usage: python bench/speed.py [--seconds 10] [--quick]
 """
 
 from __future__ import annotations
@@ -185,11 +185,11 @@ def measure(robots: int, res: str, workers: int, seconds: float, warmup: float, 
 
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--seconds", type=float, default=15.0, help="measurement window per point (wall)")
-    p.add_argument("--warmup", type=float, default=4.0)
+    p.add_argument("--seconds", type=float, default=10.0, help="measurement window per point (wall)")
+    p.add_argument("--warmup", type=float, default=3.0)
     p.add_argument("--robots", type=int, nargs="+", default=[2, 4, 8, 16])
     p.add_argument("--quick", action="store_true",
-                   help="4 and 8 robots at 320x240 only, one render worker, 8 s windows")
+                   help="4 and 8 robots at 320x240 only, one render worker, 6 s windows")
     p.add_argument("--no-saturate", action="store_true", help="skip the efficiency (saturated) points")
     p.add_argument("--out", type=Path, default=None,
                    help="JSON to write (default bench/results/speed.json, speed_quick.json with --quick)")
@@ -198,7 +198,7 @@ def main() -> int:
         a.out = ROOT / "bench" / "results" / ("speed_quick.json" if a.quick else "speed.json")
     resolutions = list(RESOLUTIONS)
     if a.quick:
-        a.robots, a.seconds, resolutions = [4, 8], 8.0, ["320x240@10Hz"]
+        a.robots, a.seconds, resolutions = [4, 8], 6.0, ["320x240@10Hz"]
     workers_list = (1,) if a.quick else (1, 2)
     console = Console()
     log_dir = Path(tempfile.mkdtemp(prefix="tagswarm-speed-logs-"))

@@ -84,8 +84,8 @@ def add_common_args(p: argparse.ArgumentParser) -> None:
                                                        "(env TAGSWARM_NET_DELAY_MS)")
     f.add_argument("--net-fault-keys", action="append", metavar="KEYEXPR",
                    help="key expression the faults apply to (repeatable; env TAGSWARM_NET_FAULT_KEYS, comma-separated; "
-                        "default: encoders, wheel commands, goals, observations and the map; never the "
-                        "clock or images)")
+                        "default: encoders, wheel commands, goals, observations, odometry and the map; never "
+                        "the clock, corrections or images)")
     f.add_argument("--net-seed", metavar="N", help="seed of the loss pattern (env TAGSWARM_NET_SEED; default 0)")
     p.add_argument("--log-level", default=None, help="DEBUG, INFO, WARNING... (env TAGSWARM_LOG_LEVEL; default INFO)")
 

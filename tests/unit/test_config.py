@@ -287,3 +287,11 @@ def test_world_main_bad_env(capsys: pytest.CaptureFixture[str]) -> None:
     assert code == 2
     assert err.count("\n") == 1
     assert "robots.count" in err and "error" in err
+
+
+def test_up_forwards_the_lease_and_fault_flags_to_its_children() -> None:
+    from tagswarm.up import net_flags, parser
+
+    args = parser().parse_args(["--zenoh-lease-ms", "2500", "--net-loss", "0.1", "--net-fault-keys", "a/**"])
+    assert net_flags(args) == ["--net-loss", "0.1", "--zenoh-lease-ms", "2500", "--net-fault-keys", "a/**"]
+    assert net_flags(parser().parse_args([])) == []

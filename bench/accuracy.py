@@ -294,10 +294,11 @@ def main() -> int:
                    help="static trials of the single-tag ablation (the same placements as the first ones)")
     p.add_argument("--duration", type=float, default=300.0, help="simulated seconds per dynamic run")
     p.add_argument("--seeds", type=int, default=3, help="seeds of the paper scenario (the headline)")
-    p.add_argument("--variant-seeds", type=int, default=2, help="seeds of allmoving / leapfrog / landmarks")
-    p.add_argument("--ablation-duration", type=float, default=120.0)
+    p.add_argument("--variant-seeds", type=int, default=1,
+                   help="seeds of allmoving / leapfrog / landmarks (1 keeps make bench within 30 min on 2 cores)")
+    p.add_argument("--ablation-duration", type=float, default=60.0, help="simulated seconds per ablation run")
     p.add_argument("--jobs", type=int, default=1, help="runs at a time (each run is a whole lockstep system)")
-    p.add_argument("--quick", action="store_true", help="3 (+2 single-tag) trials, 30 s, 1 seed, 20 s ablations")
+    p.add_argument("--quick", action="store_true", help="8 (+3 single-tag) trials, 20 s, 1 seed, 20 s ablations")
     p.add_argument("--skip-ablations", action="store_true")
     p.add_argument("--out", type=Path, default=None,
                    help="JSON to write (default bench/results/accuracy.json, accuracy_quick.json with --quick); "
@@ -306,7 +307,7 @@ def main() -> int:
     if a.out is None:
         a.out = ROOT / "bench" / "results" / ("accuracy_quick.json" if a.quick else "accuracy.json")
     if a.quick:
-        a.trials, a.single_tag_trials, a.duration = 3, 2, 30.0
+        a.trials, a.single_tag_trials, a.duration = 8, 3, 20.0
         a.seeds, a.variant_seeds, a.ablation_duration = 1, 1, 20.0
     console = Console()
     a.out.parent.mkdir(parents=True, exist_ok=True)
@@ -321,32 +322,43 @@ def main() -> int:
     t_start = time.monotonic()
     with tempfile.TemporaryDirectory(prefix="tagswarm-acc-") as tmp:
         work = Path(tmp)
-        static: dict[str, list[dict[str, Any]]] = {}
+        # every run in one pool, longest first, so no core idles at the end of a phase
+        runs: list[tuple[float, tuple[str, Any], Any]] = []  # (simulated seconds, (group, key), run)
         for label, extra, n in (("whole cube", [], a.trials),
                                 ("single tag", ['agent.pose_method="single_tag"'], a.single_tag_trials)):
             tag = "single" if extra else ""
-            static[label] = _parallel(a.jobs, [lambda s=s, e=extra, t=tag: static_trial(s, work, *e, tag=t)
-                                               for s in range(n)])
-        result["static"] = summarise_static(static["whole cube"])
-        result["static_single_tag"] = summarise_static(static["single tag"])
-        console.print("static", json.dumps({k: result["static"][k] for k in ("stitch", "fusion")}, indent=1))
-        plot_static(static, a.out.parent / f"{a.out.stem}_error_vs_distance.png")
-        jobs = [(sc, seed) for sc in ("paper", "allmoving", "leapfrog", "landmarks")
-                for seed in range(a.seeds if sc == "paper" else a.variant_seeds)]
-        dyn = _parallel(a.jobs, [lambda sc=sc, seed=seed: dynamic_run(sc, work, seed, a.duration, scenario=sc)
-                                 for sc, seed in jobs])
-        for r in dyn:
+            runs += [(1.0, (label, seed), lambda s=seed, e=extra, t=tag: static_trial(s, work, *e, tag=t))
+                     for seed in range(n)]
+        dyn_jobs = [(sc, seed) for sc in ("paper", "allmoving", "leapfrog", "landmarks")
+                    for seed in range(a.seeds if sc == "paper" else a.variant_seeds)]
+        runs += [(a.duration, ("dynamic", (sc, seed)),
+                  lambda sc=sc, seed=seed: dynamic_run(sc, work, seed, a.duration, scenario=sc))
+                 for sc, seed in dyn_jobs]
+        names = [] if a.skip_ablations else ["paper", *ABLATIONS]
+        # an ablation that is a plain scenario run of the dynamic set's length is that run (seed 0): not run twice
+        reused = {n for n in names if not ABLATIONS.get(n, ("paper", []))[1]
+                  and a.ablation_duration == a.duration and (ABLATIONS.get(n, ("paper", []))[0], 0) in dyn_jobs}
+        runs += [(a.ablation_duration, ("ablation", n),
+                  lambda n=n: dynamic_run(f"abl_{n}", work, 0, a.ablation_duration, *ABLATIONS.get(n, ("paper", []))[1],
+                                          scenario=ABLATIONS.get(n, ("paper", []))[0]))
+                 for n in names if n not in reused]
+        runs.sort(key=lambda r: -r[0])
+        done = dict(zip([key for _, key, _ in runs], _parallel(a.jobs, [fn for _, _, fn in runs]), strict=True))
+    static = {label: [done[(label, seed)] for seed in range(n)]
+              for label, n in (("whole cube", a.trials), ("single tag", a.single_tag_trials))}
+    result["static"] = summarise_static(static["whole cube"])
+    result["static_single_tag"] = summarise_static(static["single tag"])
+    console.print("static", json.dumps({k: result["static"][k] for k in ("stitch", "fusion")}, indent=1))
+    plot_static(static, a.out.parent / f"{a.out.stem}_error_vs_distance.png")
+    result["dynamic"] = [done[("dynamic", job)] for job in dyn_jobs]
+    for r in result["dynamic"]:
+        console.print(r)
+    if names:
+        result["ablations"] = [done[("ablation", n)] if n not in reused else
+                               {**done[("dynamic", (ABLATIONS.get(n, ("paper", []))[0], 0))], "name": f"abl_{n}"}
+                               for n in names]
+        for r in result["ablations"]:
             console.print(r)
-        result["dynamic"] = dyn
-        if not a.skip_ablations:
-            names = ["paper", *ABLATIONS]
-            abl = _parallel(a.jobs, [lambda n=n: dynamic_run(f"abl_{n}", work, 0, a.ablation_duration,
-                                                             *ABLATIONS.get(n, ("paper", []))[1],
-                                                             scenario=ABLATIONS.get(n, ("paper", []))[0])
-                                     for n in names])
-            for r in abl:
-                console.print(r)
-            result["ablations"] = abl
     result["dynamic_summary"] = summarise_dynamic(result["dynamic"] + result.get("ablations", []))
     result["wall_time_s"] = time.monotonic() - t_start
     plot_dynamic(result["dynamic_summary"], a.out.parent / f"{a.out.stem}_dynamic.png")

@@ -10,13 +10,15 @@ Writes ``bench/results/accuracy.json`` and plots next to it.
 - dynamic: scenarios on missions with the odometry error model on, several
   seeds: ATE of fused vs odometry-only (unaligned and with one shared SE(2)
   alignment), pairwise distance error, re-localisation rotations, time lost.
-- ablations (dynamic, paper scenario, seed 0): 320x240 vs 640x480, one camera
-  vs a four-camera rig, whole-cube vs single-tag pose, active re-localisation on
-  vs off.  Stitching alone vs the factor graph is the static comparison.
+- ablations (dynamic, seed 0): 320x240 vs 640x480, one camera vs a four-camera
+  rig, whole-cube vs single-tag pose, active re-localisation on vs off (paper
+  scenario, and allmoving where it triggers).  Stitching alone vs the factor graph
+  is the static comparison.
 
 Plots: ``accuracy_error_vs_distance.png`` (static) and ``accuracy_dynamic.png``.
 
-Usage: python bench/accuracy.py [--trials 20] [--duration 300] [--seeds 3] [--jobs 2] [--quick]
+Usage: python bench/accuracy.py [--trials 20] [--single-tag-trials 10] [--duration 300] [--seeds 3]
+       [--variant-seeds 1] [--ablation-duration 60] [--jobs 2] [--quick]
 """
 
 from __future__ import annotations

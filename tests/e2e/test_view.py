@@ -467,7 +467,7 @@ def _get(url: str) -> tuple[int, str, str]:
 def test_up_view_serves_the_run_and_stops_with_it(tmp_path: Path) -> None:
     """``tagswarm up --view PORT``: the page, its state over HTTP and the WebSocket while the run
     goes on; at the end the view is stopped at once (it never ends on its own) and up exits 0."""
-    port, out, duration_s, run = free_port(), tmp_path / "run", 5, f"upview{os.getpid()}"
+    port, out, duration_s, run = free_port(), tmp_path / "run", 8, f"upview{os.getpid()}"
     argv = [script("tagswarm"), "up", "--clock", "lockstep", "--seed", "2", "--robots", "2", "--duration",
             str(duration_s), "--run", run, "--no-live", "--no-report", "--out", str(out), "--view", str(port)]
     states: list[tuple[float, dict[str, Any]]] = []
@@ -485,7 +485,7 @@ def test_up_view_serves_the_run_and_stops_with_it(tmp_path: Path) -> None:
             try:
                 while time.monotonic() < deadline:
                     msg = json.loads(ws.recv(timeout=30))
-                    if msg["type"] == "state":
+                    if msg["type"] == "state" and "sim_ns" in msg:  # not the placeholder before any data
                         states.append((time.monotonic(), msg))
                         if mid is None and msg["sim_ns"] > 1e9:  # the same state over plain HTTP, mid-run
                             mid = json.loads(_get(f"http://127.0.0.1:{port}/state.json")[2])

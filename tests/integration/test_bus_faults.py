@@ -29,6 +29,17 @@ def receive_all(bus: Bus, inbox: Inbox[bytes], n: int) -> list[int]:
     return got
 
 
+def until_linked(pub: Bus, sub: Bus, key: str) -> Inbox[bytes]:
+    """Publish on ``key`` (not a fault key) until ``sub`` hears it: from then on its subscriptions
+    are known to the publisher.  Returns that inbox (holding the probes)."""
+    probe = sub.subscribe(key)
+    for _ in range(100):
+        pub.put(key, b"0")
+        if sub.wait_for(lambda: len(probe) > 0, 0.1):
+            break
+    return probe
+
+
 def lossy_run(seed: int) -> tuple[list[int], list[int], int]:
     """Publish N observations and N ticks; return what a lossy subscriber (seed ``seed``)
     received of each, and how many observations a clean subscriber received."""
@@ -37,11 +48,7 @@ def lossy_run(seed: int) -> tuple[list[int], list[int], int]:
     with open_bus(BusConfig(listen=(ep,))) as pub, open_bus(lossy) as sub, open_bus(BusConfig(connect=(ep,))) as clean:
         obs, tick = sub.subscribe(KEYS.observation()), sub.subscribe(KEYS.tick())
         ref = clean.subscribe(KEYS.observation())
-        probe = sub.subscribe(KEYS.robot_status(1))  # not a fault key: tells when the subscriptions are known
-        for _ in range(100):
-            pub.put(KEYS.robot_status(1), b"0")
-            if sub.wait_for(lambda: len(probe) > 0, 0.1):
-                break
+        until_linked(pub, sub, KEYS.robot_status(1))
         for i in range(N):
             pub.put(KEYS.observation(1), str(i).encode())
             pub.put(KEYS.tick(), str(i).encode())
@@ -98,11 +105,7 @@ def test_odometry_is_lost_by_default_and_never_overtakes_the_ack_sent_after_it()
     lossy = BusConfig(connect=(ep,), loss=LOSS, fault_seed=5)
     with open_bus(BusConfig(listen=(ep,))) as agent, open_bus(lossy) as server:
         odom, acks = server.subscribe(KEYS.odometry()), server.subscribe(KEYS.ack("agent/1"))
-        probe = server.subscribe(KEYS.robot_status(1))
-        for _ in range(100):
-            agent.put(KEYS.robot_status(1), b"0")
-            if server.wait_for(lambda: len(probe) > 0, 0.1):
-                break
+        until_linked(agent, server, KEYS.robot_status(1))
         for i in range(N):
             agent.put(KEYS.odometry(1), str(i).encode())
             agent.put(KEYS.ack("agent/1"), str(i).encode())

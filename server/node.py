@@ -71,6 +71,7 @@ class ServerNode:
         self.rejects = codec.RejectCounter(log)
         self.gaps = codec.GapCounter()  # messages lost on the way, per sender (lossy networks)
         self.counters: Counter[str] = Counter()
+        self._status_sig: tuple[int, int] = (-1, -1)  # (inputs counted, rejects) at the last status
         self.seq = codec.Sequencer()
         self.alive: set[int] = set()
         self.latest_rx: dict[int, int] = {}
@@ -326,7 +327,11 @@ class ServerNode:
             self._next_map_ns = self.time_ns + int(1e9 / self.cfg.map_rate_hz)
             self._publish_status()
 
+    def _status_signature(self) -> tuple[int, int]:
+        return (sum(self.counters.values()), sum(self.rejects.as_counters().values()))
+
     def _publish_status(self) -> None:
+        self._status_sig = self._status_signature()
         counters = dict(self.counters)
         counters.update({f"fusion_{k}": v for k, v in self.fusion.counters.items()})
         counters.update(self.rejects.as_counters())
@@ -469,6 +474,10 @@ class ServerNode:
             if not self.step():
                 if self.journal is not None:
                     self.journal.maybe_sync()
+                # status otherwise goes out with the map, i.e. only when data moves the clock on: an
+                # idle server reports what it counted since, or the last inputs of a burst stay unseen
+                if not self.lockstep and self._status_signature() != self._status_sig:
+                    self._publish_status()
                 self.bus.wait(0.1)
         self._publish_status()
         log.info("server stopping at t=%.2f s: %s", self.time_ns / 1e9,

@@ -95,6 +95,34 @@ def test_map_queryable_and_spoofed_observations(tmp_path: Path) -> None:
             assert math.dist(before[rid][:2], after[rid][:2]) < 1e-6
 
 
+def test_an_idle_server_reports_inputs_that_did_not_move_its_clock(tmp_path: Path) -> None:
+    """Status goes out with the map, i.e. when data moves the server's clock on; an input at
+    the current time arriving just after that must still be reported once the server idles
+    (it was not: the journal test below waited 20 s for a count that never came)."""
+    ep, run = endpoint(), "srvidle"
+    keys = Keys(run)
+    argv = [script("tagswarm-server"), "--listen", ep, "--run", run, "--set", "robots.count=2",
+            "--set", 'robots.placement="ring"', "--set", "missions=[]", "--map-rate", "10"]
+    with process(argv, tmp_path / "server.log"), client(ep) as bus:
+        status = bus.subscribe(keys.server_status())
+        for rid in (0, 1):
+            bus.declare_token(keys.alive(f"agent/{rid}"))
+        wait_alive(bus, keys, "server/0")
+        counters: dict[str, int] = {}
+
+        def accepted(n: int) -> bool:
+            for it in status.drain():
+                counters.update(codec.decode(m.AgentStatus, it.value).counters)
+            return counters.get("accepted", 0) == n
+
+        bus.put(keys.observation(0), codec.encode(_obs(0, 1, 0, 2.0, 1.0, math.pi)))
+        bus.put(keys.odometry(0), codec.encode(_odom(0, 0)))
+        assert bus.wait_for(lambda: accepted(2), 20), counters
+        bus.put(keys.odometry(1), codec.encode(_odom(1, 0)))  # same stamp: the clock stays at 0
+        assert bus.wait_for(lambda: accepted(3), 10), counters
+        assert counters["accepted_odometry"] == 2 and counters["accepted_observations"] == 1
+
+
 def test_killed_server_restarts_from_its_journal_with_the_same_map(tmp_path: Path) -> None:
     ep, run = endpoint(), "srvjournal"
     keys = Keys(run)

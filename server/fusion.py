@@ -101,8 +101,10 @@ class Fusion:
     # ------------------------------------------------------------------ input
     def _push(self, stamp_ns: int, kind: Literal["odom", "obs", "landmark"], data: tuple) -> None:  # type: ignore[type-arg]
         if stamp_ns <= self.watermark_ns and kind != "odom":
-            self.counters["rejected_late"] += 1
-            return
+            if self.watermark_ns - stamp_ns > self.p.late_obs_s * 1e9:
+                self.counters["rejected_late"] += 1
+                return
+            self.counters["late_observations"] += 1  # applied at the next advance, ahead of newer events
         ids = (data[0],) if kind == "odom" else (data[0], data[1])
         rank = {"odom": 0, "obs": 1, "landmark": 2}[kind]
         heapq.heappush(self._events, _Event(stamp_ns, rank, (*ids, self._order), kind, data))
@@ -345,13 +347,17 @@ class Fusion:
 
     def _anchor(self, rid: int, stamp_ns: int, odom_pose: Pose2, guess: Pose2) -> tuple[int, Pose2, Cov]:
         """Keyframe an observation at ``stamp_ns`` attaches to: the robot's latest
-        keyframe if it has barely moved since (returning the odometry offset from it
-        and that offset's covariance), else a new keyframe at ``stamp_ns``.  Reusing
+        keyframe if it has barely moved since or ``stamp_ns`` is older than it (a late
+        observation), returning the odometry offset from it and that offset's
+        covariance; else a new keyframe at ``stamp_ns``.  Reusing
         keyframes keeps the graph small when many robots see each other every frame."""
         r = self.robots[rid]
         if r.kf_key is not None and r.estimate is not None:
             delta = se2_between(r.kf_odom, odom_pose)
-            if math.hypot(delta[0], delta[1]) < self.p.kf_dist_m / 4 and abs(delta[2]) < self.p.kf_angle_rad / 4:
+            small = math.hypot(delta[0], delta[1]) < self.p.kf_dist_m / 4 and abs(delta[2]) < self.p.kf_angle_rad / 4
+            # a late observation older than the keyframe hangs off it backwards: a keyframe before the
+            # latest would fork the robot's odometry chain
+            if small or stamp_ns < r.kf_stamp:
                 return r.kf_key, delta, odom_increment_cov(delta, self.p)
         return self._new_keyframe(rid, stamp_ns, odom_pose, initial=guess), (0.0, 0.0, 0.0), np.zeros((3, 3))
 

@@ -39,6 +39,10 @@ class FusionParams:
     # consecutive frames of one pair share their errors (same viewpoint, same tag pixels): fusing every
     # frame buys little accuracy and costs graph size, so each (observer, target) pair is thinned to this
     obs_min_interval_s: float = 0.3
+    # an observation reaches the server after its observer's odometry of later instants (the image had to be
+    # rendered, sent and detected) and often after the watermark passed its stamp; within this window it
+    # is still fused, tied to the keyframes through the odometry buffered around its stamp
+    late_obs_s: float = 1.0
 
 
 def odom_increment_cov(delta: Pose2, p: FusionParams) -> Cov:

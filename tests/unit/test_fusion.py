@@ -115,3 +115,48 @@ def test_a_lone_flipped_first_observation_does_not_place_a_robot() -> None:
     est = fusion.pose(1)
     assert est is not None and math.dist(est[0][:2], true_rel[:2]) < 0.01
     assert fusion.counters["init_discarded"] == 1
+
+
+def _late_run(delay_steps: int, params: FusionParams) -> tuple[Fusion, float]:
+    """Robot 0 holds at the origin, robot 1 drives along x at 0.5 m/s (30 Hz odometry,
+    exact); robot 0's observations of robot 1 (every 0.1 s, exact) reach the fusion
+    ``delay_steps`` odometry steps after their stamp, as in a realtime run where the
+    image still had to be rendered and detected.  Returns the fusion and robot 1's final
+    position error (m)."""
+    fusion = Fusion(params, 0, (0, 1))
+    dt, start = 1e9 / 30, (1.0, 0.5, 0.0)
+    queue: list[tuple[int, int, tuple[float, float, float]]] = []
+    pose = start
+    for k in range(150):
+        t = round(k * dt)
+        pose = (start[0] + 0.5 * k / 30, start[1], 0.0)
+        fusion.add_odometry(0, t, (0.0, 0.0, 0.0), 0.0)
+        fusion.add_odometry(1, t, (0.5 * k / 30, 0.0, 0.0), 0.5 * k / 30)
+        if k % 3 == 0:
+            queue.append((k + delay_steps, t, se2_between((0.0, 0.0, 0.0), pose)))
+        while queue and queue[0][0] <= k:
+            _, stamp, rel = queue.pop(0)
+            fusion.add_observation(0, 1, stamp, rel, COV)
+        fusion.advance(t)
+    est = fusion.pose(1)
+    assert est is not None
+    return fusion, math.dist(est[0][:2], pose[:2])
+
+
+def test_late_observations_within_the_window_are_fused_at_their_own_instant() -> None:
+    on_time, err0 = _late_run(0, FusionParams())
+    late, err = _late_run(6, FusionParams())  # 0.2 s late (robot 1 moved 10 cm since); the last 2 never land
+    assert on_time.counters["late_observations"] == 0
+    assert late.counters["late_observations"] == 48 and late.counters["rejected_late"] == 0
+    assert late.counters["accepted_observations"] >= on_time.counters["accepted_observations"] - 2
+    # fused where it was seen, not where it is when the message lands (that would be 10 cm off)
+    assert err0 < 0.005 and err < 0.005, (err0, err)
+    # beyond the window they are dropped, and the robot is never placed
+    dropped = Fusion(FusionParams(late_obs_s=0.1), 0, (0, 1))
+    for k in range(40):
+        dropped.add_odometry(0, k * 10**8, (0.0, 0.0, 0.0), 0.0)
+        dropped.add_odometry(1, k * 10**8, (0.0, 0.0, 0.0), 0.0)
+        if k >= 3:  # 0.2 s behind the watermark when it lands
+            dropped.add_observation(0, 1, (k - 3) * 10**8, (2.0, 0.0, 0.0), COV)
+        dropped.advance(k * 10**8)
+    assert dropped.counters["rejected_late"] == 37 and dropped.pose(1) is None

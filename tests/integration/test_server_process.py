@@ -123,6 +123,53 @@ def test_an_idle_server_reports_inputs_that_did_not_move_its_clock(tmp_path: Pat
         assert counters["accepted_odometry"] == 2 and counters["accepted_observations"] == 1
 
 
+def test_observations_landing_after_later_odometry_are_still_fused(tmp_path: Path) -> None:
+    """Realtime: an observation reaches the server after its robots' odometry of later
+    instants (the image had to be rendered and detected first), so the watermark has
+    passed its stamp; it must still be fused (with 8 robots every one was dropped)."""
+    ep, run = endpoint(), "srvlate"
+    keys = Keys(run)
+    argv = [script("tagswarm-server"), "--listen", ep, "--run", run, "--set", "robots.count=2",
+            "--set", 'robots.placement="ring"', "--set", "missions=[]", "--map-rate", "10"]
+    with process(argv, tmp_path / "server.log"), client(ep) as bus:
+        status = bus.subscribe(keys.server_status())
+        corr = bus.subscribe(keys.correction(1))
+        for rid in (0, 1):
+            bus.declare_token(keys.alive(f"agent/{rid}"))
+        wait_alive(bus, keys, "server/0")
+        counters: dict[str, int] = {}
+
+        def accepted(n: int) -> bool:
+            for it in status.drain():
+                counters.update(codec.decode(m.AgentStatus, it.value).counters)
+            return counters.get("accepted", 0) == n
+
+        n = 0
+        for k in range(30):  # robot 1 drives along x at 0.5 m/s; robot 0 sees it 0.3 s late
+            for rid in (0, 1):
+                bus.put(keys.odometry(rid), codec.encode(_odom(rid, k, x=0.05 * k * rid)))
+            n += 2
+            if k >= 3:
+                bus.put(keys.observation(0), codec.encode(_obs(0, 1, k - 3, 2.0 + 0.05 * (k - 3), 1.0, 0.0)))
+                n += 1
+            assert bus.wait_for(lambda n=n: accepted(n), 20), (k, counters)  # type: ignore[misc]
+        got: list[m.Correction] = []
+
+        def localised() -> bool:
+            got.extend(codec.decode(m.Correction, it.value) for it in corr.drain())
+            return bool(got) and got[-1].localised
+        # one more instant moves the clock on, so the last observations get fused and corrected
+        for rid in (0, 1):
+            bus.put(keys.odometry(rid), codec.encode(_odom(rid, 30, x=0.05 * 30 * rid)))
+        assert bus.wait_for(localised, 20), got[-1:] or "no correction"
+        assert bus.wait_for(lambda: accepted(n + 2) and counters.get("fusion_late_observations", 0) >= 20, 20), \
+            counters
+        assert counters.get("fusion_rejected_late", 0) == 0, counters
+        c = got[-1]
+        # robot 1 where it is at the correction's instant, not where it was when seen
+        assert math.hypot(c.x_m - (2.0 + 0.05 * c.stamp_ns / 1e8), c.y_m - 1.0) < 0.01, c
+
+
 def test_killed_server_restarts_from_its_journal_with_the_same_map(tmp_path: Path) -> None:
     ep, run = endpoint(), "srvjournal"
     keys = Keys(run)

@@ -15,6 +15,7 @@ import pytest
 
 from protocol import tags
 from protocol.geometry import se2_matrix
+from protocol.layout import start_poses
 from protocol.scenario import load_scenario
 from tests.geometry_check import detector, facing, project, tag_owner, world_corners
 from world import camera
@@ -106,3 +107,33 @@ def test_landmark_and_tag16h5_cubes_decode() -> None:
         r.set_pose(1, (1.2, 0, 0), pb.getQuaternionFromEuler((0, 0, math.pi)))
         ids = {d.tag_id for d in detector("tag16h5").detect(r.render(0, s.robot.cameras[0], se2_matrix(0, 0, 0)))}
     assert ids == {s.tag_ids(1)[tags.Face.FRONT], 20}
+
+
+class _WholeBoxes(Renderer):
+    """The scene with every static box drawn whole, as before the walls were cut in pieces."""
+
+    def _box(self, half: tuple[float, float, float], pos: tuple[float, float, float], yaw: float,
+             rgba: tuple[float, ...]) -> None:
+        vis = pb.createVisualShape(pb.GEOM_BOX, halfExtents=half, rgbaColor=rgba, physicsClientId=self.cid)
+        pb.createMultiBody(baseMass=0, baseVisualShapeIndex=vis, basePosition=pos,
+                           baseOrientation=pb.getQuaternionFromEuler((0, 0, yaw)), physicsClientId=self.cid)
+
+
+@pytest.mark.parametrize("extra", [[], ["render.floor=true"]])
+def test_walls_in_pieces_render_the_same_pixels(extra: list[str]) -> None:
+    """Walls (and floor, obstacles) are drawn in 1 m pieces because that is ~1.8x cheaper
+    (bench/render.py); the images must not change by a single grey level."""
+    s = load_scenario("paper", ["robots.count=8", 'robots.placement="grid"', *extra,
+                                'robot.cameras=[{name="front", width=320, height=240, hfov_deg=60}]'])
+    poses = start_poses(s)
+    frames = []
+    for cls in (_WholeBoxes, Renderer):
+        with cls(s) as r:
+            for rid, (x, y, yaw) in zip(s.robot_ids, poses, strict=True):
+                r.set_pose(rid, (x, y, 0.0), pb.getQuaternionFromEuler((0, 0, yaw)))
+            # every robot's view, and one from the corner looking along two walls
+            views = [se2_matrix(*p) for p in poses] + [se2_matrix(3.2, 3.2, -2.4)]
+            frames.append([r.render(rid % 8, s.robot.cameras[0], b) for rid, b in enumerate(views)])
+    for whole, pieces in zip(*frames, strict=True):
+        assert (whole < 200).mean() > 0.02  # something in view besides the white background
+        assert np.array_equal(whole, pieces)

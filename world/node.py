@@ -9,6 +9,7 @@ every live participant acknowledged it.
 from __future__ import annotations
 
 import logging
+import math
 import subprocess
 import sys
 import tempfile
@@ -35,11 +36,13 @@ from world.sim import Sim
 log = logging.getLogger("tagswarm.world")
 
 
-def due(step: int, rate_hz: float, tick_hz: float) -> bool:
-    """Whether a sensor at ``rate_hz`` fires at ``step`` of a ``tick_hz`` clock (always at step 0)."""
+def due(step: int, rate_hz: float, tick_hz: float, phase: float = 0.0) -> bool:
+    """Whether a sensor at ``rate_hz`` fires at ``step`` of a ``tick_hz`` clock (always at
+    step 0); ``phase`` in [0, 1) shifts its firings by that share of its period."""
     if step == 0:
         return True
-    return int(step * rate_hz / tick_hz + 1e-9) != int((step - 1) * rate_hz / tick_hz + 1e-9)
+    return (math.floor(step * rate_hz / tick_hz + phase + 1e-9)
+            != math.floor((step - 1) * rate_hz / tick_hz + phase + 1e-9))
 
 
 class WorldNode:
@@ -65,7 +68,9 @@ class WorldNode:
         self._published_step = -1  # newest step whose tick is out
         self._render_step = -1  # newest step whose render poses are out
         self._next_status_ns = 0
-        self._camera_pairs = [(rid, cam) for rid in s.robot_ids for cam in s.robot.cameras]
+        pairs = [(rid, cam) for rid in s.robot_ids for cam in s.robot.cameras]
+        self._camera_pairs = [(rid, cam, i / len(pairs) if s.render.stagger_cameras else 0.0)
+                              for i, (rid, cam) in enumerate(pairs)]
         self.cmd_in = bus.subscribe(self.keys.cmd())
         self.ack_in = bus.subscribe(self.keys.acks())
         self.alive_in = bus.watch_liveliness(self.keys.alive_all())
@@ -173,7 +178,7 @@ class WorldNode:
                 self._publish(key, m.EncoderTicks(seq=self.seq.next(key), stamp_ns=now, robot_id=rid,
                                                   left_ticks=left, right_ticks=right,
                                                   ticks_per_rev=s.encoders.ticks_per_rev))
-        pairs = [(rid, cam) for rid, cam in self._camera_pairs if due(step, cam.rate_hz, self.tick_hz)]
+        pairs = [(rid, cam) for rid, cam, phase in self._camera_pairs if due(step, cam.rate_hz, self.tick_hz, phase)]
         if not pairs:
             return []
         if self.renderer is not None:

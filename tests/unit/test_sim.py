@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 
 from agents.odometry import DiffDriveOdometry, DiffDriveParams
@@ -101,3 +102,15 @@ def test_same_commands_give_bit_identical_trajectories() -> None:
 @pytest.mark.parametrize(("rate", "hz", "expected"), [(10.0, 30.0, 10), (30.0, 30.0, 30), (7.0, 30.0, 7)])
 def test_sensor_schedule(rate: float, hz: float, expected: int) -> None:
     assert sum(due(k, rate, hz) for k in range(1, int(hz) + 1)) == expected
+
+
+def test_staggered_cameras_keep_their_rate_and_spread_over_the_ticks() -> None:
+    """8 cameras at 10 Hz on a 30 Hz clock at phases i/8: each still fires 10 times a
+    second, evenly spaced, and no tick renders more than 3 (all 8 at once without)."""
+    phases = [i / 8 for i in range(8)]
+    fired = [[k for k in range(1, 301) if due(k, 10.0, 30.0, p)] for p in phases]
+    assert all(len(f) == 100 for f in fired)
+    assert all(set(np.diff(f)) == {3} for f in fired)  # every third tick, the spacing never changes
+    per_tick = [sum(k in f for f in fired) for k in range(1, 301)]
+    assert max(per_tick) == 3 and min(per_tick) == 2
+    assert max(sum(due(k, 10.0, 30.0) for _ in phases) for k in range(1, 301)) == 8

@@ -36,6 +36,7 @@ log = logging.getLogger("tagswarm.server")
 EDGE_MEMORY_NS = 5_000_000_000
 # realtime only: fresh observations trigger a fusion update at most this often (wall seconds)
 EAGER_UPDATE_MIN_S = 0.02
+IDLE_STATUS_MIN_S = 0.5  # an idle server reports changed counters at most this often (wall)
 # inputs kept since the last tick of the run we follow: a restarted world's first data can be
 # drained just before its first tick, and must then be carried into the fresh map
 RECENT_MAX = 4096
@@ -72,6 +73,7 @@ class ServerNode:
         self.gaps = codec.GapCounter()  # messages lost on the way, per sender (lossy networks)
         self.counters: Counter[str] = Counter()
         self._status_sig: tuple[int, int] = (-1, -1)  # (inputs counted, rejects) at the last status
+        self._status_wall = 0.0  # when it went out (monotonic s)
         self.seq = codec.Sequencer()
         self.alive: set[int] = set()
         self.latest_rx: dict[int, int] = {}
@@ -331,7 +333,7 @@ class ServerNode:
         return (sum(self.counters.values()), sum(self.rejects.as_counters().values()))
 
     def _publish_status(self) -> None:
-        self._status_sig = self._status_signature()
+        self._status_sig, self._status_wall = self._status_signature(), time.monotonic()
         counters = dict(self.counters)
         counters.update({f"fusion_{k}": v for k, v in self.fusion.counters.items()})
         counters.update(self.rejects.as_counters())
@@ -476,7 +478,8 @@ class ServerNode:
                     self.journal.maybe_sync()
                 # status otherwise goes out with the map, i.e. only when data moves the clock on: an
                 # idle server reports what it counted since, or the last inputs of a burst stay unseen
-                if not self.lockstep and self._status_signature() != self._status_sig:
+                if (not self.lockstep and time.monotonic() - self._status_wall >= IDLE_STATUS_MIN_S
+                        and self._status_signature() != self._status_sig):
                     self._publish_status()
                 self.bus.wait(0.1)
         self._publish_status()

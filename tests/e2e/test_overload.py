@@ -86,8 +86,14 @@ def test_slow_agent_skips_frames_keeps_flat_memory_and_the_world_keeps_pace(tmp_
         slow_rate = rate(t_slow)
         n = counters["frames_processed"]
         sw.wait(lambda: latest() and counters["frames_processed"] > n, 30, "no status from the slow agent")
+        sw.rec.poll()
+        server = dict(sw.rec.counters.get("server", {}))
 
     received, processed, skipped = counters["frames_received"], counters["frames_processed"], counters["frames_skipped"]
+    # realtime: an observation lands after later odometry (its image had to be rendered and detected,
+    # 0.25 s more on the slow agent) and is fused at its own instant, not dropped as late
+    assert server.get("fusion_late_observations", 0) > 0, server
+    assert server.get("fusion_rejected_late", 0) <= 0.02 * server["accepted_observations"], server
     # at most ~1/DELAY_S frames per second get processed; the rest are skipped, none wait in a queue
     assert skipped > processed > 0, counters
     assert received - skipped - processed <= 1, counters  # every frame was either processed or skipped

@@ -330,7 +330,7 @@ class ServerNode:
             self._publish_status()
 
     def _status_signature(self) -> tuple[int, int]:
-        return (sum(self.counters.values()), sum(self.rejects.as_counters().values()))
+        return (sum(self.counters.values()), sum(self.rejects.counts.values()))
 
     def _publish_status(self) -> None:
         self._status_sig, self._status_wall = self._status_signature(), time.monotonic()

@@ -6,11 +6,13 @@ import math
 import signal
 import subprocess
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 from protocol import codec
 from protocol import messages as m
-from protocol.bus import BusConfig, open_bus
+from protocol.bus import Bus, BusConfig, open_bus
 from protocol.keys import Keys
 from tests.harness import client, endpoint, process, script, wait_alive
 
@@ -29,17 +31,44 @@ def _obs(observer: int, target: int, k: int, x: float, y: float, yaw: float) -> 
                                  camera="front")
 
 
-def test_map_queryable_and_spoofed_observations(tmp_path: Path) -> None:
-    ep, run = endpoint(), "srv"
-    keys = Keys(run)
-    argv = [script("tagswarm-server"), "--listen", ep, "--run", run, "--set", "robots.count=3",
-            "--set", 'robots.placement="ring"', "--set", "missions=[]", "--map-rate", "10"]
-    with process(argv, tmp_path / "server.log"), client(ep) as bus:
-        status = bus.subscribe(keys.server_status())
-        corr = bus.subscribe(keys.correction(1))
+def _argv(ep: str, run: str, robots: int, *extra: str, connect: bool = False) -> list[str]:
+    return [script("tagswarm-server"), "--connect" if connect else "--listen", ep, "--run", run,
+            "--set", f"robots.count={robots}", "--set", 'robots.placement="ring"', "--set", "missions=[]",
+            "--map-rate", "10", *extra]
+
+
+class _Status:
+    """The server's counters, as its latest status messages report them."""
+
+    def __init__(self, bus: Bus, keys: Keys) -> None:
+        self.inbox = bus.subscribe(keys.server_status())
+        self.counters: dict[str, int] = {}
+
+    def update(self) -> dict[str, int]:
+        for it in self.inbox.drain():
+            self.counters.update(codec.decode(m.AgentStatus, it.value).counters)
+        return self.counters
+
+    def accepted(self, n: int) -> bool:
+        return self.update().get("accepted", 0) == n
+
+
+@contextmanager
+def _serving(tmp_path: Path, run: str, robots: int) -> Iterator[tuple[Bus, Keys, _Status]]:
+    """A server process for ``robots`` robots, and a session playing agents 0 and 1 (their
+    tokens declared) that sees the server's status."""
+    ep, keys = endpoint(), Keys(run)
+    with process(_argv(ep, run, robots), tmp_path / "server.log"), client(ep) as bus:
+        status = _Status(bus, keys)
         for rid in (0, 1):
             bus.declare_token(keys.alive(f"agent/{rid}"))
         wait_alive(bus, keys, "server/0")
+        yield bus, keys, status
+
+
+def test_map_queryable_and_spoofed_observations(tmp_path: Path) -> None:
+    with _serving(tmp_path, "srv", 3) as (bus, keys, status):
+        corr = bus.subscribe(keys.correction(1))
 
         def put(key: str, msg: m.Msg) -> None:
             bus.put(key, codec.encode(msg))
@@ -79,11 +108,10 @@ def test_map_queryable_and_spoofed_observations(tmp_path: Path) -> None:
         for k in range(40, 46):  # later data moves the server's clock on, so it reports its counters again
             for rid in (0, 1):
                 put(keys.odometry(rid), _odom(rid, k))
-        counters: dict[str, int] = {}
+        counters = status.counters
 
         def counted() -> bool:
-            for it in status.drain():
-                counters.update(codec.decode(m.AgentStatus, it.value).counters)
+            status.update()
             return counters.get("rejected_spoofed", 0) >= 40 and counters.get("rejected_unknown_robot", 0) >= 40
 
         assert bus.wait_for(counted, 20), counters
@@ -99,27 +127,13 @@ def test_an_idle_server_reports_inputs_that_did_not_move_its_clock(tmp_path: Pat
     """Status goes out with the map, i.e. when data moves the server's clock on; an input at
     the current time arriving just after that must still be reported once the server idles
     (it was not: the journal test below waited 20 s for a count that never came)."""
-    ep, run = endpoint(), "srvidle"
-    keys = Keys(run)
-    argv = [script("tagswarm-server"), "--listen", ep, "--run", run, "--set", "robots.count=2",
-            "--set", 'robots.placement="ring"', "--set", "missions=[]", "--map-rate", "10"]
-    with process(argv, tmp_path / "server.log"), client(ep) as bus:
-        status = bus.subscribe(keys.server_status())
-        for rid in (0, 1):
-            bus.declare_token(keys.alive(f"agent/{rid}"))
-        wait_alive(bus, keys, "server/0")
-        counters: dict[str, int] = {}
-
-        def accepted(n: int) -> bool:
-            for it in status.drain():
-                counters.update(codec.decode(m.AgentStatus, it.value).counters)
-            return counters.get("accepted", 0) == n
-
+    with _serving(tmp_path, "srvidle", 2) as (bus, keys, status):
+        counters = status.counters
         bus.put(keys.observation(0), codec.encode(_obs(0, 1, 0, 2.0, 1.0, math.pi)))
         bus.put(keys.odometry(0), codec.encode(_odom(0, 0)))
-        assert bus.wait_for(lambda: accepted(2), 20), counters
+        assert bus.wait_for(lambda: status.accepted(2), 20), counters
         bus.put(keys.odometry(1), codec.encode(_odom(1, 0)))  # same stamp: the clock stays at 0
-        assert bus.wait_for(lambda: accepted(3), 10), counters
+        assert bus.wait_for(lambda: status.accepted(3), 10), counters
         assert counters["accepted_odometry"] == 2 and counters["accepted_observations"] == 1
 
 
@@ -127,23 +141,9 @@ def test_observations_landing_after_later_odometry_are_still_fused(tmp_path: Pat
     """Realtime: an observation reaches the server after its robots' odometry of later
     instants (the image had to be rendered and detected first), so the watermark has
     passed its stamp; it must still be fused (with 8 robots every one was dropped)."""
-    ep, run = endpoint(), "srvlate"
-    keys = Keys(run)
-    argv = [script("tagswarm-server"), "--listen", ep, "--run", run, "--set", "robots.count=2",
-            "--set", 'robots.placement="ring"', "--set", "missions=[]", "--map-rate", "10"]
-    with process(argv, tmp_path / "server.log"), client(ep) as bus:
-        status = bus.subscribe(keys.server_status())
+    with _serving(tmp_path, "srvlate", 2) as (bus, keys, status):
         corr = bus.subscribe(keys.correction(1))
-        for rid in (0, 1):
-            bus.declare_token(keys.alive(f"agent/{rid}"))
-        wait_alive(bus, keys, "server/0")
-        counters: dict[str, int] = {}
-
-        def accepted(n: int) -> bool:
-            for it in status.drain():
-                counters.update(codec.decode(m.AgentStatus, it.value).counters)
-            return counters.get("accepted", 0) == n
-
+        counters = status.counters
         n = 0
         for k in range(30):  # robot 1 drives along x at 0.5 m/s; robot 0 sees it 0.3 s late
             for rid in (0, 1):
@@ -152,7 +152,7 @@ def test_observations_landing_after_later_odometry_are_still_fused(tmp_path: Pat
             if k >= 3:
                 bus.put(keys.observation(0), codec.encode(_obs(0, 1, k - 3, 2.0 + 0.05 * (k - 3), 1.0, 0.0)))
                 n += 1
-            assert bus.wait_for(lambda n=n: accepted(n), 20), (k, counters)  # type: ignore[misc]
+            assert bus.wait_for(lambda n=n: status.accepted(n), 20), (k, counters)  # type: ignore[misc]
         got: list[m.Correction] = []
 
         def localised() -> bool:
@@ -162,8 +162,8 @@ def test_observations_landing_after_later_odometry_are_still_fused(tmp_path: Pat
         for rid in (0, 1):
             bus.put(keys.odometry(rid), codec.encode(_odom(rid, 30, x=0.05 * 30 * rid)))
         assert bus.wait_for(localised, 20), got[-1:] or "no correction"
-        assert bus.wait_for(lambda: accepted(n + 2) and counters.get("fusion_late_observations", 0) >= 20, 20), \
-            counters
+        assert bus.wait_for(lambda: status.accepted(n + 2) and counters.get("fusion_late_observations", 0) >= 20,
+                            20), counters
         assert counters.get("fusion_rejected_late", 0) == 0, counters
         c = got[-1]
         # robot 1 where it is at the correction's instant, not where it was when seen
@@ -175,20 +175,14 @@ def test_killed_server_restarts_from_its_journal_with_the_same_map(tmp_path: Pat
     keys = Keys(run)
     journal = tmp_path / "server.journal"
     # the test listens and the servers connect: a restarted server is reachable at once (no reconnect back-off)
-    argv = [script("tagswarm-server"), "--connect", ep, "--run", run, "--set", "robots.count=2",
-            "--set", 'robots.placement="ring"', "--set", "missions=[]", "--map-rate", "10", "--journal", str(journal)]
+    argv = _argv(ep, run, 2, "--journal", str(journal), connect=True)
     with open_bus(BusConfig(listen=(ep,))) as bus:
         for rid in (0, 1):
             bus.declare_token(keys.alive(f"agent/{rid}"))
-        status = bus.subscribe(keys.server_status())
+        status = _Status(bus, keys)
         with process(argv, tmp_path / "server1.log") as first:
             wait_alive(bus, keys, "server/0")
-            counters: dict[str, int] = {}
-
-            def accepted(n: int) -> bool:
-                for it in status.drain():
-                    counters.update(codec.decode(m.AgentStatus, it.value).counters)
-                return counters.get("accepted", 0) == n
+            counters = status.counters
 
             # one instant at a time, each accepted before the next is sent: fused in the same order however
             # a loaded machine batches arrivals (a burst let the watermark pass observations not yet drained)
@@ -200,7 +194,7 @@ def test_killed_server_restarts_from_its_journal_with_the_same_map(tmp_path: Pat
                 for rid in (0, 1):
                     bus.put(keys.odometry(rid), codec.encode(_odom(rid, k, x=0.01 * k * rid)))
                 n += 2
-                assert bus.wait_for(lambda n=n: accepted(n), 20), (k, counters)  # type: ignore[misc]
+                assert bus.wait_for(lambda n=n: status.accepted(n), 20), (k, counters)  # type: ignore[misc]
             assert counters["journal_records"] == 50 and counters["journal_replayed"] == 0
 
             def map_now() -> dict[int, tuple[float, float, float]]:

@@ -133,7 +133,7 @@ def _late_run(delay_steps: int, params: FusionParams) -> tuple[Fusion, float]:
         fusion.add_odometry(0, t, (0.0, 0.0, 0.0), 0.0)
         fusion.add_odometry(1, t, (0.5 * k / 30, 0.0, 0.0), 0.5 * k / 30)
         if k % 3 == 0:
-            queue.append((k + delay_steps, t, se2_between((0.0, 0.0, 0.0), pose)))
+            queue.append((k + delay_steps, t, pose))  # robot 0 sits at the origin: relative = absolute
         while queue and queue[0][0] <= k:
             _, stamp, rel = queue.pop(0)
             fusion.add_observation(0, 1, stamp, rel, COV)

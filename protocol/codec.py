@@ -46,6 +46,8 @@ MAX_BYTES: Final[dict[type[m.Msg], int]] = {
     m.AgentStatus: 64 * _KB,
     m.RenderPoses: 1 * _KB * _KB,
     m.Goal: 4 * _KB,
+    m.WorldCommand: 4 * _KB,
+    m.Relocalisation: 16 * _KB,
 }
 
 _ENCODER: Final = msgspec.msgpack.Encoder()

@@ -6,6 +6,7 @@ Layout (``<run>`` isolates runs sharing one network)::
     tagswarm/<run>/world/ack/<role>/<id>            TickAck
     tagswarm/<run>/world/render/<worker>            RenderPoses (world -> worker)
     tagswarm/<run>/world/status                     AgentStatus of the world
+    tagswarm/<run>/world/command                    WorldCommand (teleport / push a robot)
     tagswarm/<run>/robot/<id>/camera/<name>         CameraImage
     tagswarm/<run>/robot/<id>/encoders              EncoderTicks
     tagswarm/<run>/robot/<id>/cmd                   WheelCommand
@@ -17,6 +18,7 @@ Layout (``<run>`` isolates runs sharing one network)::
     tagswarm/<run>/robot/<id>/status                AgentStatus
     tagswarm/<run>/server/map                       GlobalMap (also a queryable)
     tagswarm/<run>/server/status                    AgentStatus of the server
+    tagswarm/<run>/server/relocalisation            Relocalisation events
     tagswarm/<run>/alive/<role>/<id>                liveliness tokens
 """
 
@@ -78,6 +80,9 @@ class Keys:
     def world_status(self) -> str:
         return f"{self.prefix}/world/status"
 
+    def world_command(self) -> str:
+        return f"{self.prefix}/world/command"
+
     # -- robots --------------------------------------------------------------
     def robot(self, robot_id: int) -> str:
         return f"{self.prefix}/robot/{int(robot_id)}"
@@ -124,6 +129,9 @@ class Keys:
 
     def server_status(self) -> str:
         return f"{self.prefix}/server/status"
+
+    def relocalisation(self) -> str:
+        return f"{self.prefix}/server/relocalisation"
 
     # -- presence ------------------------------------------------------------
     def alive(self, participant: str) -> str:

@@ -147,7 +147,11 @@ class RelativeObservation(Msg, frozen=True, kw_only=True, tag="observation"):
 
 class OdometryEstimate(Msg, frozen=True, kw_only=True, tag="odometry"):
     """Dead-reckoned pose of ``base_link`` in the robot's ``odom`` frame, with the
-    3x3 covariance of (x_m, y_m, yaw_rad) and the distance travelled so far."""
+    3x3 covariance of (x_m, y_m, yaw_rad) and the distance travelled so far.
+    ``slip_m`` is the cumulative evidence of wheel slip or stall in metres of wheel
+    travel (commanded against measured wheel rotation, summed over both wheels;
+    0 when there is none): the server widens the odometry's covariance where it
+    grows.  Older senders omit it (0)."""
 
     robot_id: RobotId
     x_m: float
@@ -155,6 +159,7 @@ class OdometryEstimate(Msg, frozen=True, kw_only=True, tag="odometry"):
     yaw_rad: float
     cov: tuple[float, ...]
     distance_m: float
+    slip_m: Annotated[float, msgspec.Meta(ge=0)] = 0.0
 
 
 class Correction(Msg, frozen=True, kw_only=True, tag="correction"):
@@ -217,6 +222,40 @@ class AgentStatus(Msg, frozen=True, kw_only=True, tag="status"):
     counters: dict[str, int] = {}
 
 
+class WorldCommand(Msg, frozen=True, kw_only=True, tag="world_command"):
+    """An operator's (or a test's) intervention in the physical world, applied by
+    the world at its next step: ``teleport`` puts robot ``robot_id``'s base at
+    (x_m, y_m, yaw_rad) in the arena frame; ``push`` moves it by (x_m, y_m) in the
+    arena frame and turns it by yaw_rad.  The wheels do not turn (a kidnapped
+    robot's odometry knows nothing of it).  Ground truth for evaluation follows."""
+
+    robot_id: RobotId
+    action: Literal["teleport", "push"]
+    x_m: float
+    y_m: float
+    yaw_rad: float = 0.0
+
+
+class Relocalisation(Msg, frozen=True, kw_only=True, tag="relocalisation"):
+    """The server re-initialised robot ``robot_id`` because a mutually consistent
+    set of observations contradicted its estimate (a pushed, slipping or kidnapped
+    robot).  Poses are map-frame (x_m, y_m, yaw_rad) at ``stamp_ns`` before and
+    after; ``observers`` are the robots whose observations formed the consistent
+    set (``-1`` stands for a landmark), ``evidence`` how many observations it
+    held."""
+
+    robot_id: RobotId
+    from_x_m: float
+    from_y_m: float
+    from_yaw_rad: float
+    to_x_m: float
+    to_y_m: float
+    to_yaw_rad: float
+    jump_m: Annotated[float, msgspec.Meta(ge=0)]
+    evidence: Count
+    observers: tuple[Annotated[int, msgspec.Meta(ge=-1, le=100_000)], ...] = ()
+
+
 class RenderPoses(Msg, frozen=True, kw_only=True, tag="render_poses"):
     """World -> render workers: the robot poses to render for step ``step`` and the
     cameras each worker must render (``"robot_id/camera"``); ``poses[i]`` is robot
@@ -242,4 +281,6 @@ AnyMessage = (
     | AgentStatus
     | RenderPoses
     | Goal
+    | WorldCommand
+    | Relocalisation
 )

@@ -54,6 +54,9 @@ SAMPLES: list[m.Msg] = [
     m.RenderPoses(seq=8, stamp_ns=266_666_664, step=8, robot_ids=(0, 1),
                   poses=(MOUNT, m.Pose3(x_m=-1.0, y_m=2.0, z_m=0.07)), cameras=("1/front",)),
     m.Goal(seq=9, stamp_ns=5, robot_id=2, x_m=1.5, y_m=-0.5, tolerance_m=0.2),
+    m.WorldCommand(seq=1, stamp_ns=2_000_000_000, robot_id=4, action="teleport", x_m=1.0, y_m=-0.5, yaw_rad=0.5),
+    m.Relocalisation(seq=0, stamp_ns=3_000_000_000, robot_id=4, from_x_m=2.7, from_y_m=-0.3, from_yaw_rad=0.1,
+                     to_x_m=3.6, to_y_m=-1.3, to_yaw_rad=0.15, jump_m=1.35, evidence=6, observers=(0, 2, -1)),
 ]
 BY_TYPE: dict[type[m.Msg], m.Msg] = {type(s): s for s in SAMPLES}
 

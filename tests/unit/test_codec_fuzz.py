@@ -35,7 +35,7 @@ from protocol.bus import Received
 TYPES: list[type[m.Msg]] = list(codec.MAX_BYTES)
 KINDS = codec.DECODE_KINDS
 # float fields with a bound in the schema: NaN / -inf there fail the bound check first ("malformed")
-BOUNDED_FLOATS = {"fx_px", "fy_px", "tolerance_m"}
+BOUNDED_FLOATS = {"fx_px", "fy_px", "tolerance_m", "slip_m", "jump_m"}
 FEW = settings(max_examples=25, deadline=None, suppress_health_check=list(HealthCheck))
 SOME = settings(max_examples=60, deadline=None, suppress_health_check=list(HealthCheck))
 

@@ -74,6 +74,8 @@ class RobotState(msgspec.Struct, frozen=True, array_like=True):
     accepted: int
     last_distance: float
     reset_hint: P3 | None
+    slip_m: float = 0.0
+    kf_slip_m: float = 0.0
 
 
 class EventState(msgspec.Struct, frozen=True, array_like=True):
@@ -111,6 +113,10 @@ class FusionState(msgspec.Struct, frozen=True, kw_only=True):
     updates: int
     next_cov_ns: int
     init: dict[int, list[CandidateState]]
+    # re-localisation evidence (server/recovery.py): contradicting candidates per suspect, accepted partners
+    reloc_robot: dict[int, list[CandidateState]] = {}
+    reloc_landmark: dict[int, list[CandidateState]] = {}
+    partners: dict[int, list[tuple[int, int]]] = {}
     factors: str  # gtsam NonlinearFactorGraph.serialize() of the smoother's live factors
     theta: str  # gtsam Values.serialize() of the smoother's linearisation point
     stamps: list[tuple[int, float]]  # (key, seconds) of every variable in the smoother
@@ -145,13 +151,15 @@ def _robot_state(r: _Robot, keep_from_ns: int) -> RobotState:
                       kf_odom=_p3(r.kf_odom), estimate=None if r.estimate is None else _p3(r.estimate),
                       cov=_flat(r.cov), drift_cov=_flat(r.drift_cov), latest_odom=lo, last_fix_ns=r.last_fix_ns,
                       accepted=r.accepted, last_distance=float(r.last_distance),
-                      reset_hint=None if r.reset_hint is None else _p3(r.reset_hint))
+                      reset_hint=None if r.reset_hint is None else _p3(r.reset_hint),
+                      slip_m=float(r.slip_m), kf_slip_m=float(r.kf_slip_m))
 
 
 def _event_state(ev: _Event) -> EventState:
     if ev.kind == "odom":
-        rid, pose, distance = ev.data
-        return EventState(ev.stamp_ns, ev.rank, ev.order, ev.kind, (rid,), (*_p3(pose), float(distance)))
+        rid, pose, distance, slip = ev.data
+        return EventState(ev.stamp_ns, ev.rank, ev.order, ev.kind, (rid,), (*_p3(pose), float(distance),
+                                                                            float(slip)))
     a, b, rel, cov = ev.data
     return EventState(ev.stamp_ns, ev.rank, ev.order, ev.kind, (a, b), (*_p3(rel), *_flat(cov)))
 
@@ -189,6 +197,9 @@ def snapshot(fusion: Fusion) -> bytes:
         edges=[(a, b, t) for (a, b), t in fusion.edges.items()], watermark_ns=fusion.watermark_ns,
         updates=fusion.updates, next_cov_ns=fusion._next_cov_ns,
         init={rid: [_candidate_state(c) for c in cands] for rid, cands in fusion._init.items()},
+        reloc_robot={rid: [_candidate_state(c) for c in ev] for rid, ev in fusion.recovery.robot_ev.items()},
+        reloc_landmark={rid: [_candidate_state(c) for c in ev] for rid, ev in fusion.recovery.landmark_ev.items()},
+        partners={rid: [(int(t), int(o)) for t, o in q] for rid, q in fusion.recovery.partners.items()},
         factors=_live_factors(fusion.smoother).serialize() if stamps else "",
         theta=fusion.smoother.getLinearizationPoint().serialize() if stamps else "", stamps=stamps)
     return zlib.compress(_ENC.encode(state), ZLIB_LEVEL)
@@ -208,13 +219,13 @@ def _robot(s: RobotState, maxlen: int) -> _Robot:
                   estimate=s.estimate, cov=_mat(s.cov), drift_cov=_mat(s.drift_cov),
                   latest_odom=None if s.latest_odom is None else (s.latest_odom[0], s.latest_odom[1:]),
                   last_fix_ns=s.last_fix_ns, accepted=s.accepted, last_distance=s.last_distance,
-                  reset_hint=s.reset_hint)
+                  reset_hint=s.reset_hint, slip_m=s.slip_m, kf_slip_m=s.kf_slip_m)
 
 
 def _event(s: EventState) -> _Event:
     f = s.floats
     if s.kind == "odom":
-        data: tuple = (s.ints[0], f[:3], f[3])  # type: ignore[type-arg]
+        data: tuple = (s.ints[0], f[:3], f[3], f[4] if len(f) > 4 else 0.0)  # type: ignore[type-arg]
     else:
         data = (s.ints[0], s.ints[1], f[:3], _mat(f[3:]))
     return _Event(s.stamp_ns, s.rank, s.order, s.kind, data)
@@ -264,6 +275,9 @@ def restore(fusion: Fusion, blob: bytes | FusionState) -> None:
     new.updates = state.updates
     new._next_cov_ns = state.next_cov_ns
     new._init = {rid: [_candidate(c) for c in cands] for rid, cands in state.init.items()}
+    new.recovery.robot_ev = {rid: [_candidate(c) for c in ev] for rid, ev in state.reloc_robot.items()}
+    new.recovery.landmark_ev = {rid: [_candidate(c) for c in ev] for rid, ev in state.reloc_landmark.items()}
+    new.recovery.partners = {rid: deque(q, maxlen=256) for rid, q in state.partners.items()}
     if state.stamps:
         try:
             # iSAM2 relinearises on every relinearizeSkip-th update; keep that phase (a fresh smoother

@@ -9,6 +9,12 @@ relative-pose between-factors from observations (robust Huber noise, chi² gate
 against the current estimate), priors from landmark observations, and a prior
 on the origin robot's first keyframe (the map frame) unless landmarks pin it.
 
+Observations the gate rejects are not lost: :mod:`server.recovery` judges them
+by their consistency with each other, and a consistent set re-localises the
+robot they are about (a pushed or kidnapped robot): it is taken out of the map
+and placed again from that set, on a new chain of keyframes (its odometry
+across the jump is void), and the event is queued in :attr:`Fusion.relocalisations`.
+
 Memory is bounded: an ``IncrementalFixedLagSmoother`` (iSAM2) marginalises
 keyframes older than ``lag_s`` of simulated time.
 
@@ -32,6 +38,7 @@ import numpy as np
 from protocol.geometry import Pose2, se2_between, se2_compose, se2_inverse
 from server.noise import CHI2_3DOF_999, Cov, FusionParams, inverse_cov, odom_increment_cov, tangent_cov
 from server.placement import Candidate, Placement, choose
+from server.recovery import LANDMARK_WITNESS, Recovery, Verdict
 from server.stitch import Edge, stitch
 
 __all__ = ["CHI2_3DOF_999", "Cov", "Fusion", "FusionParams", "inverse_cov", "odom_increment_cov", "tangent_cov"]
@@ -52,10 +59,30 @@ class _Robot:
     accepted: int = 0  # observations involving this robot in the graph
     last_distance: float = 0.0
     reset_hint: Pose2 | None = None
+    slip_m: float = 0.0  # the agent's cumulative slip evidence at the latest odometry
+    kf_slip_m: float = 0.0  # ... at the last keyframe
 
 
 def _key(rid: int, chain: int, index: int) -> int:
     return int(gtsam.symbol("x", (rid << 40) | (chain << 24) | index))
+
+
+@dataclass(frozen=True)
+class RelocEvent:
+    """A robot re-localised from a consistent set of contradicting observations:
+    map poses before and after at ``stamp_ns``, the witnesses (robot ids,
+    ``-1`` for a landmark) and how many observations agreed."""
+
+    stamp_ns: int
+    robot_id: int
+    before: Pose2
+    after: Pose2
+    evidence: int
+    observers: tuple[int, ...]
+
+    @property
+    def jump_m(self) -> float:
+        return math.dist(self.before[:2], self.after[:2])
 
 
 @dataclass(order=True)
@@ -93,6 +120,8 @@ class Fusion:
         self.updates = 0
         self._next_cov_ns = 0
         self._init: dict[int, list[Candidate]] = {}
+        self.recovery = Recovery(params, origin_id, anchored_origin=not self.landmarks)
+        self.relocalisations: list[RelocEvent] = []  # not yet taken by the node
 
     def reset(self) -> None:
         """Forget everything: the empty fusion of the same map (a restarted world)."""
@@ -110,9 +139,11 @@ class Fusion:
         heapq.heappush(self._events, _Event(stamp_ns, rank, (*ids, self._order), kind, data))
         self._order += 1
 
-    def add_odometry(self, rid: int, stamp_ns: int, pose: Pose2, distance_m: float) -> None:
-        """Cumulative odometry of ``rid`` (base_link in its odom frame) at ``stamp_ns``."""
-        self._push(stamp_ns, "odom", (rid, pose, distance_m))
+    def add_odometry(self, rid: int, stamp_ns: int, pose: Pose2, distance_m: float, slip_m: float = 0.0) -> None:
+        """Cumulative odometry of ``rid`` (base_link in its odom frame) at ``stamp_ns``;
+        ``slip_m`` the agent's cumulative slip evidence (m), which widens the
+        odometry's covariance where it grows."""
+        self._push(stamp_ns, "odom", (rid, pose, distance_m, slip_m))
 
     def add_observation(self, observer: int, target: int, stamp_ns: int, rel: Pose2, cov: Cov) -> None:
         """``target``'s base in ``observer``'s base frame at ``stamp_ns``."""
@@ -160,7 +191,7 @@ class Fusion:
             return None
         return best[1]
 
-    def _apply_odom(self, stamp_ns: int, rid: int, pose: Pose2, distance_m: float) -> None:
+    def _apply_odom(self, stamp_ns: int, rid: int, pose: Pose2, distance_m: float, slip_m: float = 0.0) -> None:
         r = self.robots[rid]
         if distance_m + 1e-6 < r.last_distance:
             # the agent restarted: its odom frame is new, start a new chain
@@ -168,8 +199,10 @@ class Fusion:
             r.chain += 1
             r.odom.clear()
             r.kf_key, r.kf_index, r.estimate, r.latest_odom = None, -1, None, None
+            r.kf_slip_m = slip_m
             self.counters["odometry_restarts"] += 1
         r.last_distance = distance_m
+        r.slip_m = slip_m
         r.odom.append((stamp_ns, pose))
         r.latest_odom = (stamp_ns, pose)
         if r.kf_key is None:
@@ -194,7 +227,7 @@ class Fusion:
         key = _key(rid, r.chain, r.kf_index)
         if r.kf_key is not None and r.estimate is not None:
             delta = se2_between(r.kf_odom, odom_pose)
-            cov = odom_increment_cov(delta, self.p)
+            cov = odom_increment_cov(delta, self.p, r.slip_m - r.kf_slip_m)
             self._factors.add(gtsam.BetweenFactorPose2(r.kf_key, key, gtsam.Pose2(*delta),
                                                        gtsam.noiseModel.Gaussian.Covariance(cov)))
             guess = se2_compose(r.estimate, delta)
@@ -209,6 +242,7 @@ class Fusion:
         self._values.insert(key, gtsam.Pose2(*guess))
         self._stamps.insert((key, stamp_ns / 1e9))
         r.kf_key, r.kf_stamp, r.kf_odom, r.estimate = key, stamp_ns, odom_pose, guess
+        r.kf_slip_m = r.slip_m
         self.counters["keyframes"] += 1
         return key
 
@@ -252,11 +286,22 @@ class Fusion:
         # lock the mistake in (the robust loss still bounds a bad observation's pull)
         established = all(r.accepted >= self.p.gate_after or rid == self.origin_id
                           for rid, r in ((observer, o), (target, g)))
+        reloc: tuple[Verdict, Pose2] | None = None
         if po is not None and pg is not None and established:
             d2 = self._gate(se2_between(po, pg), rel, tangent_cov(rel, cov) + self._rel_cov(o, g))
             if d2 > self.p.chi2_gate:
                 self.counters["rejected_gate"] += 1
-                return
+                verdict = self._contradiction(observer, target, stamp_ns, rel, cov, po, pg, oo, go)
+                if verdict is None:
+                    return
+                # re-localise the suspect: out of the map, then placed again below from the consistent set
+                before = po if verdict.suspect == observer else pg
+                self._unplace(verdict.suspect, verdict)
+                if verdict.suspect == observer:
+                    po = None
+                else:
+                    pg = None
+                reloc = verdict, before
         # the paper's stitching places a robot seen for the first time; one observation can be a
         # flipped single-tag pose, so wait for several that agree and start from the most certain
         meas: list[tuple[int, int, Pose2, Cov]] = [(observer, target, rel, tangent_cov(rel, cov))]
@@ -272,6 +317,8 @@ class Fusion:
                                     (observer, target, rel, cov))
             if pl is None:
                 return
+            if reloc is not None:
+                self._note_relocalisation(reloc[0], stamp_ns, reloc[1], pl.pose)
             if po is None:
                 po = pl.pose
             else:
@@ -298,6 +345,45 @@ class Fusion:
         self.edges[(observer, target)] = stamp_ns
         o.accepted += 1
         g.accepted += 1
+        self.recovery.accepted(observer, target, stamp_ns)
+
+    def _contradiction(self, observer: int, target: int, stamp_ns: int, rel: Pose2, cov: Cov, po: Pose2, pg: Pose2,
+                       oo: Pose2, go: Pose2) -> Verdict | None:
+        """A gated-out observation as evidence about both robots (see
+        :mod:`server.recovery`); the verdict if it completes a consistent set."""
+        meas = (observer, target, rel, cov)
+        placed_g = se2_compose(po, rel)
+        placed_o = se2_compose(pg, se2_inverse(rel))
+        inv = inverse_cov(rel, cov)
+        for suspect, placed, odom, spread in ((target, placed_g, go, cov), (observer, placed_o, oo, inv)):
+            cand = Candidate(stamp_ns, se2_compose(placed, se2_inverse(odom)), float(spread[0, 0] + spread[1, 1]),
+                             meas)
+            verdict = self.recovery.add(suspect, cand)
+            if verdict is not None:
+                # _initial_pose adds the triggering observation itself
+                self._init[suspect] = [c for c in verdict.agree if c is not cand]
+                return verdict
+        return None
+
+    def _unplace(self, rid: int, verdict: Verdict) -> None:
+        """Take ``rid`` out of the map to be placed again: a new chain of keyframes (no
+        odometry factor across the jump), the gate off until it is established again."""
+        r = self.robots[rid]
+        r.chain += 1
+        r.kf_key, r.kf_index, r.estimate = None, -1, None
+        r.accepted = 0
+        self.recovery.forget(rid)
+        self.counters["relocalisations"] += 1
+        self.counters["relocalisation_evidence"] += len(verdict.agree)
+
+    def _note_relocalisation(self, verdict: Verdict, stamp_ns: int, before: Pose2, after: Pose2) -> None:
+        ev = RelocEvent(stamp_ns, verdict.suspect, before, after, len(verdict.agree), verdict.witnesses)
+        self.relocalisations.append(ev)
+
+    def take_relocalisations(self) -> list[RelocEvent]:
+        """Re-localisations since the last call, oldest first."""
+        out, self.relocalisations = self.relocalisations, []
+        return out
 
     def _first_factors(self, new: int, pl: Placement, stamp_ns: int, now: dict[int, tuple[Pose2, Pose2]],
                        meas: list[tuple[int, int, Pose2, Cov]]) -> list[tuple[int, int, Pose2, Cov]]:
@@ -380,11 +466,19 @@ class Fusion:
         ad = np.asarray(gtsam.Pose2(*rel).AdjointMap())
         cov_map = ad @ tangent_cov(rel, cov) @ ad.T
         initial = pose
+        reloc: tuple[Verdict, Pose2] | None = None
         if r.estimate is not None:
             cur = se2_compose(r.estimate, se2_between(r.kf_odom, oo))
             if self._gate(cur, pose, cov_map + r.cov) > self.p.chi2_gate:
                 self.counters["rejected_gate"] += 1
-                return
+                cand = Candidate(stamp_ns, se2_compose(pose, se2_inverse(oo)),
+                                 float(cov_map[0, 0] + cov_map[1, 1]), (pose, cov_map))
+                verdict = self.recovery.add(observer, cand, landmark=True)
+                if verdict is None:
+                    return
+                self._init[observer] = [c for c in verdict.agree if c is not cand]
+                self._unplace(observer, verdict)
+                reloc = verdict, cur
         priors = [(pose, cov_map)]
         if r.estimate is None:
             pl = self._initial_pose(observer, stamp_ns, pose, oo, float(cov_map[0, 0] + cov_map[1, 1]),
@@ -392,6 +486,8 @@ class Fusion:
             if pl is None:
                 return
             initial = pl.pose
+            if reloc is not None:
+                self._note_relocalisation(reloc[0], stamp_ns, reloc[1], pl.pose)
             # as for robots (see _first_factors): the chosen candidate carried forward, and the
             # trigger only if it agreed
             priors = priors if pl.trigger_agrees else []
@@ -406,6 +502,7 @@ class Fusion:
             self._factors.add(gtsam.PriorFactorPose2(key, gtsam.Pose2(*prior),
                                                      self._robust(prior_cov + np.eye(3) * 1e-8)))
         r.last_fix_ns = stamp_ns
+        self.recovery.accepted(observer, LANDMARK_WITNESS, stamp_ns)
         self.counters["accepted_landmarks"] += 1
 
     def _flush(self) -> None:

@@ -95,7 +95,7 @@ def apply(fusion: Fusion, record: Record) -> None:
     replay both go through here, so they cannot diverge)."""
     if isinstance(record, Odometry):
         fusion.add_odometry(record.robot_id, record.stamp_ns, (record.x_m, record.y_m, record.yaw_rad),
-                            record.distance_m)
+                            record.distance_m, record.slip_m)
     elif isinstance(record, Observation):
         rel = (record.x_m, record.y_m, record.yaw_rad)
         cov = np.asarray(record.cov, float).reshape(3, 3)

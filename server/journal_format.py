@@ -65,6 +65,7 @@ class Odometry(msgspec.Struct, frozen=True, kw_only=True, tag="odom"):
     y_m: float
     yaw_rad: float
     distance_m: float
+    slip_m: float = 0.0  # cumulative slip evidence (older journals: 0)
 
 
 class Observation(msgspec.Struct, frozen=True, kw_only=True, tag="obs"):

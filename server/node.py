@@ -172,7 +172,7 @@ class ServerNode:
                 continue
             self.gaps.seen(item.key, od.seq, f"odometry_robot{sender}")
             self._accept(jr.Odometry(robot_id=sender, stamp_ns=od.stamp_ns, x_m=od.x_m, y_m=od.y_m,
-                                     yaw_rad=od.yaw_rad, distance_m=od.distance_m))
+                                     yaw_rad=od.yaw_rad, distance_m=od.distance_m, slip_m=od.slip_m))
             self.counters["odometry"] += 1
         for item, ob in self.rejects.decoded(self.obs_in.drain(), m.RelativeObservation):
             observer = self._robot_from_key(item.key, ob.robot_id)
@@ -232,6 +232,7 @@ class ServerNode:
             self.journal.append(jr.Advance(watermark_ns=watermark_ns))
             self.journal.flush()
         self.fusion.advance(watermark_ns)
+        self._publish_relocalisations()
         if self._checkpoint_every_ns and self.fusion.watermark_ns >= self._next_checkpoint_ns:
             self._checkpoint()
 
@@ -286,6 +287,7 @@ class ServerNode:
             self.rejects.reject("journal_unknown_robot", f"journal record of robot {rid}")
             return
         jr.apply(self.fusion, record)  # first: a checkpoint that does not restore must change nothing
+        self.fusion.take_relocalisations()  # went out before the restart
         self._note(record)
 
     # ------------------------------------------------------------------ outputs
@@ -303,6 +305,18 @@ class ServerNode:
         key = self.keys.map()
         return m.GlobalMap(seq=self.seq.peek(key), stamp_ns=self.time_ns, origin_id=self.s.map.origin_id,
                            robots=tuple(entries), edges=edges)
+
+    def _publish_relocalisations(self) -> None:
+        for ev in self.fusion.take_relocalisations():
+            log.warning("robot %d re-localised at t=%.2f s: moved %.2f m (%d observations from %s agreed, its "
+                        "estimate did not)", ev.robot_id, ev.stamp_ns / 1e9, ev.jump_m, ev.evidence,
+                        ", ".join("landmark" if w < 0 else f"robot {w}" for w in ev.observers))
+            key = self.keys.relocalisation()
+            self._publish(key, m.Relocalisation(
+                seq=self.seq.next(key), stamp_ns=ev.stamp_ns, robot_id=ev.robot_id,
+                from_x_m=ev.before[0], from_y_m=ev.before[1], from_yaw_rad=ev.before[2],
+                to_x_m=ev.after[0], to_y_m=ev.after[1], to_yaw_rad=ev.after[2], jump_m=ev.jump_m,
+                evidence=ev.evidence, observers=ev.observers))
 
     def _publish_corrections(self, all_robots: bool) -> None:
         for rid in sorted(self.roster):

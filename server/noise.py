@@ -43,10 +43,23 @@ class FusionParams:
     # rendered, sent and detected) and often after the watermark passed its stamp; within this window it
     # is still fused, tied to the keyframes through the odometry buffered around its stamp
     late_obs_s: float = 1.0
+    # re-localisation from gated-out observations that agree with each other (server/recovery.py): evidence
+    # lives reloc_window_s (within init_window_s, where placement candidates live); it takes reloc_min agreeing
+    # observations from two or more witnesses, or reloc_min_single from one witness over reloc_span_s; a
+    # witness is trusted if it agreed with a third robot within reloc_trust_s
+    reloc_window_s: float = 3.0
+    reloc_min: int = 4
+    reloc_min_single: int = 5
+    reloc_span_s: float = 1.0
+    reloc_trust_s: float = 3.0
+    # slip evidence (the agents' OdometryEstimate.slip_m, metres of unexplained wheel travel) widens an
+    # odometry increment: this many metres of position sigma (and sigma / (wheel base / 2) of yaw) per metre
+    odom_slip_sigma: float = 1.0
 
 
-def odom_increment_cov(delta: Pose2, p: FusionParams) -> Cov:
-    """(3, 3) covariance of an odometry increment ``delta`` (in the start frame)."""
+def odom_increment_cov(delta: Pose2, p: FusionParams, slip_m: float = 0.0) -> Cov:
+    """(3, 3) covariance of an odometry increment ``delta`` (in the start frame);
+    ``slip_m`` is the slip evidence gathered over it (m of wheel travel)."""
     ds = math.hypot(delta[0], delta[1])
     dth = abs(delta[2])
     b = p.wheel_base_m
@@ -54,6 +67,8 @@ def odom_increment_cov(delta: Pose2, p: FusionParams) -> Cov:
     var_s = wheel / 2 + (p.odom_scale_sigma * ds) ** 2
     var_th = 2 * wheel / b**2 + (p.odom_scale_sigma * (dth + ds / b)) ** 2
     var_lat = var_th * ds**2 / 4
+    slip = (p.odom_slip_sigma * max(slip_m, 0.0)) ** 2
+    var_s, var_lat, var_th = var_s + slip, var_lat + slip, var_th + slip / (b / 2) ** 2
     return np.diag([var_s + 1e-8, var_lat + 1e-8, var_th + 1e-8])
 
 

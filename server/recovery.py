@@ -1,0 +1,142 @@
+"""Recovery from gross error: re-localising a pushed, slipping or kidnapped robot (pure logic).
+
+The fusion's χ² gate compares each observation with the current estimate of the
+two robots involved.  Once a robot's estimate is wrong by more than the gate
+(it was pushed, its wheels slipped against an obstacle, it was carried away),
+every true observation of it fails the gate, and a gate alone would reject them
+forever.  Here the rejected observations are kept as *evidence* and judged by
+their consistency with each other, as pairwise consistency maximisation (PCM,
+Mangelson et al. 2018; Kimera-Multi) does for loop closures:
+
+- every rejected observation between robots ``a`` and ``b`` is evidence about
+  both: "``b`` is where ``a`` sees it" (witness ``a``) and "``a`` is where ``b``
+  says" (witness ``b``).  Each piece of evidence is expressed as the map pose of
+  the suspect's *odometry origin* (placed pose ⊕ odometry⁻¹), so evidence from
+  different instants compares directly while the suspect moves on odometry;
+- only a *trusted* witness gives evidence: a landmark, the origin robot, or a
+  robot that agrees with a third robot (an accepted observation with somebody
+  other than the suspect within ``reloc_trust_s``).  A robot that is wrong itself
+  therefore cannot drag its observers along;
+- the evidence about a suspect forms a consistent set when enough of it agrees
+  (the same median test that places a robot the first time:
+  :func:`server.placement.choose`): at least ``reloc_min`` pieces from two or more
+  witnesses, or ``reloc_min_single`` pieces spread over ``reloc_span_s`` from one
+  witness (the same anchored observer, again and again);
+- accepted observations of the suspect during that time are counter-evidence:
+  a robot that is still seen where the map has it (a decoy tag of its ID on a
+  wall, a spoofed stream) is not moved while more than a third as many
+  observations keep agreeing with its estimate.
+
+A single wrong observation, a mis-decoded tag or a spoofed one never forms a
+consistent set, so it stays rejected.  The origin robot is never re-localised:
+its first pose *is* the map frame.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass, field
+
+from server.noise import FusionParams
+from server.placement import Candidate, choose
+
+LANDMARK_WITNESS = -1
+
+
+def witness_of(suspect: int, cand: Candidate) -> int:
+    """The robot whose estimate (or the landmark whose known pose) produced ``cand``."""
+    meas = cand.meas
+    if len(meas) != 4:
+        return LANDMARK_WITNESS
+    observer, target = meas[0], meas[1]
+    return int(target if observer == suspect else observer)
+
+
+@dataclass
+class Verdict:
+    """A consistent set of evidence that moves ``suspect``: the agreeing candidates
+    (the best first) and the distinct witnesses behind them."""
+
+    suspect: int
+    agree: list[Candidate]
+    witnesses: tuple[int, ...]
+
+
+@dataclass
+class Recovery:
+    """Evidence against each robot's estimate, and who agrees with whom lately."""
+
+    p: FusionParams
+    origin_id: int
+    anchored_origin: bool  # the origin robot holds the map frame (no landmarks)
+    # contradicting evidence per suspect; robot-pair and landmark evidence kept apart, since each re-places the
+    # robot through its own path (a robot pair's factor, or a landmark prior)
+    robot_ev: dict[int, list[Candidate]] = field(default_factory=dict)
+    landmark_ev: dict[int, list[Candidate]] = field(default_factory=dict)
+    # (stamp_ns, other robot or LANDMARK_WITNESS) of observations accepted lately, per robot
+    partners: dict[int, deque[tuple[int, int]]] = field(default_factory=dict)
+
+    def accepted(self, a: int, b: int, stamp_ns: int) -> None:
+        """An observation between ``a`` and ``b`` (``b`` = LANDMARK_WITNESS for a landmark) passed the gate."""
+        for x, y in ((a, b), (b, a)):
+            if x == LANDMARK_WITNESS:
+                continue
+            q = self.partners.setdefault(x, deque(maxlen=256))
+            q.append((stamp_ns, y))
+
+    def trusted(self, witness: int, suspect: int, stamp_ns: int) -> bool:
+        """Whether ``witness``'s estimate may judge ``suspect`` at ``stamp_ns``."""
+        if witness == LANDMARK_WITNESS:
+            return True
+        if witness == self.origin_id and self.anchored_origin:
+            return True
+        horizon = stamp_ns - int(self.p.reloc_trust_s * 1e9)
+        return any(t >= horizon and other != suspect for t, other in self.partners.get(witness, ()))
+
+    def _counter_evidence(self, suspect: int, since_ns: int) -> int:
+        return sum(1 for t, _ in self.partners.get(suspect, ()) if t >= since_ns)
+
+    def add(self, suspect: int, cand: Candidate, landmark: bool = False) -> Verdict | None:
+        """Record one piece of contradicting evidence about ``suspect``; a verdict if
+        the evidence now forms a consistent set that should re-localise it."""
+        if suspect == self.origin_id and self.anchored_origin:
+            return None
+        witness = witness_of(suspect, cand)
+        if not self.trusted(witness, suspect, cand.stamp_ns):
+            return None
+        store = self.landmark_ev if landmark else self.robot_ev
+        horizon = cand.stamp_ns - int(self.p.reloc_window_s * 1e9)
+        ev = [c for c in store.get(suspect, []) if c.stamp_ns >= horizon]
+        ev.append(cand)
+        store[suspect] = ev
+        need = min(self.p.reloc_min, self.p.reloc_min_single)
+        if len(ev) < need:
+            return None
+        chosen = choose(ev, self.p)
+        if chosen is None:
+            return None
+        best, agree = chosen
+        witnesses = tuple(sorted({witness_of(suspect, c) for c in agree}))
+        first = min(c.stamp_ns for c in agree)
+        span_s = (max(c.stamp_ns for c in agree) - first) / 1e9
+        many = len(agree) >= self.p.reloc_min and len(witnesses) >= 2
+        repeated = len(agree) >= self.p.reloc_min_single and span_s >= self.p.reloc_span_s
+        if not (many or repeated or (landmark and len(agree) >= self.p.reloc_min)):
+            return None
+        if self._counter_evidence(suspect, first) * 3 > len(agree):
+            return None
+        return Verdict(suspect, [best, *(c for c in agree if c is not best)], witnesses)
+
+    def forget(self, rid: int) -> None:
+        """After ``rid`` was re-localised: its evidence is used up, and evidence that
+        came from its old (wrong) estimate about others is void."""
+        self.robot_ev.pop(rid, None)
+        self.landmark_ev.pop(rid, None)
+        self.partners.pop(rid, None)
+        for store in (self.robot_ev,):
+            for other, ev in list(store.items()):
+                kept = [c for c in ev if witness_of(other, c) != rid]
+                if kept:
+                    store[other] = kept
+                else:
+                    del store[other]

@@ -1,0 +1,170 @@
+"""Recovery from gross error (server/recovery.py through the Fusion): a kidnapped
+robot is re-localised by observations that agree with each other, while lone,
+decoy and spoofed observations never move the map."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+
+import numpy as np
+
+from protocol.geometry import Pose2, se2_between, se2_compose
+from server.fusion import Fusion, FusionParams
+
+DT_NS = 100_000_000  # 10 Hz
+COV = np.diag([0.01**2, 0.01**2, 0.01**2])
+# who sees whom (observer -> targets); robot 0 is the origin
+ALL_SEE_3 = {0: (1, 2, 3), 1: (3, 0), 2: (3, 0)}
+ONLY_ORIGIN_SEES_3 = {0: (1, 2, 3), 1: (0,), 2: (0,)}
+START: dict[int, Pose2] = {0: (0.0, 0.0, 0.0), 1: (2.0, 1.0, math.pi), 2: (2.0, -1.0, math.pi), 3: (2.5, 0.0, math.pi)}
+
+Fake = Callable[[int, int], list[tuple[int, int, Pose2]]]  # (step, stamp_ns) -> extra observations
+
+
+def _run(seconds: float, sees: dict[int, tuple[int, ...]], kidnap: dict[int, tuple[float, Pose2]] | None = None,
+         fake: Fake | None = None, seed: int = 0) -> tuple[Fusion, dict[int, Pose2], list[tuple[float, float]]]:
+    """Stationary robots at START; ``kidnap`` moves a robot at a time (s) to a new true pose without its odometry
+    knowing.  Returns the fusion, the final truths and robot 3's (t, fused error) history."""
+    rng = np.random.default_rng(seed)
+    fusion = Fusion(FusionParams(), 0, tuple(START))
+    truth = dict(START)
+    history: list[tuple[float, float]] = []
+    for k in range(int(seconds * 10) + 1):
+        t_ns = k * DT_NS
+        for rid, (at_s, pose) in (kidnap or {}).items():
+            if abs(t_ns / 1e9 - at_s) < 1e-9:
+                truth[rid] = pose
+        for rid in START:
+            fusion.add_odometry(rid, t_ns, (0.0, 0.0, 0.0), 0.0)  # standing still, wheels never turn
+        for obs, targets in sees.items():
+            for tgt in targets:
+                rel = se2_between(truth[obs], truth[tgt])
+                noisy = (rel[0] + rng.normal(0, 0.01), rel[1] + rng.normal(0, 0.01), rel[2] + rng.normal(0, 0.01))
+                fusion.add_observation(obs, tgt, t_ns, noisy, COV)
+        for obs, tgt, rel in (fake(k, t_ns) if fake else []):
+            fusion.add_observation(obs, tgt, t_ns, rel, COV)
+        fusion.advance(t_ns)
+        est = fusion.pose(3)
+        if est is not None:
+            history.append((t_ns / 1e9, math.dist(_in_map(est[0]), truth[3][:2])))
+    return fusion, truth, history
+
+
+def _in_map(p: Pose2) -> tuple[float, float]:
+    return p[0], p[1]  # the map frame is robot 0's pose, which is the arena origin here
+
+
+def _recovered_after(history: list[tuple[float, float]], t0: float, tol: float = 0.10) -> float | None:
+    """Seconds after t0 until the error is below tol for good."""
+    later = [(t, e) for t, e in history if t >= t0]
+    for i, (t, _) in enumerate(later):
+        if all(e < tol for _, e in later[i:]):
+            return t - t0
+    return None
+
+
+def test_kidnapped_robot_seen_by_several_is_relocalised_within_3_s() -> None:
+    fusion, truth, hist = _run(12.0, ALL_SEE_3, kidnap={3: (6.0, (2.5, -1.0, math.pi))})
+    assert max(e for t, e in hist if 3.0 < t < 6.0) < 0.02  # localised before
+    back = _recovered_after(hist, 6.0)
+    assert back is not None and back <= 3.0, back
+    events = fusion.take_relocalisations()
+    assert [e.robot_id for e in events] == [3]
+    assert abs(events[0].jump_m - 1.0) < 0.05
+    assert set(events[0].observers) >= {0, 1, 2} or len(events[0].observers) >= 2
+    assert fusion.counters["relocalisations"] == 1
+    for rid in (0, 1, 2):  # nobody else moved
+        est = fusion.pose(rid)
+        assert est is not None and math.dist(est[0][:2], truth[rid][:2]) < 0.01
+
+
+def test_kidnapped_robot_seen_by_the_origin_alone_is_relocalised_within_3_s() -> None:
+    fusion, _, hist = _run(12.0, ONLY_ORIGIN_SEES_3, kidnap={3: (6.0, (1.5, 0.6, math.pi - 0.3))})
+    back = _recovered_after(hist, 6.0)
+    assert back is not None and back <= 3.0, back
+    assert [e.robot_id for e in fusion.take_relocalisations()] == [3]
+
+
+def test_kidnapped_observer_is_relocalised_from_what_it_sees() -> None:
+    # robot 3 sees 0, 1 and 2; nobody sees robot 3
+    sees = {0: (1, 2), 1: (0,), 2: (0,), 3: (0, 1, 2)}
+    fusion, truth, hist = _run(12.0, sees, kidnap={3: (6.0, (1.0, 1.8, -1.2))})
+    back = _recovered_after(hist, 6.0)
+    assert back is not None and back <= 3.0, back
+    assert [e.robot_id for e in fusion.take_relocalisations()] == [3]
+    for rid in (0, 1, 2):
+        est = fusion.pose(rid)
+        assert est is not None and math.dist(est[0][:2], truth[rid][:2]) < 0.01
+
+
+def test_without_a_kidnap_nothing_is_relocalised() -> None:
+    fusion, _, hist = _run(10.0, ALL_SEE_3)
+    assert fusion.counters["relocalisations"] == 0
+    assert max(e for t, e in hist if t > 2.0) < 0.02
+
+
+def _final_poses(fusion: Fusion) -> dict[int, Pose2]:
+    out = {}
+    for rid in START:
+        est = fusion.pose(rid)
+        assert est is not None
+        out[rid] = est[0]
+    return out
+
+
+def _max_shift(a: dict[int, Pose2], b: dict[int, Pose2]) -> float:
+    return max(math.dist(a[r][:2], b[r][:2]) for r in a)
+
+
+def test_a_single_wrong_observation_never_moves_the_map() -> None:
+    # robot 3 sees robot 1 once (it never does otherwise, so the pair is not thinned), 1 m off
+    wrong = se2_compose(se2_between(START[3], START[1]), (0.0, 1.0, 0.4))
+
+    def fake(k: int, _t: int) -> list[tuple[int, int, Pose2]]:
+        return [(3, 1, wrong)] if k == 60 else []
+
+    clean, _, _ = _run(10.0, ALL_SEE_3)
+    dirty, _, _ = _run(10.0, ALL_SEE_3, fake=fake)
+    assert dirty.counters["rejected_gate"] >= 1
+    assert dirty.counters["relocalisations"] == 0
+    assert _max_shift(_final_poses(clean), _final_poses(dirty)) < 0.01
+
+
+def test_a_decoy_of_a_robots_id_seen_again_and_again_never_moves_the_map() -> None:
+    # robot 1 keeps seeing a poster with robot 3's tags on a wall 2 m away, while 0 and 2 see the real robot 3
+    decoy_in_1 = se2_between(START[1], (3.4, 2.5, -math.pi / 2))
+    sees = {0: (1, 2, 3), 1: (0,), 2: (3, 0)}
+
+    def fake(k: int, _t: int) -> list[tuple[int, int, Pose2]]:
+        return [(1, 3, decoy_in_1)] if k >= 30 else []
+
+    clean, _, _ = _run(12.0, sees)
+    dirty, _, _ = _run(12.0, sees, fake=fake)
+    assert dirty.counters["rejected_gate"] >= 20
+    assert dirty.counters["relocalisations"] == 0
+    assert _max_shift(_final_poses(clean), _final_poses(dirty)) < 0.01
+
+
+def test_a_spoofed_stream_from_one_observer_never_moves_the_map() -> None:
+    # a forged stream claims robot 2 sees robot 1 a metre from where it is, ten times a second: robot 1 is
+    # seen where it is by the origin, so the forged stream is outweighed
+    forged = se2_compose(se2_between(START[2], START[1]), (0.8, 0.6, 0.3))
+
+    def fake(k: int, _t: int) -> list[tuple[int, int, Pose2]]:
+        return [(2, 1, forged)] if k >= 30 else []
+
+    clean, _, _ = _run(12.0, ALL_SEE_3)
+    dirty, _, _ = _run(12.0, ALL_SEE_3, fake=fake)
+    assert dirty.counters["relocalisations"] == 0
+    assert _max_shift(_final_poses(clean), _final_poses(dirty)) < 0.01
+
+
+def test_slip_evidence_widens_the_odometry_increment() -> None:
+    from server.noise import odom_increment_cov
+
+    p = FusionParams()
+    clean = odom_increment_cov((0.5, 0.0, 0.0), p)
+    slipped = odom_increment_cov((0.5, 0.0, 0.0), p, slip_m=0.2)
+    assert slipped[0, 0] > clean[0, 0] + 0.03 and slipped[1, 1] > clean[1, 1] + 0.03
+    assert slipped[2, 2] > clean[2, 2]

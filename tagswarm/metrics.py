@@ -13,6 +13,8 @@ modules that compute it (import them from here):
 - :mod:`tagswarm.trajerror`: association, ATE/RPE via evo, the shared SE(2) alignment.
 - :mod:`tagswarm.formation`: pairwise (formation) error, error against distance.
 - :mod:`tagswarm.runsummary`: behaviour (counters, time per mode) and cost.
+- :mod:`tagswarm.recovery`: time localised, kidnaps and recovery, re-localisation
+  events, contacts, NEES.
 
 Frames and units
 ----------------
@@ -27,7 +29,17 @@ Inputs (the run folder contract)
 --------------------------------
 ``run.json``, ``trajectories/{truth,odom,fused}_<k>.tum``, ``observations.csv``,
 ``modes.csv``; see :func:`load_run`.  A missing or empty ``fused_<k>.tum`` means
-robot k was never localised: its fused metrics are ``null``.
+robot k was never localised: its fused metrics are ``null``.  Optional (older run
+folders lack them; formats in :mod:`tagswarm.runformat`):
+``trajectories/fused_cov_<k>.csv`` (the published fused covariance),
+``relocalisations.csv`` (the server's re-localisation events) and
+``world_commands.csv`` (kidnaps sent on the network).
+
+"Localised" at time t (used by ``time_localised`` and ``time_to_relocalise_s``):
+the newest fused estimate at or before t is at most ``localised_hold_s`` old and
+its position error is below ``localised_m``; sampled on the robot's truth stamps,
+each sample holding until the next (time-weighted), so the time before a robot's
+first fused estimate and gaps in its corrections count as not localised.
 
 ``metrics.json`` fields (the dict returned by :func:`compute_metrics`)
 ---------------------------------------------------------------------
@@ -43,7 +55,9 @@ the true initial pose, so its error is pure drift).
   ``origin_id``, ``robots`` (ids), copied from ``run.json``.
 - ``settings``: ``assoc_max_diff_s`` (timestamp association tolerance, s),
   ``rpe_delta_m`` (RPE segment length, m), ``neighbour_window_s`` (± window for
-  error-vs-distance, s), ``distance_bins_m`` (bin edges, m; ``null`` = infinity).
+  error-vs-distance, s), ``distance_bins_m`` (bin edges, m; ``null`` = infinity),
+  ``localised_m`` (0.10 m), ``localised_hold_s`` (0.5 s), ``recovered_stay_s``
+  (1.0 s): see "Localised" above and ``kidnaps``.
 - ``cost``: ``wall_time_s``; ``sim_time_s``; ``real_time_factor`` = sim/wall
   (``null`` if wall time is 0 or unknown); ``frames_rendered`` (world total);
   ``frames_rendered_per_robot`` (that total / number of robots);
@@ -67,6 +81,27 @@ the true initial pose, so its error is pure drift).
       common associated timestamps (m; ``count`` samples over ``pairs`` robot
       pairs); alignment-invariant.  ``null`` with fewer than two evaluable robots.
     - ``robots_evaluated``: robots with at least one associated sample.
+    - ``time_localised``: share (0..1) of robot-time localised, pooled over every
+      robot with at least two truth poses (time-weighted: each robot's evaluated
+      time is its truth span); for ``odom``, how long dead reckoning alone stays
+      within ``localised_m``.  ``null`` if no robot has a truth span.
+  - ``fused.nees``: ``{"mean", "median", "count"}`` of the normalised estimation
+    error squared of the fused 2-D position, pooled over robots: e^T P^-1 e / 2
+    per fused sample, e the map-frame position error and P the 2x2 position block
+    of the published covariance at that stamp (within ``assoc_max_diff_s``)
+    rotated into the map frame by the estimate's yaw (it is in the robot's own
+    axes, see :mod:`tagswarm.covframe`); 1 for a consistent estimator, above 1 an
+    over-confident one.  Samples whose block is not positive definite are
+    skipped.  ``null`` when no covariance was recorded.
+  - ``relocalisations``: number of re-localisation events (see the top-level list).
+  - ``kidnaps``: ``{"count", "recovered"`` (kidnaps with a
+    ``time_to_relocalise_s``), ``"mean_time_to_relocalise_s"``,
+    ``"max_time_to_relocalise_s"}`` (``null`` when none recovered).
+  - ``contacts``: ``{"robot_robot", "robot_obstacle", "robot_wall"}``: the
+    world's contact counters (``contacts_<kind>`` in ``run.json``
+    ``counters.world``; counted by the world, see its docs); each ``null`` if the
+    world reported no ``contacts_*`` counter at all (a name missing from a world
+    that reported some counts 0).
   - ``fixes``, ``searches``, ``lost_events``: sums of the agents' counters
     (visual fixes; re-localisation rotations started; full sweeps that found
     nobody); ``null`` if no agent reported counters.
@@ -81,6 +116,12 @@ the true initial pose, so its error is pure drift).
   - ``fixes``, ``searches``, ``lost_events``, ``frames_processed``,
     ``frames_skipped``: that agent's counters from ``run.json`` (a name missing
     from a reported counter set counts 0; all ``null`` if the agent reported none).
+  - ``fused.time_localised`` / ``odom.time_localised``: that robot's share of its
+    truth span spent localised (``null`` with fewer than two truth poses); a
+    robot never localised scores 0.
+  - ``fused.nees``: ``{"mean", "median", "count"}`` as in ``swarm`` for this robot.
+  - ``relocalisations``, ``kidnaps``: how many of the top-level events are this robot's.
+  - ``contacts``: the world's ``contacts_robot_<k>`` counter (``null`` as in ``swarm``).
   - ``time_lost_s``, ``mode_time_s``: from ``modes.csv``.  Each sample's mode
     holds until that robot's next sample; the last one until the end of the
     recorded truth (the latest truth timestamp of any robot).
@@ -90,6 +131,24 @@ the true initial pose, so its error is pure drift).
   position error.  ``samples`` (with such a neighbour), ``unobserved_samples``
   (without), ``bins``: ``[{"lo_m", "hi_m" (null = open), "count",
   "median_error_m", "mean_error_m"}]`` (errors ``null`` in an empty bin).
+- ``relocalisations``: the server's re-localisation events (``relocalisations.csv``)
+  of this run's robots, in time order: ``{"t_s", "robot", "jump_m"`` (how far the
+  estimate moved), ``"evidence"`` (observations in the consistent set),
+  ``"observers"`` (robot ids, -1 = a landmark), ``"error_before_m"``,
+  ``"error_after_m"}`` (fused position error of the newest sample strictly before
+  and the oldest strictly after the event; ``null`` if none).
+- ``kidnaps``: every kidnap, in time order: scheduled ones (``run.json``
+  ``scenario.events`` with ``action`` teleport or push) and recorded world
+  commands (``world_commands.csv``, at their ``stamp_ns``, or their arrival time
+  if stamped 0; a command within 0.5 s of a scheduled event of the same robot is
+  that event).  ``{"t_s", "robot", "action", "source"`` ("scenario" or
+  "command"), ``"displacement_m"`` (the largest step of the true path within
+  [t - 0.1 s, t + 1 s]: the world applies a command at its next step; ``null``
+  without truth there), ``"time_to_relocalise_s"`` (from the kidnap until the
+  robot is localised again and stays so for ``recovered_stay_s``, the record
+  reaching that far; ``null`` if never), ``"first_relocalisation_s"`` (from the
+  kidnap to the robot's first re-localisation event at or after it; ``null`` if
+  none)}``.
 - ``warnings``: human-readable notes about missing or unusable inputs.
 """
 
@@ -110,6 +169,7 @@ from tagswarm.formation import (
     error_vs_distance,
     pairwise_error,
 )
+from tagswarm.recovery import LOCALISED_HOLD_S, LOCALISED_M, RECOVERED_STAY_S, recovery_metrics
 from tagswarm.runfolder import (
     F64,
     MODES_HEADER,
@@ -184,6 +244,7 @@ def evaluate(run: RunData) -> Evaluation:
         robots_out[str(k)].update(behaviour[k])
     swarm.update(swarm_behaviour(run.robots, behaviour))
     costs = cost(run, behaviour)
+    events = recovery_metrics(run, tracks, robots_out, swarm, KINDS, warnings)
 
     dist = error_vs_distance(run, tracks)
     metrics: dict[str, Any] = {
@@ -194,12 +255,15 @@ def evaluate(run: RunData) -> Evaluation:
                 "robots": list(run.robots)},
         "settings": {"assoc_max_diff_s": ASSOC_MAX_DIFF_S, "rpe_delta_m": RPE_DELTA_M,
                      "neighbour_window_s": NEIGHBOUR_WINDOW_S,
-                     "distance_bins_m": [e if math.isfinite(e) else None for e in DISTANCE_BINS_M]},
+                     "distance_bins_m": [e if math.isfinite(e) else None for e in DISTANCE_BINS_M],
+                     "localised_m": LOCALISED_M, "localised_hold_s": LOCALISED_HOLD_S,
+                     "recovered_stay_s": RECOVERED_STAY_S},
         "cost": costs,
         "swarm": swarm,
         "robots": robots_out,
         "error_vs_distance": {"samples": int(dist.error_m.size), "unobserved_samples": dist.unobserved,
                               "bins": bin_by_distance(dist.distance_m, dist.error_m)},
+        **events,
         "warnings": warnings,
     }
     return Evaluation(run=run, tracks=tracks, alignment=alignment, distance=dist, metrics=_finite(metrics))

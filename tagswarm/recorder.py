@@ -4,7 +4,11 @@ writes the run folder that ``tagswarm report`` evaluates.
 Everything is stored in the MAP frame (the origin robot's first pose, or the
 arena frame when landmarks are used): ``truth`` is converted with the scenario's
 ``arena_to_map``; ``odom`` is each agent's dead reckoning started from the
-robot's true initial pose (pure drift); ``fused`` is the server's corrected pose.
+robot's true initial pose (pure drift); ``fused`` is the server's corrected
+pose, and ``fused_cov`` its covariance as published (row-major 3x3 of (x, y,
+yaw), in the robot's own axes: see :mod:`tagswarm.covframe`).  Relocalisation
+events (map-frame poses) and world commands (kidnaps, arena frame) are stored as
+received; file formats in :mod:`tagswarm.runformat`.
 """
 
 from __future__ import annotations
@@ -25,6 +29,7 @@ from protocol.geometry import Pose2, se2_compose
 from protocol.keys import Keys
 from protocol.layout import arena_to_map
 from protocol.scenario import Scenario
+from tagswarm.runformat import FUSED_COV_HEADER, RELOC_HEADER, WORLD_COMMANDS_HEADER
 
 
 def _tum_line(stamp_ns: int, p: Pose2) -> str:
@@ -48,10 +53,16 @@ class Recorder:
             "world": bus.subscribe(keys.world_status()),
             "server": bus.subscribe(keys.server_status()),
             "tick": bus.subscribe(keys.tick(), newest_only=True),
+            "reloc": bus.subscribe(keys.relocalisation()),
+            "wcmd": bus.subscribe(keys.world_command()),
         }
         self.truth: dict[int, list[tuple[int, Pose2]]] = defaultdict(list)
         self.odom: dict[int, list[tuple[int, Pose2]]] = defaultdict(list)
         self.fused: dict[int, list[tuple[int, Pose2]]] = defaultdict(list)
+        self.fused_cov: dict[int, list[tuple[int, tuple[float, ...]]]] = defaultdict(list)
+        self.relocalisations: list[m.Relocalisation] = []
+        #: (command, simulation time of its arrival here in ns: a tool may not know the sim time)
+        self.world_commands: list[tuple[m.WorldCommand, int]] = []
         self.observations: list[tuple[int, int, str, int, float, float, float]] = []
         self.modes: list[tuple[int, int, str]] = []
         self.counters: dict[str, dict[str, int]] = {}
@@ -83,11 +94,20 @@ class Recorder:
             c = self._decode(m.Correction, it.value, it.key)
             if c is not None and c.localised:
                 self.fused[c.robot_id].append((c.stamp_ns, (c.x_m, c.y_m, c.yaw_rad)))
+                self.fused_cov[c.robot_id].append((c.stamp_ns, tuple(c.cov)))
         for it in ib["obs"].drain():
             ob = self._decode(m.RelativeObservation, it.value, it.key)
             if ob is not None:
                 self.observations.append((ob.stamp_ns, ob.robot_id, ob.target_kind, ob.target_id, ob.x_m, ob.y_m,
                                           ob.yaw_rad))
+        for it in ib["reloc"].drain():
+            rl = self._decode(m.Relocalisation, it.value)
+            if rl is not None and self._known(rl.robot_id):
+                self.relocalisations.append(rl)
+        for it in ib["wcmd"].drain():
+            wc = self._decode(m.WorldCommand, it.value)
+            if wc is not None and self._known(wc.robot_id):
+                self.world_commands.append((wc, self.sim_ns))
         for name in ("status", "world", "server"):
             for it in ib[name].drain():
                 st = self._decode(m.AgentStatus, it.value, it.key if name == "status" else None)
@@ -113,6 +133,12 @@ class Recorder:
             return None
         return msg
 
+    def _known(self, robot_id: int) -> bool:
+        if robot_id in self.s.robot_ids:
+            return True
+        self.rejected += 1
+        return False
+
     def fused_error(self, rid: int) -> float | None:
         """Distance (m) between the newest fused pose and the truth at that time."""
         if not self.fused.get(rid) or not self.truth.get(rid):
@@ -124,7 +150,8 @@ class Recorder:
         return None
 
     def write(self, run_dir: Path, info: dict[str, Any]) -> None:
-        """Write trajectories, observations.csv, modes.csv and run.json."""
+        """Write trajectories (with ``fused_cov_<k>.csv``), observations.csv, modes.csv,
+        relocalisations.csv, world_commands.csv and run.json."""
         traj = run_dir / "trajectories"
         traj.mkdir(parents=True, exist_ok=True)
         for rid in self.s.robot_ids:
@@ -137,6 +164,11 @@ class Recorder:
                     f.writelines(_tum_line(t, se2_compose(start, p)) for t, p in self.odom.get(rid, []))
             with open(traj / f"fused_{rid}.tum", "w") as f:
                 f.writelines(_tum_line(t, p) for t, p in self.fused.get(rid, []))
+            with open(traj / f"fused_cov_{rid}.csv", "w", newline="") as f:
+                w = csv.writer(f)
+                w.writerow(FUSED_COV_HEADER)
+                w.writerows([t, *(repr(float(v)) for v in cov)] for t, cov in self.fused_cov.get(rid, [])
+                            if len(cov) == 9)
         with open(run_dir / "observations.csv", "w", newline="") as f:
             w = csv.writer(f)
             w.writerow(["stamp_ns", "observer", "target_kind", "target_id", "x_m", "y_m", "yaw_rad"])
@@ -145,6 +177,18 @@ class Recorder:
             w = csv.writer(f)
             w.writerow(["stamp_ns", "robot", "mode"])
             w.writerows(sorted(self.modes))
+        with open(run_dir / "relocalisations.csv", "w", newline="") as f:
+            w = csv.writer(f)
+            w.writerow(RELOC_HEADER)
+            w.writerows([r.stamp_ns, r.robot_id, f"{r.jump_m:.6f}", f"{r.from_x_m:.6f}", f"{r.from_y_m:.6f}",
+                         f"{r.from_yaw_rad:.6f}", f"{r.to_x_m:.6f}", f"{r.to_y_m:.6f}", f"{r.to_yaw_rad:.6f}",
+                         r.evidence, " ".join(str(o) for o in r.observers)]
+                        for r in sorted(self.relocalisations, key=lambda r: (r.stamp_ns, r.robot_id)))
+        with open(run_dir / "world_commands.csv", "w", newline="") as f:
+            w = csv.writer(f)
+            w.writerow(WORLD_COMMANDS_HEADER)
+            w.writerows([c.stamp_ns, c.robot_id, c.action, f"{c.x_m:.6f}", f"{c.y_m:.6f}", f"{c.yaw_rad:.6f}", rx]
+                        for c, rx in sorted(self.world_commands, key=lambda e: (e[0].stamp_ns, e[0].robot_id)))
         run = {"scenario": msgspec.to_builtins(self.s), "robots": list(self.s.robot_ids),
                "origin_id": self.s.map.origin_id, "clock": self.s.clock.mode, "sim_time_s": self.sim_ns / 1e9,
                "counters": self.counters, **info}

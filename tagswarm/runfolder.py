@@ -10,12 +10,17 @@ raises :class:`RunFolderError` with a one-line message naming the file.
   (robot k was never localised), a warning for ``truth`` and ``odom``.
 - ``observations.csv`` (:data:`OBS_HEADER`) and ``modes.csv`` (:data:`MODES_HEADER`):
   ``stamp_ns`` columns become simulation seconds; a missing file is a warning.
+- ``trajectories/fused_cov_<k>.csv``, ``relocalisations.csv`` and
+  ``world_commands.csv`` (formats in :mod:`tagswarm.runformat`): newer than the
+  rest of the contract, so a missing file is silently empty (``None`` for a
+  covariance file: NEES is then ``null``).
 """
 
 from __future__ import annotations
 
 import csv
 import json
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -25,6 +30,8 @@ from evo import EvoException
 from evo.core.trajectory import PoseTrajectory3D
 from evo.tools import file_interface
 from numpy.typing import NDArray
+
+from tagswarm.runformat import FUSED_COV_HEADER, RELOC_HEADER, WORLD_COMMANDS_HEADER
 
 F64 = NDArray[np.float64]
 
@@ -61,6 +68,46 @@ class ModeSample:
     mode: str
 
 
+@dataclass(frozen=True)
+class RelocEvent:
+    """One row of ``relocalisations.csv``: the server re-initialised ``robot`` at
+    ``stamp_s`` (sim seconds), moving its estimate by ``jump_m`` from ``from_pose`` to
+    ``to_pose`` (map frame, (x_m, y_m, yaw_rad)) on ``evidence`` observations by
+    ``observers`` (robot ids, -1 = a landmark)."""
+
+    stamp_s: float
+    robot: int
+    jump_m: float
+    from_pose: tuple[float, float, float]
+    to_pose: tuple[float, float, float]
+    evidence: int
+    observers: tuple[int, ...]
+
+
+@dataclass(frozen=True)
+class WorldCommandRow:
+    """One row of ``world_commands.csv`` (a kidnap): ``action`` ("teleport"/"push") of
+    ``robot`` with (x_m, y_m, yaw_rad) in the ARENA frame, stamped ``stamp_s`` by its
+    sender and received at ``received_s`` (sim seconds)."""
+
+    stamp_s: float
+    robot: int
+    action: str
+    x_m: float
+    y_m: float
+    yaw_rad: float
+    received_s: float
+
+
+@dataclass(frozen=True)
+class CovTrack:
+    """``fused_cov_<k>.csv``: ``stamp_s`` (N,) sim seconds and ``cov`` (N, 3, 3) of (x, y, yaw)
+    in the robot's own axes (see :mod:`tagswarm.covframe`)."""
+
+    stamp_s: F64
+    cov: F64
+
+
 @dataclass
 class RunData:
     """A loaded run folder.  Trajectories are in the map frame; ``None`` means the file
@@ -75,6 +122,9 @@ class RunData:
     observations: Observations
     modes: list[ModeSample]
     warnings: list[str] = field(default_factory=list)
+    fused_cov: dict[int, CovTrack | None] = field(default_factory=dict)
+    relocalisations: list[RelocEvent] = field(default_factory=list)
+    world_commands: list[WorldCommandRow] = field(default_factory=list)
 
     def estimate(self, kind: str, robot: int) -> PoseTrajectory3D | None:
         """The ``kind`` ("fused"/"odom") trajectory of ``robot``."""
@@ -157,6 +207,61 @@ def read_modes(path: Path, warnings: list[str]) -> list[ModeSample]:
     return sorted(out, key=lambda s: (s.robot, s.stamp_s))
 
 
+def _float(value: str, path: Path, line: int, name: str) -> float:
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise RunFolderError(f"{path}:{line}: {name} must be a number, got {value!r}") from None
+    if not math.isfinite(v):
+        raise RunFolderError(f"{path}:{line}: {name} must be finite, got {value!r}")
+    return v
+
+
+def _optional_rows(path: Path, header: tuple[str, ...]) -> list[dict[str, str]]:
+    """Rows of a CSV file that older run folders lack: a missing file is no rows, silently."""
+    return _read_csv(path, header, []) if path.is_file() else []
+
+
+def read_relocalisations(path: Path) -> list[RelocEvent]:
+    """``relocalisations.csv`` (header :data:`~tagswarm.runformat.RELOC_HEADER`), sorted by time."""
+    out = []
+    for i, r in enumerate(_optional_rows(path, RELOC_HEADER), start=2):
+        f = {n: _float(r[n], path, i, n) for n in RELOC_HEADER[2:9]}
+        observers = tuple(_int(o, path, i, "observers") for o in (r["observers"] or "").split())
+        out.append(RelocEvent(_int(r["stamp_ns"], path, i, "stamp_ns") / 1e9, _int(r["robot_id"], path, i, "robot_id"),
+                              f["jump_m"], (f["from_x_m"], f["from_y_m"], f["from_yaw_rad"]),
+                              (f["to_x_m"], f["to_y_m"], f["to_yaw_rad"]), _int(r["evidence"], path, i, "evidence"),
+                              observers))
+    return sorted(out, key=lambda e: (e.stamp_s, e.robot))
+
+
+def read_world_commands(path: Path) -> list[WorldCommandRow]:
+    """``world_commands.csv`` (header :data:`~tagswarm.runformat.WORLD_COMMANDS_HEADER`), sorted by time."""
+    out = []
+    for i, r in enumerate(_optional_rows(path, WORLD_COMMANDS_HEADER), start=2):
+        action = (r["action"] or "").strip()
+        if action not in ("teleport", "push"):
+            raise RunFolderError(f"{path}:{i}: action must be teleport or push, got {action!r}")
+        out.append(WorldCommandRow(_int(r["stamp_ns"], path, i, "stamp_ns") / 1e9,
+                                   _int(r["robot_id"], path, i, "robot_id"), action,
+                                   _float(r["x_m"], path, i, "x_m"), _float(r["y_m"], path, i, "y_m"),
+                                   _float(r["yaw_rad"], path, i, "yaw_rad"),
+                                   _int(r["received_ns"], path, i, "received_ns") / 1e9))
+    return sorted(out, key=lambda c: (c.stamp_s, c.robot))
+
+
+def read_fused_cov(path: Path) -> CovTrack | None:
+    """``fused_cov_<k>.csv`` (header :data:`~tagswarm.runformat.FUSED_COV_HEADER`), sorted by
+    time, or ``None`` if the file is missing or has no row."""
+    rows = _optional_rows(path, FUSED_COV_HEADER)
+    if not rows:
+        return None
+    stamps = np.array([_int(r["stamp_ns"], path, i, "stamp_ns") / 1e9 for i, r in enumerate(rows, start=2)])
+    cov = np.array([[_float(r[n], path, i, n) for n in FUSED_COV_HEADER[1:]] for i, r in enumerate(rows, start=2)])
+    order = np.argsort(stamps, kind="stable")
+    return CovTrack(stamps[order], cov[order].reshape(-1, 3, 3))
+
+
 def load_run(run_dir: Path) -> RunData:
     """Read a run folder.  Raises :class:`RunFolderError` if it is not a directory, has
     no readable ``run.json`` with a ``robots`` list, or holds a malformed file.  Missing
@@ -188,4 +293,7 @@ def load_run(run_dir: Path) -> RunData:
         path=run_dir, info=info, robots=tuple(robots), truth=tables["truth"], odom=tables["odom"],
         fused=tables["fused"], observations=read_observations(run_dir / "observations.csv", warnings),
         modes=read_modes(run_dir / "modes.csv", warnings), warnings=warnings,
+        fused_cov={k: read_fused_cov(traj_dir / f"fused_cov_{k}.csv") for k in robots},
+        relocalisations=read_relocalisations(run_dir / "relocalisations.csv"),
+        world_commands=read_world_commands(run_dir / "world_commands.csv"),
     )

@@ -1,0 +1,319 @@
+"""Evaluation of localisation recovery for :mod:`tagswarm.metrics`: how much of the
+time each robot is localised, kidnaps and how long the swarm takes to recover
+from them, the server's re-localisation events, collisions and the consistency
+of the fused covariance (NEES).  The ``metrics.json`` fields are documented in
+:mod:`tagswarm.metrics`.
+
+Pure code.  Positions and errors are metres in the MAP frame, timestamps
+simulation seconds.  "Localised" at time t means: the newest fused estimate at
+or before t is at most :data:`LOCALISED_HOLD_S` old and its position error is
+below :data:`LOCALISED_M`; this step function is sampled on the robot's truth
+stamps, each sample holding until the next one (time-weighted), so time before
+the first fused estimate and gaps in the corrections count as not localised.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from evo.core.trajectory import PoseTrajectory3D
+from numpy.typing import NDArray
+
+from tagswarm.covframe import position_cov_in_map
+from tagswarm.runfolder import F64, CovTrack, RelocEvent, RunData
+from tagswarm.trajerror import ASSOC_MAX_DIFF_S, Track
+
+LOCALISED_M = 0.10
+"""A robot is localised while its fused position error is below this (m)."""
+LOCALISED_HOLD_S = 0.5
+"""A fused estimate stands for at most this long (s); a longer gap counts as not localised."""
+RECOVERED_STAY_S = 1.0
+"""After a kidnap a robot has recovered once it stays localised this long (s)."""
+KIDNAP_BEFORE_S = 0.1
+KIDNAP_AFTER_S = 1.0
+"""The kidnap's displacement is the largest step of the true path within
+[t - :data:`KIDNAP_BEFORE_S`, t + :data:`KIDNAP_AFTER_S`] (the world applies a command at its next step)."""
+KIDNAP_MERGE_S = 0.5
+"""A recorded world command this close (s) to a scheduled event of the same robot is that event."""
+KIDNAP_ACTIONS = ("teleport", "push")
+CONTACT_KINDS = ("robot_robot", "robot_obstacle", "robot_wall")
+"""World counters ``contacts_<kind>`` copied into ``swarm.contacts``."""
+
+
+# --------------------------------------------------------------------------- localised share
+
+
+@dataclass(frozen=True)
+class LocalisedSignal:
+    """Whether a robot is localised at each of its truth stamps (``stamp_s``, sorted);
+    ``ok[i]`` holds from ``stamp_s[i]`` until ``stamp_s[i + 1]``."""
+
+    stamp_s: F64
+    ok: NDArray[np.bool_]
+
+    @property
+    def durations_s(self) -> F64:
+        return np.append(np.diff(self.stamp_s), 0.0)
+
+    def seconds(self) -> tuple[float, float]:
+        """(localised seconds, evaluated seconds)."""
+        d = self.durations_s
+        return float(np.sum(d[self.ok])), float(np.sum(d))
+
+    def recovered_at(self, t0_s: float, stay_s: float = RECOVERED_STAY_S) -> float | None:
+        """The first truth stamp t >= ``t0_s`` from which the robot stays localised for
+        ``stay_s`` (every sample in [t, t + stay_s) localised, the record reaching
+        t + stay_s), or ``None``."""
+        t, ok = self.stamp_s, self.ok
+        end = float(t[-1]) if t.size else -math.inf
+        eps = 1e-9
+        bad = np.flatnonzero(~ok)
+        for i in np.flatnonzero((t >= t0_s - eps) & ok):
+            start = float(t[i])
+            if start + stay_s > end + eps:
+                return None
+            # the first not-localised sample after this one decides
+            j = np.searchsorted(bad, i)
+            if j == bad.size or float(t[bad[j]]) >= start + stay_s - eps:
+                return start
+        return None
+
+
+def _hold_errors(sample_s: F64, est_s: F64, err_m: F64, hold_s: float) -> F64:
+    """Error of the newest estimate at or before each ``sample_s`` (inf where there is
+    none within ``hold_s``)."""
+    idx = np.searchsorted(est_s, sample_s + 1e-9, side="right") - 1
+    out = np.full(sample_s.shape, np.inf)
+    has = idx >= 0
+    fresh = has.copy()
+    fresh[has] = sample_s[has] - est_s[idx[has]] <= hold_s + 1e-9
+    out[fresh] = err_m[idx[fresh]]
+    return out
+
+
+def localised_signal(truth: PoseTrajectory3D | None, track: Track | None,
+                     threshold_m: float = LOCALISED_M, hold_s: float = LOCALISED_HOLD_S) -> LocalisedSignal | None:
+    """The localised step function of one robot on its truth stamps (``None`` without
+    at least two truth poses); without a ``track`` (never localised) it is all false."""
+    if truth is None or truth.num_poses < 2:
+        return None
+    t = np.asarray(truth.timestamps, float)
+    if track is None:
+        return LocalisedSignal(t, np.zeros(t.size, bool))
+    err = _hold_errors(t, track.stamps_s, track.error_m, hold_s)
+    return LocalisedSignal(t, err < threshold_m)
+
+
+def time_localised(signals: Sequence[LocalisedSignal | None]) -> float | None:
+    """Share of robot-time localised, pooled (time-weighted) over ``signals``; ``None``
+    if none covers any time."""
+    loc = total = 0.0
+    for s in signals:
+        if s is not None:
+            a, b = s.seconds()
+            loc, total = loc + a, total + b
+    return loc / total if total > 0 else None
+
+
+# --------------------------------------------------------------------------- NEES
+
+
+def _yaw(traj: PoseTrajectory3D) -> F64:
+    q = np.asarray(traj.orientations_quat_wxyz, float)
+    w, x, y, z = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
+    return np.asarray(np.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z)), float)
+
+
+def nees_samples(track: Track, cov: CovTrack | None, max_diff_s: float = ASSOC_MAX_DIFF_S) -> F64 | None:
+    """e^T P^-1 e / 2 for every sample of a fused ``track`` with a covariance within
+    ``max_diff_s`` of its stamp: e the map-frame position error, P the 2x2 position
+    block of that covariance rotated into the map frame by the estimate's yaw.  A
+    covariance that is not positive definite is skipped.  ``None`` without covariances."""
+    if cov is None or cov.stamp_s.size == 0:
+        return None
+    s = track.stamps_s
+    idx = np.searchsorted(cov.stamp_s, s)
+    left = np.clip(idx - 1, 0, cov.stamp_s.size - 1)
+    right = np.clip(idx, 0, cov.stamp_s.size - 1)
+    pick = np.where(np.abs(cov.stamp_s[left] - s) <= np.abs(cov.stamp_s[right] - s), left, right)
+    e = track.est_xy - track.truth_xy
+    yaw = _yaw(track.est)
+    out = []
+    for i, c in enumerate(pick):
+        if abs(cov.stamp_s[c] - s[i]) > max_diff_s:
+            continue
+        sxx, sxy, syy = position_cov_in_map(cov.cov[c].ravel(), float(yaw[i]))
+        det = sxx * syy - sxy * sxy
+        if not (math.isfinite(det) and det > 0.0 and sxx > 0.0):
+            continue
+        ex, ey = e[i]
+        out.append((syy * ex * ex - 2 * sxy * ex * ey + sxx * ey * ey) / det / 2.0)
+    return np.asarray(out, float)
+
+
+def nees_stats(values: F64 | None) -> dict[str, float | int] | None:
+    """``{"mean", "median", "count"}`` of NEES values, or ``None`` for none."""
+    if values is None or values.size == 0:
+        return None
+    return {"mean": float(np.mean(values)), "median": float(np.median(values)), "count": int(values.size)}
+
+
+# --------------------------------------------------------------------------- events
+
+
+def _error_near(track: Track | None, t_s: float) -> tuple[float | None, float | None]:
+    """Fused error of the newest sample strictly before and the oldest strictly after ``t_s``."""
+    if track is None:
+        return None, None
+    s = track.stamps_s
+    i = int(np.searchsorted(s, t_s - 1e-9, side="left")) - 1
+    j = int(np.searchsorted(s, t_s + 1e-9, side="right"))
+    return (float(track.error_m[i]) if i >= 0 else None, float(track.error_m[j]) if j < s.size else None)
+
+
+def relocalisation_events(events: list[RelocEvent], tracks: dict[tuple[int, str], Track]) -> list[dict[str, Any]]:
+    """``metrics.json`` ``relocalisations``: one dict per event, in time order."""
+    out = []
+    for e in events:
+        before, after = _error_near(tracks.get((e.robot, "fused")), e.stamp_s)
+        out.append({"t_s": e.stamp_s, "robot": e.robot, "jump_m": e.jump_m, "evidence": e.evidence,
+                    "observers": list(e.observers), "error_before_m": before, "error_after_m": after})
+    return out
+
+
+@dataclass(frozen=True)
+class Kidnap:
+    t_s: float
+    robot: int
+    action: str
+    source: str  # "scenario" (scheduled [[events]]) or "command" (a recorded WorldCommand)
+
+
+def _num(v: Any) -> float | None:
+    return float(v) if isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v) else None
+
+
+def kidnaps_of(run: RunData, warnings: list[str]) -> list[Kidnap]:
+    """Scheduled kidnaps (``run.json`` ``scenario.events``) and recorded world commands,
+    a command within :data:`KIDNAP_MERGE_S` of a scheduled event of the same robot
+    counting as that event; in time order."""
+    scenario = run.info.get("scenario")
+    raw = scenario.get("events") if isinstance(scenario, dict) else None
+    found: list[Kidnap] = []
+    for n, ev in enumerate(raw if isinstance(raw, list) else []):
+        robot = ev.get("robot", ev.get("robot_id")) if isinstance(ev, dict) else None
+        at = _num(ev.get("at_s")) if isinstance(ev, dict) else None
+        action = ev.get("action") if isinstance(ev, dict) else None
+        if at is None or not isinstance(robot, int) or isinstance(robot, bool) or action not in KIDNAP_ACTIONS:
+            warnings.append(f"scenario event {n} is not a kidnap this evaluation understands: {ev!r}")
+            continue
+        found.append(Kidnap(at, robot, str(action), "scenario"))
+    scheduled = list(found)
+    for c in run.world_commands:
+        t = c.stamp_s if c.stamp_s > 0 else c.received_s  # a tool that does not know the sim time stamps 0
+        if any(k.robot == c.robot and abs(k.t_s - t) <= KIDNAP_MERGE_S for k in scheduled):
+            continue
+        found.append(Kidnap(t, c.robot, c.action, "command"))
+    known = [k for k in found if k.robot in run.robots]
+    for k in found:
+        if k.robot not in run.robots:
+            warnings.append(f"kidnap of robot {k.robot} at {k.t_s:.2f} s: not a robot of this run")
+    return sorted(known, key=lambda k: (k.t_s, k.robot))
+
+
+def displacement(truth: PoseTrajectory3D | None, t_s: float) -> float | None:
+    """The largest step of the true path within [t_s - KIDNAP_BEFORE_S, t_s + KIDNAP_AFTER_S] (m)."""
+    if truth is None:
+        return None
+    t = np.asarray(truth.timestamps, float)
+    sel = np.flatnonzero((t >= t_s - KIDNAP_BEFORE_S - 1e-9) & (t <= t_s + KIDNAP_AFTER_S + 1e-9))
+    if sel.size < 2:
+        return None
+    xy = np.asarray(truth.positions_xyz[sel, :2], float)
+    return float(np.max(np.linalg.norm(np.diff(xy, axis=0), axis=1)))
+
+
+def kidnap_records(run: RunData, kidnaps: list[Kidnap], signals: dict[int, LocalisedSignal | None],
+                   events: list[RelocEvent]) -> list[dict[str, Any]]:
+    """``metrics.json`` ``kidnaps``: one dict per kidnap, in time order."""
+    out = []
+    for k in kidnaps:
+        sig = signals.get(k.robot)
+        back = sig.recovered_at(k.t_s) if sig is not None else None
+        first = next((e.stamp_s for e in events if e.robot == k.robot and e.stamp_s >= k.t_s - 1e-9), None)
+        out.append({"t_s": k.t_s, "robot": k.robot, "action": k.action, "source": k.source,
+                    "displacement_m": displacement(run.truth.get(k.robot), k.t_s),
+                    "time_to_relocalise_s": None if back is None else back - k.t_s,
+                    "first_relocalisation_s": None if first is None else first - k.t_s})
+    return out
+
+
+# --------------------------------------------------------------------------- contacts
+
+
+def _count(counters: dict[str, Any], name: str, reported: bool) -> int | None:
+    v = counters.get(name)
+    if isinstance(v, int | float) and not isinstance(v, bool):
+        return int(v)
+    # the world counts with a Counter: once it reports contacts at all, a name it never incremented is zero
+    return 0 if reported else None
+
+
+def contacts(run: RunData) -> tuple[dict[str, int | None], dict[int, int | None]]:
+    """(``swarm.contacts``, per-robot contacts) from the world's counters in ``run.json``;
+    ``None`` where the world reported no contact counters at all."""
+    all_counters = run.info.get("counters")
+    world = all_counters.get("world") if isinstance(all_counters, dict) else None
+    world = world if isinstance(world, dict) else {}
+    reported = any(str(name).startswith("contacts_") for name in world)
+    swarm = {kind: _count(world, f"contacts_{kind}", reported) for kind in CONTACT_KINDS}
+    return swarm, {k: _count(world, f"contacts_robot_{k}", reported) for k in run.robots}
+
+
+# --------------------------------------------------------------------------- assembly
+
+
+def recovery_metrics(run: RunData, tracks: dict[tuple[int, str], Track], robots_out: dict[str, dict[str, Any]],
+                     swarm: dict[str, Any], kinds: Sequence[str], warnings: list[str]) -> dict[str, Any]:
+    """Add ``time_localised`` (both kinds), ``nees`` (fused), ``relocalisations``,
+    ``kidnaps`` and ``contacts`` to the per-robot blocks ``robots_out`` and to
+    ``swarm`` in place; return the top-level ``relocalisations`` and ``kidnaps`` lists."""
+    fused_signals: dict[int, LocalisedSignal | None] = {}
+    for kind in kinds:
+        signals = []
+        for k in run.robots:
+            sig = localised_signal(run.truth.get(k), tracks.get((k, kind)))
+            robots_out[str(k)][kind]["time_localised"] = time_localised([sig])
+            signals.append(sig)
+            if kind == "fused":
+                fused_signals[k] = sig
+        swarm[kind]["time_localised"] = time_localised(signals)
+
+    pooled: list[F64] = []
+    for k in run.robots:
+        tr = tracks.get((k, "fused"))
+        values = nees_samples(tr, run.fused_cov.get(k)) if tr is not None else None
+        robots_out[str(k)]["fused"]["nees"] = nees_stats(values)
+        if values is not None:
+            pooled.append(values)
+    swarm["fused"]["nees"] = nees_stats(np.concatenate(pooled)) if pooled else None
+
+    relocs = relocalisation_events([e for e in run.relocalisations if e.robot in run.robots], tracks)
+    kidnaps = kidnap_records(run, kidnaps_of(run, warnings), fused_signals, run.relocalisations)
+    swarm_contacts, robot_contacts = contacts(run)
+    for k in run.robots:
+        r = robots_out[str(k)]
+        r["relocalisations"] = sum(1 for e in relocs if e["robot"] == k)
+        r["kidnaps"] = sum(1 for e in kidnaps if e["robot"] == k)
+        r["contacts"] = robot_contacts[k]
+    recovered = [e["time_to_relocalise_s"] for e in kidnaps if e["time_to_relocalise_s"] is not None]
+    swarm["relocalisations"] = len(relocs)
+    swarm["kidnaps"] = {"count": len(kidnaps), "recovered": len(recovered),
+                        "mean_time_to_relocalise_s": float(np.mean(recovered)) if recovered else None,
+                        "max_time_to_relocalise_s": float(np.max(recovered)) if recovered else None}
+    swarm["contacts"] = swarm_contacts
+    return {"relocalisations": relocs, "kidnaps": kidnaps}

@@ -7,7 +7,9 @@ Writes into the run folder:
 - ``plots/arena.png``: the arena walls (and obstacles, landmarks) with the true,
   fused and odometry-only path of every robot, start and end markers.
 - ``plots/error_over_time.png``: fused and odometry-only position error per robot
-  against simulation time (unaligned, map frame).
+  against simulation time (unaligned, map frame), with the server's
+  re-localisation events (dashed) and kidnaps (solid, ▼ on top) of each robot as
+  vertical lines in its colour, and the "localised" threshold.
 - ``plots/error_vs_distance.png``: fused error against the true distance to the
   nearest robot that observed it or that it observed (the paper's claim that the
   error shrinks as robots get closer), with the median per distance bin.
@@ -17,6 +19,7 @@ Writes into the run folder:
 Everything is drawn in the MAP frame (metres); the arena, given in the arena
 frame by the scenario, is moved there with :func:`protocol.layout.arena_to_map`.
 Matplotlib is used through the Agg canvas only (no GUI, no global pyplot state).
+The printed summary is :mod:`tagswarm.reportsummary`.
 """
 
 from __future__ import annotations
@@ -32,14 +35,14 @@ from matplotlib.axes import Axes
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
-from rich import box
-from rich.console import Console
-from rich.table import Table
 
 from protocol.config import ConfigError, OneLineParser, parse, run_main
 from protocol.layout import arena_to_map
 from protocol.scenario import Scenario, ScenarioError, convert
 from tagswarm.metrics import F64, Evaluation, RunFolderError, evaluate, load_run
+from tagswarm.reportsummary import print_summary, summary_tables
+
+__all__ = ["PLOTS", "main", "plot_error_over_time", "print_summary", "summary_tables", "write_report"]
 
 PLOTS = ("arena.png", "error_over_time.png", "error_vs_distance.png", "true_vs_measured.png")
 GAP_S = 1.0
@@ -156,11 +159,39 @@ def plot_arena(ev: Evaluation, scenario: Scenario | None, path: Path) -> None:
     _save(fig, path)
 
 
+def _mark_events(ax_f: Axes, ax_o: Axes, ev: Evaluation) -> list[Line2D]:
+    """Vertical lines at every re-localisation event (dashed) and kidnap (solid, ▼ on top
+    of the fused axis) in the robot's colour; legend handles for those drawn."""
+    colour = {k: _colour(i) for i, k in enumerate(ev.run.robots)}
+    handles = []
+    relocs = ev.metrics.get("relocalisations") or []
+    kidnaps = ev.metrics.get("kidnaps") or []
+    for e in relocs:
+        for ax in (ax_f, ax_o):
+            ax.axvline(e["t_s"], color=colour.get(e["robot"], "k"), ls="--", lw=0.9, alpha=0.8, zorder=1)
+    for e in kidnaps:
+        for ax in (ax_f, ax_o):
+            ax.axvline(e["t_s"], color=colour.get(e["robot"], "k"), ls="-", lw=1.8, alpha=0.6, zorder=1)
+        ax_f.plot([e["t_s"]], [1.0], "v", color=colour.get(e["robot"], "k"), ms=8, clip_on=False,
+                  transform=ax_f.get_xaxis_transform(), zorder=5)
+    if relocs:
+        handles.append(Line2D([], [], color="0.3", ls="--", lw=0.9, label="re-localisation"))
+    if kidnaps:
+        handles.append(Line2D([], [], color="0.3", ls="-", lw=1.8, marker="v", label="kidnap"))
+    return handles
+
+
 def plot_error_over_time(ev: Evaluation, path: Path) -> None:
     """Position error |p_est - p_true| (m, map frame, unaligned) against simulation time:
-    fused on top, odometry only below (its drift would flatten the fused curves)."""
+    fused on top, odometry only below (its drift would flatten the fused curves); events
+    and kidnaps as vertical lines (see :func:`_mark_events`)."""
     fig = Figure(figsize=(8, 6))
     ax_f, ax_o = fig.subplots(2, 1, sharex=True)
+    extra = _mark_events(ax_f, ax_o, ev)
+    threshold = ev.metrics["settings"].get("localised_m")
+    if threshold is not None and any((k, "fused") in ev.tracks for k in ev.run.robots):
+        ax_f.axhline(threshold, color="0.5", lw=0.8, ls=":", zorder=1)
+        extra.append(Line2D([], [], color="0.5", ls=":", lw=0.8, label=f"localised < {threshold:g} m"))
     for i, k in enumerate(ev.run.robots):
         for ax, kind in ((ax_f, "fused"), (ax_o, "odom")):
             tr = ev.tracks.get((k, kind))
@@ -173,7 +204,8 @@ def plot_error_over_time(ev: Evaluation, path: Path) -> None:
         ax.set_ylabel(f"{what} error [m]")
         ax.grid(alpha=0.3)
         if ax.get_legend_handles_labels()[0]:
-            ax.legend(fontsize=8, ncol=2)
+            lines = ax.get_legend_handles_labels()[0] + (extra if ax is ax_f else [])
+            ax.legend(handles=lines, fontsize=8, ncol=2)
         else:
             ax.text(0.5, 0.5, f"no {what} estimate", transform=ax.transAxes, ha="center", va="center")
     ax_o.set_xlabel("simulation time [s]")
@@ -276,70 +308,6 @@ def write_report(run_dir: Path) -> dict[str, Any]:
 
 
 # --------------------------------------------------------------------------- CLI
-
-
-def _m(value: Any, digits: int = 3) -> str:
-    return "—" if value is None else f"{value:.{digits}f}"
-
-
-def _rmse(block: dict[str, Any] | None, key: str) -> str:
-    stats = (block or {}).get(key)
-    return _m(stats["rmse"]) if stats else "—"
-
-
-def _int(value: Any) -> str:
-    return "—" if value is None else str(value)
-
-
-def summary_tables(metrics: dict[str, Any]) -> tuple[Table, Table]:
-    """(accuracy, behaviour) tables: one row per robot plus a pooled swarm row.  ATE and
-    RPE are RMSEs in metres ("map" = unaligned in the map frame, "aligned" = after the
-    swarm's shared SE(2) alignment; RPE in m per m travelled)."""
-    acc = Table(title="accuracy: RMSE in m (RPE: m per m travelled)", box=box.SIMPLE_HEAD)
-    beh = Table(title="behaviour and cost", box=box.SIMPLE_HEAD)
-    for table, names in ((acc, ("fused ATE\nmap", "fused ATE\naligned", "odom ATE\nmap", "odom ATE\naligned",
-                                "fused\nRPE/m", "odom\nRPE/m")),
-                         (beh, ("fixes", "searches", "lost\nevents", "time\nlost (s)", "frames\nprocessed",
-                                "frames\nskipped"))):
-        table.add_column("robot", justify="left")
-        for name in names:
-            table.add_column(name, justify="right")
-
-    def add(name: str, r: dict[str, Any], frames: tuple[Any, Any], style: str | None = None) -> None:
-        f, o = r["fused"], r["odom"]
-        acc.add_row(name, _rmse(f, "ate_unaligned"), _rmse(f, "ate_aligned"), _rmse(o, "ate_unaligned"),
-                    _rmse(o, "ate_aligned"), _rmse(f, "rpe_per_m"), _rmse(o, "rpe_per_m"), style=style)
-        beh.add_row(name, _int(r["fixes"]), _int(r["searches"]), _int(r["lost_events"]), _m(r["time_lost_s"], 1),
-                    _int(frames[0]), _int(frames[1]), style=style)
-
-    for k, r in metrics["robots"].items():
-        add(k, r, (r["frames_processed"], r["frames_skipped"]))
-    acc.add_section()
-    beh.add_section()
-    c = metrics["cost"]
-    add("swarm", metrics["swarm"], (c["frames_processed"], c["frames_skipped"]), style="bold")
-    return acc, beh
-
-
-def print_summary(metrics: dict[str, Any], run_dir: Path, console: Console | None = None) -> None:
-    """The summary table, formation error, shared alignment, cost and warnings."""
-    con = console or Console()
-    for table in summary_tables(metrics):
-        con.print(table)
-    s, c = metrics["swarm"], metrics["cost"]
-    for kind in ("fused", "odom"):
-        pw, al = s[kind]["pairwise"], s[kind]["alignment"]
-        con.print(f"{kind}: pairwise distance error rmse {_rmse(s[kind], 'pairwise')} m, "
-                  f"max {_m(pw and pw['max'])} m", highlight=False)
-        if al:
-            con.print(f"  shared SE(2) alignment: yaw {math.degrees(al['yaw_rad']):.2f} deg, "
-                      f"shift ({al['x_m']:.3f}, {al['y_m']:.3f}) m, {al['points']} points", highlight=False)
-    con.print(f"cost: wall {_m(c['wall_time_s'], 1)} s, sim {_m(c['sim_time_s'], 1)} s, "
-              f"real-time factor {_m(c['real_time_factor'], 2)}, frames rendered {_int(c['frames_rendered'])}",
-              highlight=False)
-    for w in metrics["warnings"]:
-        con.print(f"[yellow]warning:[/yellow] {w}", highlight=False)
-    con.print(f"wrote {run_dir / 'metrics.json'} and {run_dir / 'plots'}/", highlight=False)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -113,3 +113,35 @@ def test_cli_prints_summary_and_returns_0(tmp_path: Path, capsys: pytest.Capture
     assert "real-time factor 2.00" in out
     assert "shared SE(2) alignment" in out
     assert (run / "metrics.json").is_file()
+
+
+def test_recovery_in_the_summary_and_marked_on_the_error_plot(tmp_path: Path,
+                                                              capsys: pytest.CaptureFixture[str]) -> None:
+    from matplotlib.figure import Figure
+
+    from tagswarm.metrics import evaluate, load_run
+    from tests.unit.test_metrics_relocalisation import kidnap_run, write_commands, write_relocs
+
+    counters = {"world": {"contacts_robot_robot": 2, "contacts_robot_1": 2, "contacts_robot_2": 2}}
+    run = kidnap_run(tmp_path / "run", counters=counters)
+    write_commands(run, [(5.0, 1, "teleport", 5.0)])
+    write_relocs(run, [(6.45, 1, 1.02, 4, "0 -1"), (7.0, 2, 0.3, 3, "1")])
+    assert report.main([str(run)]) == 0
+    out = capsys.readouterr().out
+    assert "time" in out and "localised" in out and "NEES" in out
+    assert "re-localisations: 2" in out
+    assert "t=6.45 s robot 1: jump 1.02 m on 4 observations by 0, landmark; error 1.000 -> 0.050 m" in out
+    assert "kidnap t=5.00 s robot 1 (teleport, 1.00 m): localised again after 1.50 s, first re-localisation " \
+           "after 1.45 s" in out
+    assert "contacts: robot-robot 2, robot-obstacle 0, robot-wall 0" in out
+    assert (run / "plots" / "error_over_time.png").read_bytes()[:8] == PNG_MAGIC
+
+    ev = evaluate(load_run(run))
+    fig = Figure()
+    ax_f, ax_o = fig.subplots(2, 1)
+    handles = report._mark_events(ax_f, ax_o, ev)
+    assert [h.get_label() for h in handles] == ["re-localisation", "kidnap"]
+    # two events and one kidnap, a vertical line each on both axes (x data = [t, t])
+    for ax in (ax_f, ax_o):
+        xs = sorted(line.get_xdata()[0] for line in ax.get_lines() if len(line.get_xdata()) == 2)
+        assert xs == pytest.approx([5.0, 6.45, 7.0])

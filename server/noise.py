@@ -47,7 +47,7 @@ class FusionParams:
     # lives reloc_window_s (within init_window_s, where placement candidates live); it takes reloc_min agreeing
     # observations from two or more witnesses, or reloc_min_single from one witness over reloc_span_s; a
     # witness is trusted if it agreed with a third robot within reloc_trust_s
-    reloc_window_s: float = 3.0
+    reloc_window_s: float = 1.5
     reloc_min: int = 4
     reloc_min_single: int = 5
     reloc_span_s: float = 1.0

@@ -169,7 +169,8 @@ from tagswarm.formation import (
     error_vs_distance,
     pairwise_error,
 )
-from tagswarm.recovery import LOCALISED_HOLD_S, LOCALISED_M, RECOVERED_STAY_S, recovery_metrics
+from tagswarm.localised import LOCALISED_HOLD_S, LOCALISED_M
+from tagswarm.recovery import RECOVERED_STAY_S, recovery_metrics
 from tagswarm.runfolder import (
     F64,
     MODES_HEADER,

@@ -5,11 +5,10 @@ of the fused covariance (NEES).  The ``metrics.json`` fields are documented in
 :mod:`tagswarm.metrics`.
 
 Pure code.  Positions and errors are metres in the MAP frame, timestamps
-simulation seconds.  "Localised" at time t means: the newest fused estimate at
-or before t is at most :data:`LOCALISED_HOLD_S` old and its position error is
-below :data:`LOCALISED_M`; this step function is sampled on the robot's truth
-stamps, each sample holding until the next one (time-weighted), so time before
-the first fused estimate and gaps in the corrections count as not localised.
+simulation seconds.  "Localised" is defined in :mod:`tagswarm.localised`; it is
+sampled on the robot's truth stamps, each sample holding until the next one
+(time-weighted), so time before the first fused estimate and gaps in the
+corrections count as not localised.
 """
 
 from __future__ import annotations
@@ -24,13 +23,10 @@ from evo.core.trajectory import PoseTrajectory3D
 from numpy.typing import NDArray
 
 from tagswarm.covframe import position_cov_in_map
+from tagswarm.localised import LOCALISED_HOLD_S, LOCALISED_M
 from tagswarm.runfolder import F64, CovTrack, RelocEvent, RunData
 from tagswarm.trajerror import ASSOC_MAX_DIFF_S, Track
 
-LOCALISED_M = 0.10
-"""A robot is localised while its fused position error is below this (m)."""
-LOCALISED_HOLD_S = 0.5
-"""A fused estimate stands for at most this long (s); a longer gap counts as not localised."""
 RECOVERED_STAY_S = 1.0
 """After a kidnap a robot has recovered once it stays localised this long (s)."""
 KIDNAP_BEFORE_S = 0.1

@@ -5,10 +5,12 @@ as a read-only subscriber (no liveliness token: it never joins a lockstep) and
 serves one page on ``http://127.0.0.1:8765/`` (``--host``, ``--port``) that
 draws the arena live in SVG: walls and obstacles from the scenario, every
 robot's true pose, fused pose with its 95 % covariance ellipse, odometry-only
-pose, who sees whom, each agent's mode, the simulation time and real-time
-factor, and the camera of a selected robot with the agent's detections
-reprojected onto it.  Plain HTML/JS/CSS shipped in ``tagswarm/web``: no build
-step, nothing fetched from the internet.
+pose, who sees whom, each agent's mode and share of time localised, the
+server's re-localisation events and kidnaps (a marker at the robot for a few
+seconds, and a list), the simulation time and real-time factor, and the
+camera of a selected robot with the agent's detections reprojected onto it.
+Plain HTML/JS/CSS shipped in ``tagswarm/web``: no build step, nothing fetched
+from the internet.
 
 Threads: Zenoh callbacks only enqueue (:mod:`protocol.bus`); the node's loop
 (:meth:`ViewNode.step`) drains, decodes (bad payloads are counted per kind and
@@ -150,6 +152,8 @@ class ViewNode:
             (bus.subscribe(k.robot_status()), m.AgentStatus),
             (bus.subscribe(k.server_status()), m.AgentStatus),
             (bus.subscribe(k.world_status()), m.AgentStatus),
+            (bus.subscribe(k.relocalisation()), m.Relocalisation),
+            (bus.subscribe(k.world_command()), m.WorldCommand),
         ]
         self.obs_in = bus.subscribe(k.observation())
         self.cam_in = bus.subscribe(k.images(), capacity=64)

@@ -14,6 +14,12 @@ writes as ``odom_<k>.tum``: pure drift).  The scene's walls, obstacles and
 landmarks stay in the arena frame, and ``map_in_arena`` (T_arena_map) places the
 map frame in it.  Metres, radians, nanoseconds of simulation time.
 
+Covariances arrive in each robot's own axes (see :mod:`tagswarm.covframe`); the
+drawn ellipse is rotated into the map frame by the fused yaw.  Re-localisation
+events and kidnaps (world commands) go to an :class:`~tagswarm.viewevents.EventLog`;
+each robot's share of time localised (see :mod:`tagswarm.localised`) is counted
+from the truth samples the view received.
+
 Run changes: a :class:`~protocol.messages.Tick` with a new ``run_id`` (every
 world start draws a new one) or a clock that goes back (a restarted system, a
 replay started again) resets everything but the reject counts and bumps
@@ -33,9 +39,12 @@ from protocol.geometry import Pose2, se2_compose, se2_inverse
 from protocol.keys import Keys
 from protocol.layout import arena_to_map, footprint_radius, start_poses, wall_boxes
 from protocol.scenario import Scenario
+from tagswarm.covframe import ELLIPSE_SCALE_95, covariance_ellipse
+from tagswarm.localised import LOCALISED_HOLD_S, LOCALISED_M, LocalisedClock
+from tagswarm.viewevents import MARKER_TTL_S, EventLog
 
-#: Scale of the drawn covariance ellipse: sqrt of the chi-square 95 % quantile for 2 degrees of freedom.
-ELLIPSE_SCALE_95: Final = math.sqrt(5.991)
+__all__ = ["EDGE_TTL_NS", "ELLIPSE_SCALE_95", "MAX_ROBOTS", "RobotView", "ViewState", "covariance_ellipse"]
+
 #: An observation older than this (simulation time) no longer draws a "sees" line.
 EDGE_TTL_NS: Final = 1_000_000_000
 #: Robots tracked at most: ids come from the wire, so garbage must not grow the state without bound.
@@ -49,18 +58,6 @@ TRUTH_HISTORY: Final = 240
 def _num(x: float, digits: int = 6) -> float | None:
     """A JSON-safe float (``None`` for NaN/inf), rounded to ``digits`` decimals (1 µm for metres)."""
     return round(x, digits) if math.isfinite(x) else None
-
-
-def covariance_ellipse(cov: tuple[float, ...], scale: float = ELLIPSE_SCALE_95) -> tuple[float, float, float]:
-    """Semi-axes (a_m >= b_m) and orientation (rad, of the a axis from +x) of the ellipse of
-    the (x, y) block of a row-major 3x3 covariance of (x_m, y_m, yaw_rad), times ``scale``.
-    Negative eigenvalues (a covariance that is not quite PSD) are clamped to zero."""
-    sxx, sxy, syy = cov[0], 0.5 * (cov[1] + cov[3]), cov[4]
-    mean, diff = 0.5 * (sxx + syy), 0.5 * (sxx - syy)
-    r = math.hypot(diff, sxy)
-    l1, l2 = max(mean + r, 0.0), max(mean - r, 0.0)
-    angle = 0.5 * math.atan2(2.0 * sxy, sxx - syy)
-    return scale * math.sqrt(l1), scale * math.sqrt(l2), angle
 
 
 @dataclass
@@ -81,6 +78,8 @@ class RobotView:
     mode: str | None = None
     alive: bool | None = None
     counters: dict[str, int] = field(default_factory=dict)
+    localised_clock: LocalisedClock = field(default_factory=LocalisedClock)
+    relocalisations: int = 0
 
     def truth_at(self, stamp_ns: int) -> Pose2 | None:
         """The newest ground truth at or before ``stamp_ns`` (None if none is kept)."""
@@ -136,6 +135,7 @@ class ViewState:
         self.robots: dict[int, RobotView] = {}
         self.sightings: dict[tuple[int, str, int], Sighting] = {}
         self.processes: dict[str, dict[str, Any]] = {}
+        self.events = EventLog()
         self._rtf_samples: deque[tuple[float, int]] = deque()
 
     def reset(self, why: str) -> None:
@@ -185,6 +185,10 @@ class ViewState:
             self._on_observation(msg, key)
         elif isinstance(msg, m.AgentStatus):
             self._on_status(msg, key)
+        elif isinstance(msg, m.Relocalisation):
+            self._on_relocalisation(msg)
+        elif isinstance(msg, m.WorldCommand):
+            self._on_world_command(msg)
         else:
             self.rejects.reject("unexpected_type", f"{type(msg).__name__} on {key}")
 
@@ -210,7 +214,20 @@ class ViewState:
         pose = se2_compose(self.a2m, (t.x_m, t.y_m, t.yaw_rad))
         view.truth = pose
         view.truth_history.append((t.stamp_ns, pose))
+        error = self._fused_error(view, t.stamp_ns)
+        view.localised_clock.add(t.stamp_ns, error is not None and error < LOCALISED_M)
         self._advance(t.stamp_ns)
+
+    @staticmethod
+    def _fused_error(view: RobotView, stamp_ns: int) -> float | None:
+        """Position error (m) of the fused estimate standing at ``stamp_ns`` against the truth
+        at its own stamp; None without one at most :data:`~tagswarm.localised.LOCALISED_HOLD_S` old."""
+        if view.fused is None or abs(stamp_ns - view.fused_stamp_ns) > LOCALISED_HOLD_S * 1e9:
+            return None
+        truth = view.truth_at(view.fused_stamp_ns)
+        if truth is None:
+            return None
+        return math.hypot(view.fused[0] - truth[0], view.fused[1] - truth[1])
 
     def _on_correction(self, c: m.Correction, key: str | None) -> None:
         if not self._key_matches(key, c.robot_id):
@@ -287,6 +304,22 @@ class ViewState:
                                        "counters": dict(st.counters)}
         self._advance(st.stamp_ns)
 
+    def _on_relocalisation(self, r: m.Relocalisation) -> None:
+        view = self._robot(r.robot_id)
+        if view is None:
+            return
+        view.relocalisations += 1
+        self.events.relocalisation(r)
+        self._advance(r.stamp_ns)
+
+    def _on_world_command(self, c: m.WorldCommand) -> None:
+        view = self._robot(c.robot_id)
+        if view is None:
+            return
+        # a tool that does not know the simulation time stamps 0: it happens now
+        self.events.kidnap(c, c.stamp_ns if c.stamp_ns > 0 else self.sim_ns, self.a2m, view.truth)
+        self._changed()
+
     def _advance(self, stamp_ns: int) -> None:
         if self.tick_ns < 0:  # no world clock seen: the newest stamp of anything is the time
             self.sim_ns = max(self.sim_ns, stamp_ns)
@@ -317,7 +350,8 @@ class ViewState:
         fused = None
         error = None
         if v.fused is not None:
-            a, b, ang = covariance_ellipse(v.fused_cov) if len(v.fused_cov) == 9 else (0.0, 0.0, 0.0)
+            a, b, ang = covariance_ellipse(v.fused_cov, yaw_rad=v.fused[2]) if len(v.fused_cov) == 9 \
+                else (0.0, 0.0, 0.0)
             sigma_yaw = math.sqrt(max(v.fused_cov[8], 0.0)) if len(v.fused_cov) == 9 else 0.0
             fused = {"x": _num(v.fused[0]), "y": _num(v.fused[1]), "yaw": _num(v.fused[2]),
                      "stamp_ns": v.fused_stamp_ns, "source": v.fused_source,
@@ -340,6 +374,8 @@ class ViewState:
             "frames": v.counters.get("frames_processed"),
             "fixes": v.counters.get("fixes"),
             "searches": v.counters.get("searches"),
+            "time_localised": None if (share := v.localised_clock.share) is None else _num(share, 4),
+            "relocalisations": v.relocalisations,
         }
 
     def snapshot(self) -> dict[str, Any]:
@@ -359,6 +395,8 @@ class ViewState:
             "map_stamp_ns": self.map_stamp_ns if self.map_stamp_ns >= 0 else None,
             "robots": [self._robot_json(self.robots[r]) for r in sorted(self.robots)],
             "sees": self.sees(),
+            "events": self.events.to_json(self.sim_ns),
+            "event_counts": {"relocalisations": self.events.relocalisations, "kidnaps": self.events.kidnaps},
             "processes": self.processes,
             "rejected": dict(sorted(self.rejects.counts.items())),
         }
@@ -384,4 +422,6 @@ class ViewState:
             "robot_ids": list(self.s.robot_ids),
             "origin_id": self.s.map.origin_id,
             "ellipse": "95 %",
+            "localised_m": LOCALISED_M,
+            "marker_ttl_s": MARKER_TTL_S,
         }

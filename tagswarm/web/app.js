@@ -157,6 +157,7 @@
       odom: el("g", { id: "odom" }, map),
       truth: el("g", { id: "truth" }, map),
       fused: el("g", { id: "fused" }, map),
+      events: el("g", { id: "events-layer" }, map),
       labels: el("g", { id: "labels" }, arena),
     };
     const sel = $("robot-select");
@@ -233,7 +234,7 @@
       for (const e of [r.truthTrailEl, r.trailEl, r.ellipse, r.odom, r.truth, r.fused, r.label]) e.remove();
     }
     robots.clear();
-    if (layers) layers.sees.replaceChildren();
+    if (layers) { layers.sees.replaceChildren(); layers.events.replaceChildren(); }
   }
 
   // ------------------------------------------------------------------ state (moving)
@@ -308,6 +309,8 @@
       }
     }
     drawSees(st, where);
+    drawEvents(st);
+    fillEvents(st);
     fillTable(st);
     fillSystem(st);
     fillSelect($("robot-select"), st.robots.map((rb) => rb.id));
@@ -335,6 +338,45 @@
     }
   }
 
+  /** A fading marker where each recent event happened: re-localised (ring at the new
+   *  estimate, line from the old one) or kidnapped (a cross); map frame. */
+  function drawEvents(st) {
+    const g = layers.events;
+    g.replaceChildren();
+    const ttl = view.scene.marker_ttl_s || 3;
+    for (const e of st.events || []) {
+      if (!e.at || e.age_s === null || e.age_s > ttl) continue;
+      const fade = Math.max(0, 1 - e.age_s / ttl);
+      const [x, y] = e.at, r = geom.radius * (1.3 + 0.6 * (1 - fade));
+      const attrs = { class: `${e.kind === "kidnap" ? "kidnap" : "reloc"}-marker`, opacity: 0.3 + 0.7 * fade,
+                      "data-robot": e.robot, "data-kind": e.kind, "data-stamp": e.stamp_ns };
+      const m = el("g", attrs, g);
+      if (e.kind === "kidnap") {
+        const h = r * 0.7;
+        el("path", { d: `M ${x - h} ${y - h} L ${x + h} ${y + h} M ${x - h} ${y + h} L ${x + h} ${y - h}`,
+                     "stroke-width": geom.lw * 3 }, m);
+      } else {
+        el("circle", { cx: x, cy: y, r, "stroke-width": geom.lw * 3 }, m);
+        if (e.from) {
+          el("line", { x1: e.from[0], y1: e.from[1], x2: x, y2: y, "stroke-width": geom.lw * 1.5,
+                       "stroke-dasharray": `${geom.lw * 4} ${geom.lw * 3}` }, m);
+        }
+      }
+    }
+  }
+
+  function fillEvents(st) {
+    const c = st.event_counts || { relocalisations: 0, kidnaps: 0 };
+    $("event-counts").textContent = `${c.relocalisations} re-localised · ${c.kidnaps} kidnapped`;
+    const items = (st.events || []).slice(0, 8).map((e) => {
+      const t = `${(e.stamp_ns / 1e9).toFixed(1)} s`;
+      const what = e.kind === "kidnap" ? `robot ${e.robot} kidnapped (${e.action})`
+        : `robot ${e.robot} re-localised: ${fmt(e.jump_m, 2)} m on ${e.evidence} obs.`;
+      return `<li class="${e.kind}" data-kind="${e.kind}" data-robot="${e.robot}">${t} <b>${what}</b></li>`;
+    });
+    $("events").innerHTML = items.length ? items.join("") : '<li class="none">none yet</li>';
+  }
+
   function fillTable(st) {
     const tb = document.querySelector("#robots tbody");
     const rows = st.robots.map((rb) => {
@@ -342,11 +384,14 @@
       const err = rb.error_m === null ? "–" : `${(rb.error_m * 100).toFixed(1)} cm`;
       const a95 = rb.fused ? `${(rb.fused.ellipse[0] * 100).toFixed(1)} cm` : "–";
       const fix = rb.fix_age_s === null ? "–" : `${rb.fix_age_s.toFixed(1)} s`;
+      const loc = rb.time_localised === null || rb.time_localised === undefined ? "–"
+        : `${(rb.time_localised * 100).toFixed(0)} %`;
       const mode = rb.mode ? `<span class="mode ${rb.mode}">${rb.mode}</span>` : "–";
       const cls = [rb.id === view.selected ? "selected" : "", rb.alive === false ? "dead" : ""].join(" ");
       return `<tr data-robot="${rb.id}" class="${cls}"><td><span class="swatch" style="background:${color(rb.id)}">` +
         `</span></td><td>robot ${rb.id}${origin}</td><td>${mode}</td><td class="num">${err}</td>` +
-        `<td class="num">${a95}</td><td class="num">${fix}</td><td class="num">${rb.fixes ?? "–"}</td></tr>`;
+        `<td class="num">${a95}</td><td class="num">${fix}</td><td class="num">${rb.fixes ?? "–"}</td>` +
+        `<td class="num">${loc}</td></tr>`;
     });
     tb.innerHTML = rows.join("");
   }

@@ -84,10 +84,11 @@ def test_fused_pose_takes_the_newest_estimate_and_the_map_on_a_tie(state: ViewSt
     assert (f["x"], f["stamp_ns"], f["source"]) == (0.6, 133, "correction")
     state.apply(gmap(120, (1, 9.0, 9.0)))  # a late, older map never overrides
     assert robot(state.snapshot(), 1)["fused"]["x"] == 0.6
-    # 95 % ellipse of diag(0.0004, 0.0001): semi-axes 2.4477 * (0.02, 0.01) along x
+    # 95 % ellipse of diag(0.0004, 0.0001) in the robot's axes: semi-axes 2.4477 * (0.02, 0.01)
+    # along the robot's heading (0.1 rad: the covariance is in its own axes)
     a, b, ang = robot(state.snapshot(), 1)["fused"]["ellipse"]
     assert (a, b) == pytest.approx((ELLIPSE_SCALE_95 * 0.02, ELLIPSE_SCALE_95 * 0.01), rel=1e-4)
-    assert ang == pytest.approx(0.0, abs=1e-9)
+    assert ang == pytest.approx(0.1, abs=1e-9)
 
 
 def test_unlocalised_robot_has_no_fused_pose(state: ViewState) -> None:
@@ -212,3 +213,59 @@ def test_covariance_ellipse(cov: tuple[float, ...], expect: tuple[float, float, 
     assert (a, b) == pytest.approx(expect[:2], abs=1e-9)
     if expect[0] != expect[1]:
         assert math.cos(2 * (ang - expect[2])) == pytest.approx(1.0, abs=1e-9)  # axis direction, mod pi
+
+
+# --------------------------------------------------------------------------- re-localisation and kidnaps
+
+
+def reloc(rid: int, stamp_ns: int) -> m.Relocalisation:
+    return m.Relocalisation(seq=0, stamp_ns=stamp_ns, robot_id=rid, from_x_m=1.0, from_y_m=0.0, from_yaw_rad=0.0,
+                            to_x_m=2.0, to_y_m=0.5, to_yaw_rad=0.3, jump_m=1.118, evidence=4, observers=(0, -1))
+
+
+def test_relocalisations_and_kidnaps_are_listed_newest_first(state: ViewState) -> None:
+    a2m = arena_to_map(state.s)
+    state.apply(tick(2_000_000_000, step=60))
+    state.apply(truth(2, 0.5, 0.5, 0.0, 1_900_000_000), KEYS.truth(2))
+    state.apply(m.WorldCommand(seq=0, stamp_ns=2_000_000_000, robot_id=2, action="teleport", x_m=1.0, y_m=-1.0,
+                               yaw_rad=0.5), KEYS.world_command())
+    state.apply(m.WorldCommand(seq=1, stamp_ns=0, robot_id=2, action="push", x_m=0.3, y_m=0.0), KEYS.world_command())
+    state.apply(tick(3_000_000_000, step=90))
+    state.apply(reloc(2, 2_900_000_000), KEYS.relocalisation())
+    snap = state.snapshot()
+    ev = snap["events"]
+    assert [e["kind"] for e in ev] == ["relocalisation", "kidnap", "kidnap"]
+    assert ev[0] == {"kind": "relocalisation", "robot": 2, "stamp_ns": 2_900_000_000, "jump_m": 1.118, "evidence": 4,
+                     "observers": [0, -1], "from": [1.0, 0.0], "at": [2.0, 0.5, 0.3], "age_s": 0.1}
+    assert ev[2]["at"] == pytest.approx(list(se2_compose(a2m, (1.0, -1.0, 0.5))), abs=1e-6)  # arena -> map
+    assert ev[2]["age_s"] == 1.0
+    assert ev[1]["stamp_ns"] == 2_000_000_000  # stamped 0: taken as the time it arrived
+    assert ev[1]["at"] == pytest.approx(list(se2_compose(a2m, (0.5, 0.5, 0.0))), abs=1e-6)  # where the robot was
+    assert snap["event_counts"] == {"relocalisations": 1, "kidnaps": 2}
+    assert robot(snap, 2)["relocalisations"] == 1
+    assert state.scene()["marker_ttl_s"] > 0
+    state.apply(tick(1_000_000_000, run_id="vt-bbbb"))  # a new run forgets them
+    assert state.snapshot()["events"] == [] and state.snapshot()["event_counts"]["relocalisations"] == 0
+
+
+def test_time_localised_counts_truth_time_under_10_cm(state: ViewState) -> None:
+    a2m = arena_to_map(state.s)
+    dt = 100_000_000
+    for i in range(101):  # 10 s at 10 Hz; the estimate is 0.2 m off for 2 s of them and absent for 1 s
+        stamp = i * dt
+        p = se2_compose(a2m, (1.0, 1.0, 0.0))
+        off = 0.2 if 30 <= i < 50 else 0.0
+        if not 70 <= i < 80:
+            state.apply(corr(1, p[0] + off, p[1], stamp), KEYS.correction(1))
+        state.apply(truth(1, 1.0, 1.0, 0.0, stamp), KEYS.truth(1))
+    # 3.0-5.0 s off; the 6.9 s estimate holds 0.5 s into the gap, so 7.5-8.0 s count as not localised
+    assert robot(state.snapshot(), 1)["time_localised"] == pytest.approx(0.75, abs=1e-9)
+    # each truth sample is judged by the estimate standing when it arrives: one that lags a
+    # sample behind (truth first, as in a lockstep run) shifts every verdict by that sample
+    late = ViewState(state.s, KEYS)
+    for i in range(101):
+        late.apply(truth(1, 1.0, 1.0, 0.0, i * dt), KEYS.truth(1))
+        p = se2_compose(a2m, (1.0, 1.0, 0.0))
+        late.apply(corr(1, p[0] + (0.2 if 30 <= i < 50 else 0.0), p[1], i * dt), KEYS.correction(1))
+    assert robot(late.snapshot(), 1)["time_localised"] == pytest.approx(0.79, abs=1e-9)  # 0-0.1 s, 3.1-5.1 s
+    assert robot(state.snapshot(), 1)["error_m"] == pytest.approx(0.0, abs=1e-6)

@@ -28,6 +28,7 @@ from protocol.scenario_schema import (
     Camera,
     Clock,
     Encoders,
+    Event,
     Landmark,
     MapFrame,
     Mission,
@@ -44,8 +45,8 @@ from protocol.scenario_schema import (
 )
 
 __all__ = [
-    "Agent", "Arena", "Camera", "Clock", "Encoders", "Landmark", "MapFrame", "Mission", "NonNeg", "Obstacle", "Pos",
-    "Render", "Robot", "Robots", "Scenario", "ScenarioError", "Spec", "StartPose", "TagScheme", "apply_override",
+    "Agent", "Arena", "Camera", "Clock", "Encoders", "Event", "Landmark", "MapFrame", "Mission", "NonNeg", "Obstacle",
+    "Pos", "Render", "Robot", "Robots", "Scenario", "ScenarioError", "Spec", "StartPose", "TagScheme", "apply_override",
     "builtin_names", "convert", "load_scenario", "parse_value", "read_scenario_dict", "validate",
 ]
 
@@ -212,6 +213,7 @@ def validate(s: Scenario) -> None:
             raise ScenarioError(f"missions[{i}]: a {mi.kind} mission needs waypoints")
     if s.map.origin_id not in s.robot_ids:
         raise ScenarioError(f"map.origin_id={s.map.origin_id} is not a robot of this scenario")
+    _validate_events(s)
     from protocol.layout import footprint_radius, start_poses  # layout builds on these types
 
     poses = start_poses(s)
@@ -225,6 +227,25 @@ def validate(s: Scenario) -> None:
         for j in range(i):
             if math.dist(poses[i][:2], poses[j][:2]) < 2 * r:
                 raise ScenarioError(f"robots {j} and {i} start overlapping (robots.placement/start)")
+
+
+def _validate_events(s: Scenario) -> None:
+    """``[[events]]``: a robot of the scenario, a time >= 0, and a teleport inside the
+    arena walls (by the footprint circle, like start poses; the world checks the exact
+    footprint and overlaps when it applies the event)."""
+    half_x = s.arena.size_x_m / 2 - s.arena.wall_thickness_m / 2
+    half_y = s.arena.size_y_m / 2 - s.arena.wall_thickness_m / 2
+    from protocol.layout import footprint_radius  # layout builds on these types
+
+    r = footprint_radius(s.robot)
+    for i, ev in enumerate(s.events):
+        if ev.robot not in s.robot_ids:
+            raise ScenarioError(f"events[{i}].robot={ev.robot} is not a robot of this scenario "
+                                f"(0..{s.robots.count - 1})")
+        if ev.at_s < 0:
+            raise ScenarioError(f"events[{i}].at_s={ev.at_s} must be >= 0 (simulation seconds)")
+        if ev.action == "teleport" and (abs(ev.x_m) + r > half_x or abs(ev.y_m) + r > half_y):
+            raise ScenarioError(f"events[{i}]: teleport to ({ev.x_m:.2f}, {ev.y_m:.2f}) is outside the arena")
 
 
 def _non_finite(value: Any, path: str) -> str | None:

@@ -232,6 +232,22 @@ class MapFrame(Spec, frozen=True, kw_only=True, forbid_unknown_fields=True):
     origin_id: Annotated[int, msgspec.Meta(ge=0)] = 0
 
 
+class Event(Spec, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """A scheduled intervention in the physical world (a ``[[events]]`` table), applied
+    by the world at the first step k with ``k / clock.tick_hz >= at_s`` (simulation
+    seconds) exactly like a :class:`protocol.messages.WorldCommand`: ``teleport`` puts
+    ``robot``'s base at (x_m, y_m, yaw_rad) in the arena frame, ``push`` moves it by
+    (x_m, y_m) in the arena frame and turns it by yaw_rad.  The wheels do not turn, so
+    the robot's odometry does not see it (a kidnapped robot)."""
+
+    at_s: float
+    robot: int
+    action: Literal["teleport", "push"]
+    x_m: float
+    y_m: float
+    yaw_rad: float = 0.0
+
+
 class Scenario(Spec, frozen=True, kw_only=True, forbid_unknown_fields=True):
     name: str = "custom"
     seed: Annotated[int, msgspec.Meta(ge=0)] = 0
@@ -247,6 +263,7 @@ class Scenario(Spec, frozen=True, kw_only=True, forbid_unknown_fields=True):
     agent: Agent = Agent()
     missions: tuple[Mission, ...] = ()
     map: MapFrame = MapFrame()
+    events: tuple[Event, ...] = ()
 
     @property
     def robot_ids(self) -> tuple[int, ...]:

@@ -28,6 +28,8 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
                "main"),
     "spy": ("live table of a running system's keys: types, rates, bandwidth, last message", "tagswarm.spy", "main"),
     "goto": ("send a robot to (X, Y) in the map frame once its agent is alive", "tagswarm.goto", "main"),
+    "kidnap": ("teleport (or --push) a robot to (X, Y) in the arena frame; its odometry does not see it",
+               "tagswarm.kidnap", "main"),
     "alive": ("exit 0 if a participant's liveliness token is visible, else 1 (healthchecks)", "tagswarm.alive",
               "main"),
     "record": ("record every message on matching keys to an MCAP file (opens in Foxglove)", "tagswarm.record",

@@ -1,9 +1,20 @@
 """The world process: steps the simulation and talks Zenoh (the only I/O here).
 
 One cycle (:meth:`WorldNode.step`): apply the wheel commands that arrived,
-advance physics one tick, publish ground truth, encoder ticks and due camera
-frames, then the :class:`~protocol.messages.Tick`; in lockstep mode wait until
-every live participant acknowledged it.
+advance physics one tick, apply the teleports and pushes now due
+(:class:`~protocol.messages.WorldCommand` messages and the scenario's
+``[[events]]``, see :mod:`world.interventions`), publish ground truth, encoder
+ticks and due camera frames, then the :class:`~protocol.messages.Tick`; in
+lockstep mode wait until every live participant acknowledged it.  So the state
+published for the first step whose time is >= an intervention's due time
+already has the robot where it was put.
+
+Status counters besides the rejects: ``world_commands`` / ``world_events``
+(interventions applied from the network / the scenario), ``world_command_rejected``
+(refused, either source: unknown robot, outside the arena, overlapping something,
+queue full; each logged with why), the contact events of :mod:`world.contacts`
+(``contacts_robot_robot``, ``contacts_robot_obstacle``, ``contacts_robot_wall``,
+``contacts_robot_<id>``).
 """
 
 from __future__ import annotations
@@ -29,11 +40,13 @@ from protocol.config import install_stop_signals, run_main, setup_logging
 from protocol.keys import Keys
 from protocol.scenario import Camera
 from world.config import WorldConfig, build_config
+from world.interventions import Schedule
 from world.lockstep import AckTracker
 from world.render import Renderer, image_message, pose_matrix
-from world.sim import Sim
+from world.sim import PlacementError, Sim
 
 log = logging.getLogger("tagswarm.world")
+MAX_REJECT_LOGS = 50  # refused interventions logged one by one, then only counted
 
 
 def due(step: int, rate_hz: float, tick_hz: float, phase: float = 0.0) -> bool:
@@ -64,6 +77,7 @@ class WorldNode:
         self.rejects = codec.RejectCounter(log)
         self.counters: Counter[str] = Counter()
         self.seq = codec.Sequencer()
+        self.interventions = Schedule(s.events, tick_hz=s.clock.tick_hz, dt_ns=self.sim.dt_ns)
         self._started = False
         self._published_step = -1  # newest step whose tick is out
         self._render_step = -1  # newest step whose render poses are out
@@ -72,6 +86,7 @@ class WorldNode:
         self._camera_pairs = [(rid, cam, i / len(pairs) if s.render.stagger_cameras else 0.0)
                               for i, (rid, cam) in enumerate(pairs)]
         self.cmd_in = bus.subscribe(self.keys.cmd())
+        self.world_cmd_in = bus.subscribe(self.keys.world_command())
         self.ack_in = bus.subscribe(self.keys.acks())
         self.alive_in = bus.watch_liveliness(self.keys.alive_all())
         bus.declare_token(self.keys.alive("world/0"))
@@ -97,6 +112,31 @@ class WorldNode:
                 self.rejects.reject("unknown_robot", f"{item.key}: robot {rid} is not in the roster")
             else:
                 self.sim.set_command(rid, cmd.left_rad_s, cmd.right_rad_s)
+        for _, wc in self.rejects.decoded(self.world_cmd_in.drain(), m.WorldCommand):
+            if not self.interventions.add(wc):
+                self._refuse(f"world command for robot {wc.robot_id}: {len(self.interventions)} already waiting")
+
+    def _apply_interventions(self) -> None:
+        """Teleports and pushes due at the current step (see module docstring)."""
+        for iv in self.interventions.pop_due(self.time_ns):
+            st = self.sim.robots.get(iv.robot_id)
+            try:
+                if st is None:
+                    raise PlacementError(f"robot {iv.robot_id} is not in the roster")
+                self.sim.place_robot(iv.robot_id, *iv.target(st.x_m, st.y_m, st.yaw_rad))
+            except PlacementError as exc:
+                self._refuse(f"{iv.describe()}: {exc}")
+                continue
+            self.counters["world_events" if iv.from_event else "world_commands"] += 1
+            log.info("t=%.3f s (step %d) %s: now at (%.3f, %.3f, %.3f rad)", self.time_ns / 1e9,
+                     self.sim.step_index, iv.describe(), st.x_m, st.y_m, st.yaw_rad)
+
+    def _refuse(self, why: str) -> None:
+        self.counters["world_command_rejected"] += 1
+        n = self.counters["world_command_rejected"]
+        if n <= MAX_REJECT_LOGS:
+            log.warning("t=%.3f s refused %s%s", self.time_ns / 1e9, why,
+                        " (further refusals are only counted)" if n == MAX_REJECT_LOGS else "")
 
     def _drain_presence(self) -> None:
         for change in self.alive_in.drain():
@@ -221,7 +261,8 @@ class WorldNode:
             self._wait_acks(self.workers, step, "render worker(s)")
 
     def _publish_status(self) -> None:
-        counters = dict(self.counters)
+        counters = {"world_commands": 0, "world_events": 0, "world_command_rejected": 0, **self.counters}
+        counters.update(self.sim.contacts.as_counters())
         counters["step"] = self.sim.step_index
         for st in self.sim.robots.values():
             for name, v in st.counters.items():
@@ -243,6 +284,7 @@ class WorldNode:
         if self._started:
             self.sim.step()
         self._started = True
+        self._apply_interventions()
         step = self.sim.step_index
         rendered = self._publish_state(step)
         key = self.keys.tick()

@@ -13,6 +13,10 @@ and wheel base differ from the nominal ones the agents assume, adds random
 slip proportional to the square root of the wheel travel, and lets wheels spin
 freely when the robot is blocked, so dead reckoning drifts like a real robot's.
 
+:meth:`Sim.place_robot` moves a robot by hand (teleport / push: a kidnapped
+robot) without turning its wheels.  Contact events (robot–robot, –obstacle,
+–wall) are counted after every physics step by :mod:`world.contacts`.
+
 Frames: arena (world) frame, z up, origin at the arena centre.  A robot's base
 frame sits on the floor at the chassis centre, x forward, y left.
 """
@@ -28,6 +32,18 @@ from protocol.geometry import wrap_angle
 from protocol.layout import start_poses, wall_boxes
 from protocol.scenario import Scenario
 from world._pybullet import pb
+from world.contacts import ContactCounter, StaticBox
+
+CONTACT_SLACK_M = 0.05
+"""Added to the distance robots can cover in a tick when the contact broad phase
+picks the pairs to watch (m): solver pushes out of penetration are millimetres."""
+OVERLAP_TOL_M = 1e-4
+"""A placement may overlap a wall, obstacle or robot by at most this much (m): a
+robot set flush against a wall measures about -3e-7 m."""
+
+
+class PlacementError(ValueError):
+    """A robot cannot be placed where asked; the message says why."""
 
 
 @dataclass
@@ -68,10 +84,15 @@ class Sim:
         pb.setPhysicsEngineParameter(fixedTimeStep=self.sub_dt_s, numSubSteps=1, deterministicOverlappingPairs=1,
                                      physicsClientId=self.cid)
         pb.setGravity(0, 0, -9.81, physicsClientId=self.cid)
+        self._walls: list[int] = []
+        self._obstacles: list[int] = []
+        self._statics: list[StaticBox] = []
         self._build_static()
         self.robots: dict[int, RobotState] = {}
         r = scenario.robot
-        self._half_h = (r.ground_clearance_m + r.chassis_height_m + r.cube_edge_m) / 2.0
+        self._half = (max(r.chassis_length_m, r.cube_edge_m) / 2, max(r.chassis_width_m, r.cube_edge_m) / 2,
+                      (r.ground_clearance_m + r.chassis_height_m + r.cube_edge_m) / 2)
+        self._half_h = self._half[2]
         enc = scenario.encoders
         for rid, (x, y, yaw) in zip(scenario.robot_ids, start_poses(scenario), strict=True):
             rng = np.random.default_rng([scenario.seed, rid])
@@ -84,6 +105,12 @@ class Sim:
                 robot_id=rid, body=self._make_robot(x, y, yaw), rng=rng,
                 radius_l_m=r.wheel_radius_m * (1 + float(bias_l)), radius_r_m=r.wheel_radius_m * (1 + float(bias_r)),
                 base_m=r.wheel_base_m * (1 + float(bias_b)), x_m=x, y_m=y, yaw_rad=yaw)
+        # created after the bodies, so their ids do not depend on it: the footprint that placements are checked with
+        self._probe = pb.createCollisionShape(pb.GEOM_BOX, halfExtents=self._half, physicsClientId=self.cid)
+        v_max = r.max_wheel_speed_rad_s * max(max(st.radius_l_m, st.radius_r_m) for st in self.robots.values())
+        self.contacts = ContactCounter(self.cid, {st.body: rid for rid, st in self.robots.items()}, self._statics,
+                                       radius_m=math.hypot(self._half[0], self._half[1]),
+                                       reach_m=2 * v_max * self.dt_ns / 1e9 + CONTACT_SLACK_M)
 
     # ------------------------------------------------------------------ build
     def _static_box(self, half: tuple[float, float, float], pos: tuple[float, float, float], yaw: float = 0.0) -> int:
@@ -96,17 +123,19 @@ class Sim:
         a = self.s.arena
         self._static_box((a.size_x_m, a.size_y_m, 0.05), (0, 0, -0.05))
         for pos, half in wall_boxes(a):
-            self._static_box(half, pos)
+            body = self._static_box(half, pos)
+            self._walls.append(body)
+            self._statics.append(StaticBox(body, "wall", pos[0], pos[1], 0.0, half[0], half[1]))
         for ob in a.obstacles:
-            self._static_box((ob.size_x_m / 2, ob.size_y_m / 2, ob.size_z_m / 2), (ob.x_m, ob.y_m, ob.size_z_m / 2),
-                             ob.yaw_rad)
+            body = self._static_box((ob.size_x_m / 2, ob.size_y_m / 2, ob.size_z_m / 2),
+                                    (ob.x_m, ob.y_m, ob.size_z_m / 2), ob.yaw_rad)
+            self._obstacles.append(body)
+            self._statics.append(StaticBox(body, "obstacle", ob.x_m, ob.y_m, ob.yaw_rad, ob.size_x_m / 2,
+                                           ob.size_y_m / 2))
 
     def _make_robot(self, x: float, y: float, yaw: float) -> int:
-        r = self.s.robot
-        half = (max(r.chassis_length_m, r.cube_edge_m) / 2, max(r.chassis_width_m, r.cube_edge_m) / 2,
-                (r.ground_clearance_m + r.chassis_height_m + r.cube_edge_m) / 2)
-        col = pb.createCollisionShape(pb.GEOM_BOX, halfExtents=half, physicsClientId=self.cid)
-        body = pb.createMultiBody(5.0, col, -1, (x, y, half[2]), pb.getQuaternionFromEuler((0, 0, yaw)),
+        col = pb.createCollisionShape(pb.GEOM_BOX, halfExtents=self._half, physicsClientId=self.cid)
+        body = pb.createMultiBody(5.0, col, -1, (x, y, self._half_h), pb.getQuaternionFromEuler((0, 0, yaw)),
                                   physicsClientId=self.cid)
         pb.changeDynamics(body, -1, lateralFriction=0.0, spinningFriction=0.0, rollingFriction=0.0,
                           linearDamping=0.0, angularDamping=0.0, restitution=0.0, physicsClientId=self.cid)
@@ -142,6 +171,7 @@ class Sim:
     def step(self) -> None:
         """Advance one tick (``physics_substeps`` physics steps)."""
         self._expire_commands()
+        self.contacts.begin_tick({st.body: (st.x_m, st.y_m) for st in self.robots.values()})
         for _ in range(self.substeps):
             for st in self.robots.values():
                 v = (st.radius_l_m * st.cmd_l_rad_s + st.radius_r_m * st.cmd_r_rad_s) / 2.0
@@ -152,6 +182,7 @@ class Sim:
             pb.stepSimulation(physicsClientId=self.cid)
             for st in self.robots.values():
                 self._update_robot(st)
+            self.contacts.update()
         self.step_index += 1
 
     def _update_robot(self, st: RobotState) -> None:
@@ -179,6 +210,48 @@ class Sim:
         st.v_m_s = ds / self.sub_dt_s
         st.omega_rad_s = dyaw / self.sub_dt_s
         st.x_m, st.y_m, st.yaw_rad = pos[0], pos[1], yaw
+
+    # ------------------------------------------------------------------ placing
+    def place_robot(self, robot_id: int, x_m: float, y_m: float, yaw_rad: float) -> None:
+        """Put robot ``robot_id``'s base at (x_m, y_m, yaw_rad) in the arena frame, at
+        rest, without turning its wheels (its encoders never see the move; its wheel
+        command stays).  Raises :class:`PlacementError` (robot unchanged) for an
+        unknown robot, a non-finite pose, a footprint not inside the walls, or one
+        that would overlap a wall, obstacle or other robot."""
+        st = self.robots.get(robot_id)
+        if st is None:
+            raise PlacementError(f"robot {robot_id} is not in the roster ({len(self.robots)} robots)")
+        if not all(math.isfinite(v) for v in (x_m, y_m, yaw_rad)):
+            raise PlacementError(f"robot {robot_id}: pose ({x_m}, {y_m}, {yaw_rad}) is not finite")
+        yaw_rad = wrap_angle(yaw_rad)
+        hl, hw = self._half[0], self._half[1]
+        c, s = abs(math.cos(yaw_rad)), abs(math.sin(yaw_rad))
+        a = self.s.arena
+        if (abs(x_m) + c * hl + s * hw > a.size_x_m / 2 - a.wall_thickness_m / 2
+                or abs(y_m) + s * hl + c * hw > a.size_y_m / 2 - a.wall_thickness_m / 2):
+            raise PlacementError(f"robot {robot_id} at ({x_m:.3f}, {y_m:.3f}, {yaw_rad:.3f} rad) would not be "
+                                 f"inside the arena walls")
+        pos, quat = (x_m, y_m, self._half_h), pb.getQuaternionFromEuler((0, 0, yaw_rad))
+        for what, body in self._others(robot_id):
+            hits = pb.getClosestPoints(bodyA=-1, bodyB=body, distance=0.0, collisionShapeA=self._probe,
+                                       collisionShapePositionA=pos, collisionShapeOrientationA=quat,
+                                       physicsClientId=self.cid)
+            depth = min((p[8] for p in hits), default=0.0)
+            if depth < -OVERLAP_TOL_M:
+                raise PlacementError(f"robot {robot_id} at ({x_m:.3f}, {y_m:.3f}, {yaw_rad:.3f} rad) would overlap "
+                                     f"{what} by {-depth * 1000:.0f} mm")
+        pb.resetBasePositionAndOrientation(st.body, pos, quat, physicsClientId=self.cid)
+        pb.resetBaseVelocity(st.body, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0), physicsClientId=self.cid)
+        # the pose as pybullet holds it, so the next step's wheel travel is the physical motion alone
+        got, got_quat = pb.getBasePositionAndOrientation(st.body, physicsClientId=self.cid)
+        st.x_m, st.y_m, st.yaw_rad = got[0], got[1], pb.getEulerFromQuaternion(got_quat)[2]
+        st.v_m_s = st.omega_rad_s = 0.0
+
+    def _others(self, robot_id: int) -> list[tuple[str, int]]:
+        out = [(f"wall {i}", b) for i, b in enumerate(self._walls)]
+        out += [(f"obstacle {i}", b) for i, b in enumerate(self._obstacles)]
+        out += [(f"robot {rid}", st.body) for rid, st in self.robots.items() if rid != robot_id]
+        return out
 
     # ------------------------------------------------------------------ sensing
     def encoder_ticks(self, robot_id: int) -> tuple[int, int]:

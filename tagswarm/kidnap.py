@@ -1,0 +1,137 @@
+"""``tagswarm kidnap ROBOT X Y``: teleport (or push) a robot in the running world.
+
+Moves robot ROBOT's base to (X, Y) metres in the *arena* frame (the simulated
+world's frame: origin at the arena centre, x and y along the walls, z up; not
+the map frame of ``tagswarm goto``, which is the origin robot's start pose),
+facing ``--yaw`` radians (counter-clockwise from +x, default 0).  With
+``--push`` X, Y and ``--yaw`` are an offset from the robot's current pose
+instead, still along the arena axes.  The robot's wheels do not turn, so its
+encoders and odometry do not see the move: a kidnapped robot.
+
+Joins the network with the same flags and ``TAGSWARM_*`` variables as every
+process, waits (up to ``--timeout``) until the world's liveliness token
+``tagswarm/<run>/alive/world/0`` is visible (the world subscribes before it
+declares it), publishes one :class:`protocol.messages.WorldCommand` on
+``tagswarm/<run>/world/command`` and exits 0.  The world applies it at the
+first step whose simulation time is >= ``--at`` seconds (default: its next
+step).  ``--at`` is rounded up to a whole world tick (from the tick length the
+world publishes), so a lockstep run with the same ``--at`` is repeatable.  The
+world refuses (and counts as ``world_command_rejected`` in its status, with a
+log line) a robot it does not have, a pose outside the arena walls or
+overlapping a wall, obstacle or another robot.  Exit 1 (one line) when the
+world is not alive; exit 2 (one line) for bad arguments.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+from collections.abc import Sequence
+
+from protocol import codec
+from protocol import messages as m
+from protocol.bus import Bus, open_bus
+from protocol.config import ConfigError, OneLineParser, add_common_args, bus_from, env_of, pick, run_main, setup_logging
+from protocol.keys import Keys
+from tagswarm.goto import MAX_ROBOT_ID, wait_alive
+
+PROG = "tagswarm kidnap"
+TICK_WAIT_S = 2.0
+
+
+def parser() -> OneLineParser:
+    p = OneLineParser(prog=PROG, description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("robot", type=int, metavar="ROBOT", help="robot id")
+    p.add_argument("x", type=float, metavar="X", help="x in the arena frame (m); with --push, the offset along x")
+    p.add_argument("y", type=float, metavar="Y", help="y in the arena frame (m); with --push, the offset along y")
+    p.add_argument("--yaw", type=float, default=0.0, metavar="RAD",
+                   help="heading in the arena frame (rad, counter-clockwise from +x; default 0); "
+                   "with --push, the turn")
+    p.add_argument("--push", action="store_true", help="move by (X, Y, --yaw) from the current pose")
+    p.add_argument("--at", type=float, default=None, metavar="SECONDS",
+                   help="simulation time to apply it at (default: the world's next step)")
+    p.add_argument("--timeout", type=float, default=10.0, metavar="SECONDS",
+                   help="how long to wait for the world's liveliness token (default 10)")
+    add_common_args(p)
+    return p
+
+
+def make_command(robot: int, x: float, y: float, yaw: float, push: bool, stamp_ns: int = 0) -> m.WorldCommand:
+    """The WorldCommand; raises ConfigError (one line) for values the wire would reject."""
+    if not 0 <= robot <= MAX_ROBOT_ID:
+        raise ConfigError(f"ROBOT must be between 0 and {MAX_ROBOT_ID}, got {robot}")
+    if not (math.isfinite(x) and math.isfinite(y)):
+        raise ConfigError(f"X and Y must be finite numbers (metres), got {x!r}, {y!r}")
+    if not math.isfinite(yaw):
+        raise ConfigError(f"--yaw must be a finite number of radians, got {yaw!r}")
+    return m.WorldCommand(seq=0, stamp_ns=stamp_ns, robot_id=robot, action="push" if push else "teleport",
+                          x_m=x, y_m=y, yaw_rad=yaw)
+
+
+def stamp_for(at_s: float, dt_ns: int | None) -> int:
+    """``at_s`` seconds as a stamp: ``k * dt_ns`` (a tick's stamp) for the first tick ``k``
+    at or after ``at_s`` when the tick length ``dt_ns`` is known, else nanoseconds.
+    Within a thousandth of a tick counts as on it: ``dt_ns`` is rounded (33333333 at
+    30 Hz), so 1 s is tick 30 although its stamp is 0.99999999 s."""
+    if dt_ns is None:
+        return math.ceil(at_s * 1e9)
+    ticks = at_s * 1e9 / dt_ns
+    k = round(ticks) if abs(ticks - round(ticks)) < 1e-3 else math.ceil(ticks)
+    return k * dt_ns
+
+
+def tick_length_ns(bus: Bus, keys: Keys, timeout_s: float) -> int | None:
+    """``dt_ns`` of the next world tick, or None if none comes within ``timeout_s``."""
+    ticks = bus.subscribe(keys.tick(), newest_only=True)
+    dt: int | None = None
+
+    def got() -> bool:
+        nonlocal dt
+        for item in ticks.drain():
+            try:
+                dt = codec.decode(m.Tick, item.value).dt_ns
+            except codec.DecodeError:
+                continue
+        return dt is not None
+
+    bus.wait_for(got, timeout_s)
+    return dt
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Console entry for ``tagswarm kidnap``: 0 sent, 1 world not alive, 2 bad arguments."""
+
+    def body() -> int:
+        args = parser().parse_args(list(argv) if argv is not None else None)
+        env = env_of()
+        make_command(args.robot, args.x, args.y, args.yaw, args.push)  # validate before touching the network
+        if args.at is not None and (not math.isfinite(args.at) or args.at < 0):
+            raise ConfigError(f"--at must be a simulation time in seconds >= 0, got {args.at!r}")
+        if not math.isfinite(args.timeout) or args.timeout <= 0:
+            raise ConfigError("--timeout must be a positive number of seconds")
+        setup_logging(pick(args, env, "log_level", "WARNING"), "kidnap")  # validates --log-level too
+        run = pick(args, env, "run", "default")
+        keys = Keys(run)
+        alive_key = keys.alive("world/0")
+        with open_bus(bus_from(args, env)) as bus:
+            if not wait_alive(bus, alive_key, args.timeout):
+                sys.stderr.write(f"{PROG}: error: the world is not alive on run {run!r} "
+                                 f"(no liveliness token {alive_key} after {args.timeout:g} s)\n")
+                return 1
+            stamp = 0 if args.at is None else stamp_for(args.at, tick_length_ns(bus, keys, TICK_WAIT_S))
+            cmd = make_command(args.robot, args.x, args.y, args.yaw, args.push, stamp)
+            bus.put(keys.world_command(), codec.encode(cmd))
+            # a round trip on the same link before closing the session, so the command is on its way
+            bus.alive_now(alive_key, 1.0)
+        when = "at the world's next step" if stamp == 0 else f"at t={stamp / 1e9:.3f} s"
+        what = "by" if args.push else "to"
+        print(f"{cmd.action} robot {cmd.robot_id} {what} ({cmd.x_m:.3f} m, {cmd.y_m:.3f} m, {cmd.yaw_rad:.3f} rad) "
+              f"in the arena frame sent on {keys.world_command()}, {when}")
+        return 0
+
+    return run_main(PROG, body)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

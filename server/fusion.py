@@ -121,6 +121,7 @@ class Fusion:
         self._next_cov_ns = 0
         self._init: dict[int, list[Candidate]] = {}
         self.recovery = Recovery(params, origin_id, anchored_origin=not self.landmarks)
+        self._pair_factors: dict[tuple[int, int], tuple[int, int]] = {}  # (a, b) -> keys of its newest factor
         self.relocalisations: list[RelocEvent] = []  # not yet taken by the node
 
     def reset(self) -> None:
@@ -336,6 +337,13 @@ class Fusion:
                     anchors[rid] = self._anchor(rid, stamp_ns, r_odom,
                                                 se2_compose(r.estimate, se2_between(r.kf_odom, r_odom)))
             (ka, da, ca), (kb, db, cb) = anchors[a], anchors[b]
+            if self._pair_factors.get((a, b)) == (ka, kb):
+                # the same two keyframes again (neither robot moved): the same viewpoint and the same tag pixels
+                # repeat the same error, so a second factor would only fake certainty (measured: the fused
+                # covariance of a robot watched standing still shrank until its NEES passed 30)
+                self.counters["repeated_observations"] += 1
+                continue
+            self._pair_factors[(a, b)] = (ka, kb)
             # the measurement between the two keyframes: observer's motion since its keyframe, the
             # observation, then back along the target's motion since its keyframe
             z = se2_compose(se2_compose(da, m_rel), se2_inverse(db))

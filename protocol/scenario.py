@@ -12,6 +12,7 @@ and re-exported here; this module loads, overrides and validates them.
 
 from __future__ import annotations
 
+import logging
 import math
 import tomllib
 from importlib import resources
@@ -21,6 +22,7 @@ from typing import Any
 import msgspec
 
 from protocol import tags
+from protocol.freespace import segment_box_distance
 from protocol.keys import KeyError_, check_name, split_participant
 from protocol.scenario_schema import (
     Agent,
@@ -47,8 +49,12 @@ from protocol.scenario_schema import (
 __all__ = [
     "Agent", "Arena", "Camera", "Clock", "Encoders", "Event", "Landmark", "MapFrame", "Mission", "NonNeg", "Obstacle",
     "Pos", "Render", "Robot", "Robots", "Scenario", "ScenarioError", "Spec", "StartPose", "TagScheme", "apply_override",
-    "builtin_names", "convert", "load_scenario", "parse_value", "read_scenario_dict", "validate",
+    "builtin_descriptions", "builtin_names", "convert", "load_scenario", "parse_value", "read_scenario_dict",
+    "validate",
 ]
+
+
+log = logging.getLogger(__name__)
 
 
 class ScenarioError(ValueError):
@@ -62,6 +68,16 @@ def builtin_names() -> list[str]:
     """Names of the scenarios shipped in the package."""
     folder = resources.files("protocol") / "scenarios"
     return sorted(p.name[:-5] for p in folder.iterdir() if p.name.endswith(".toml"))
+
+
+def builtin_descriptions() -> dict[str, str]:
+    """Each built-in scenario's one-line description: the first comment line of its TOML."""
+    out = {}
+    for name in builtin_names():
+        text = (resources.files("protocol") / "scenarios" / f"{name}.toml").read_text()
+        first = next((ln for ln in text.splitlines() if ln.strip()), "")
+        out[name] = first.lstrip("#").strip() if first.lstrip().startswith("#") else ""
+    return out
 
 
 def read_scenario_dict(name_or_path: str) -> dict[str, Any]:
@@ -127,7 +143,7 @@ def convert(table: dict[str, Any], cls: type[Any], what: str) -> Any:
 
 def _trim_to_count(table: dict[str, Any]) -> None:
     """``robots.count`` below the length of an explicit start list keeps the first
-    robots and their missions, so ``--robots 2`` works on any scenario."""
+    robots and their missions and events, so ``--robots 2`` works on any scenario."""
     robots = table.get("robots")
     if not isinstance(robots, dict):
         return
@@ -136,18 +152,28 @@ def _trim_to_count(table: dict[str, Any]) -> None:
         return
     if isinstance(start, list) and len(start) > count and robots.get("placement", "ring") == "explicit":
         robots["start"] = start[:count]
-    missions = table.get("missions")
-    if isinstance(missions, list):
-        table["missions"] = [mi for mi in missions if not isinstance(mi, dict) or mi.get("robot", 0) < count]
+    for section in ("missions", "events"):
+        items = table.get(section)
+        if isinstance(items, list):
+            table[section] = [it for it in items if not isinstance(it, dict) or it.get("robot", 0) < count]
 
 
 def load_scenario(name_or_path: str = "paper", overrides: tuple[str, ...] | list[str] = ()) -> Scenario:
-    """Load, override and validate a scenario."""
+    """Load, override and validate a scenario.  Robots beyond an explicit start list
+    get free start poses and missions, and the tag-ID scheme is compacted if it has
+    no room for them (:mod:`protocol.robotfill`); each such step is logged at INFO."""
+    from protocol.robotfill import complete  # it builds on this module's types
+
     table = read_scenario_dict(name_or_path)
+    robots = table.get("robots")
+    toml_count = robots.get("count") if isinstance(robots, dict) else None
     for o in overrides:
         apply_override(table, o)
     _trim_to_count(table)
     scenario: Scenario = convert(table, Scenario, f"scenario {name_or_path!r}")
+    scenario, notes = complete(scenario, toml_count if isinstance(toml_count, int) else Robots().count)
+    for note in notes:
+        log.info("%s", note)
     validate(scenario)
     return scenario
 
@@ -227,6 +253,9 @@ def validate(s: Scenario) -> None:
         for j in range(i):
             if math.dist(poses[i][:2], poses[j][:2]) < 2 * r:
                 raise ScenarioError(f"robots {j} and {i} start overlapping (robots.placement/start)")
+        for k, ob in enumerate(s.arena.obstacles):
+            if segment_box_distance(poses[i][:2], poses[i][:2], ob) < r:
+                raise ScenarioError(f"robot {i} starts on arena.obstacles[{k}] (robots.placement/start)")
 
 
 def _validate_events(s: Scenario) -> None:

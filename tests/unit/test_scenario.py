@@ -162,9 +162,26 @@ def test_overlapping_explicit_start_poses() -> None:
     assert "robots 0 and 1 start overlapping" in text
 
 
-def test_explicit_start_count_mismatch() -> None:
-    text = _error([*EXPLICIT_2, "robots.start=[{x_m=0.0, y_m=0.0}]"])
-    assert "robots.start has 1 poses" in text and "robots.count=2" in text
+def test_explicit_start_list_shorter_than_count_is_filled() -> None:
+    # robots.start used to have to match robots.count; now the missing robots get free poses
+    s = load_scenario("paper", [*EXPLICIT_2, "robots.start=[{x_m=0.0, y_m=0.0}]"])
+    poses = _inside_and_apart(s)
+    assert poses[0] == (0.0, 0.0, 0.0)
+    assert math.dist(poses[0][:2], poses[1][:2]) >= 1.0  # the widest lattice spacing had room
+    assert s.robots.start[0] == sc.StartPose(x_m=0.0, y_m=0.0)
+
+
+def test_validate_still_checks_the_start_count() -> None:
+    s = load_scenario("paper")
+    short = msgspec.structs.replace(s, robots=msgspec.structs.replace(s.robots, start=s.robots.start[:3]))
+    with pytest.raises(ScenarioError) as exc:
+        sc.validate(short)
+    assert "robots.start has 3 poses" in str(exc.value) and "robots.count=4" in str(exc.value)
+
+
+def test_start_on_an_obstacle() -> None:
+    text = _error(["arena.obstacles=[{x_m=1.2, y_m=0.7, size_x_m=0.4, size_y_m=0.4}]"])
+    assert "robot 1 starts on arena.obstacles[0]" in text
 
 
 def test_explicit_start_outside_arena() -> None:

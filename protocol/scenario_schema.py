@@ -119,9 +119,9 @@ class Robots(Spec, frozen=True, kw_only=True, forbid_unknown_fields=True):
     """How many robots and where they start.  ``placement``: ``ring`` (evenly on a
     circle of ``ring_radius_m`` facing its centre), ``grid`` (evenly spread with
     seeded random headings), ``random`` (seeded, non-overlapping) or
-    ``explicit`` (``start`` lists one pose per robot; a shorter list is cut or, for
-    ``count`` beyond it, the rest are placed at free poses with a default mission:
-    :mod:`protocol.robotfill`)."""
+    ``explicit`` (``start`` lists one pose per robot; a longer list is cut to
+    ``count``, and robots beyond a shorter one are placed at free poses with a
+    default mission: :mod:`protocol.robotfill`)."""
 
     count: Annotated[int, msgspec.Meta(ge=1, le=200)] = 4
     placement: Literal["ring", "grid", "random", "explicit"] = "ring"

@@ -385,7 +385,7 @@
       const a95 = rb.fused ? `${(rb.fused.ellipse[0] * 100).toFixed(1)} cm` : "–";
       const fix = rb.fix_age_s === null ? "–" : `${rb.fix_age_s.toFixed(1)} s`;
       const loc = rb.time_localised === null || rb.time_localised === undefined ? "–"
-        : `${(rb.time_localised * 100).toFixed(0)} %`;
+        : `${(rb.time_localised * 100).toFixed(0)}%`;
       const mode = rb.mode ? `<span class="mode ${rb.mode}">${rb.mode}</span>` : "–";
       const cls = [rb.id === view.selected ? "selected" : "", rb.alive === false ? "dead" : ""].join(" ");
       return `<tr data-robot="${rb.id}" class="${cls}"><td><span class="swatch" style="background:${color(rb.id)}">` +

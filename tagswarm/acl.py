@@ -10,8 +10,9 @@ user          may
 ============  =====================================================================
 world         publish the clock, world status, render requests and every robot's
               sensors (camera images, encoders) and ground truth; receive wheel
-              commands, tick acks, render requests (its render workers log in as
-              world too: they publish images and acks ``render/<i>``)
+              commands, world commands (teleport / push), tick acks, render
+              requests (its render workers log in as world too: they publish
+              images and acks ``render/<i>``)
 agent<k>      publish robot k's observation, odometry, status, wheel command and
               the ack ``agent/<k>``; receive robot k's images, encoders,
               correction, goal and the clock; query the map
@@ -20,7 +21,8 @@ server        publish the map, its status, every robot's correction and the ack
               agents' acks ``agent/<k>`` (lockstep: an ack without its odometry
               tells the server that odometry was lost); answer map queries
 viewer        receive everything of the run, query the map (spy, recorder, alive)
-operator      what viewer may, plus publish goals (``tagswarm goto``)
+operator      what viewer may, plus publish goals (``tagswarm goto``) and world
+              commands (``tagswarm kidnap``)
 ============  =====================================================================
 
 Everyone may watch presence (liveliness) under ``alive/``; each process may
@@ -102,7 +104,7 @@ def grants(keys: Keys, robot_ids: Sequence[int]) -> dict[str, Grant]:
         WORLD: Grant(
             put=(keys.tick(), keys.world_status(), render_all, keys.images(), keys.encoders(), keys.truth(),
                  _siblings(keys.ack("render/0"))),
-            sub=(keys.cmd(), keys.acks(), render_all),
+            sub=(keys.cmd(), keys.world_command(), keys.acks(), render_all),
             token=(keys.alive("world/0"), _siblings(keys.alive("render/0"))),
             watch=(keys.alive_all(),)),
         SERVER: Grant(
@@ -112,7 +114,8 @@ def grants(keys: Keys, robot_ids: Sequence[int]) -> dict[str, Grant]:
             token=(keys.alive("server/0"),),
             watch=(keys.alive_all(),)),
         VIEWER: Grant(sub=(keys.all(),), ask=(keys.map(),), watch=(keys.all(),)),
-        OPERATOR: Grant(put=(keys.goal(),), sub=(keys.all(),), ask=(keys.map(),), watch=(keys.all(),)),
+        OPERATOR: Grant(put=(keys.goal(), keys.world_command()), sub=(keys.all(),), ask=(keys.map(),),
+                        watch=(keys.all(),)),
     }
     for rid in robot_ids:
         me = f"agent/{int(rid)}"

@@ -14,8 +14,11 @@ process, waits (up to ``--timeout``) until the world's liveliness token
 declares it), publishes one :class:`protocol.messages.WorldCommand` on
 ``tagswarm/<run>/world/command`` and exits 0.  The world applies it at the
 first step whose simulation time is >= ``--at`` seconds (default: its next
-step).  ``--at`` is rounded up to a whole world tick (from the tick length the
-world publishes), so a lockstep run with the same ``--at`` is repeatable.  The
+step).  ``--at`` is rounded up to a whole world tick, so a lockstep run with the
+same ``--at`` is repeatable: the tick length comes from the world's next tick,
+or, if none comes within half a second (a lockstep world waiting for a
+participant), from ``clock.tick_hz`` of the scenario given here (``--scenario``,
+``--set``; default ``paper``).  The
 world refuses (and counts as ``world_command_rejected`` in its status, with a
 log line) a robot it does not have, a pose outside the arena walls or
 overlapping a wall, obstacle or another robot.  Exit 1 (one line) when the
@@ -32,12 +35,22 @@ from collections.abc import Sequence
 from protocol import codec
 from protocol import messages as m
 from protocol.bus import Bus, open_bus
-from protocol.config import ConfigError, OneLineParser, add_common_args, bus_from, env_of, pick, run_main, setup_logging
+from protocol.config import (
+    ConfigError,
+    OneLineParser,
+    add_common_args,
+    bus_from,
+    env_of,
+    pick,
+    run_main,
+    scenario_from,
+    setup_logging,
+)
 from protocol.keys import Keys
 from tagswarm.goto import MAX_ROBOT_ID, wait_alive
 
 PROG = "tagswarm kidnap"
-TICK_WAIT_S = 2.0
+TICK_WAIT_S = 0.5
 
 
 def parser() -> OneLineParser:
@@ -113,13 +126,17 @@ def main(argv: Sequence[str] | None = None) -> int:
         setup_logging(pick(args, env, "log_level", "WARNING"), "kidnap")  # validates --log-level too
         run = pick(args, env, "run", "default")
         keys = Keys(run)
+        # the scenario's tick length stands in when the world sends no tick (so also validated up front)
+        scenario_dt_ns = round(1e9 / scenario_from(args, env).clock.tick_hz) if args.at is not None else None
         alive_key = keys.alive("world/0")
         with open_bus(bus_from(args, env)) as bus:
             if not wait_alive(bus, alive_key, args.timeout):
                 sys.stderr.write(f"{PROG}: error: the world is not alive on run {run!r} "
                                  f"(no liveliness token {alive_key} after {args.timeout:g} s)\n")
                 return 1
-            stamp = 0 if args.at is None else stamp_for(args.at, tick_length_ns(bus, keys, TICK_WAIT_S))
+            stamp = 0
+            if args.at is not None:
+                stamp = stamp_for(args.at, tick_length_ns(bus, keys, TICK_WAIT_S) or scenario_dt_ns)
             cmd = make_command(args.robot, args.x, args.y, args.yaw, args.push, stamp)
             bus.put(keys.world_command(), codec.encode(cmd))
             # a round trip on the same link before closing the session, so the command is on its way

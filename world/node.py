@@ -135,7 +135,7 @@ class WorldNode:
         self.counters["world_command_rejected"] += 1
         n = self.counters["world_command_rejected"]
         if n <= MAX_REJECT_LOGS:
-            log.warning("t=%.3f s refused %s%s", self.time_ns / 1e9, why,
+            log.warning("t=%.3f s (step %d) refused %s%s", self.time_ns / 1e9, self.sim.step_index, why,
                         " (further refusals are only counted)" if n == MAX_REJECT_LOGS else "")
 
     def _drain_presence(self) -> None:

@@ -26,7 +26,8 @@ from rich.live import Live
 from rich.table import Table
 
 from protocol.bus import BusConfig, open_bus
-from protocol.config import ConfigError, OneLineParser, add_common_args, env_of, pick, run_main, scenario_from
+from protocol.config import (ConfigError, OneLineParser, add_common_args, env_of, pick, run_main, scenario_from,
+                             setup_logging)
 from protocol.keys import Keys
 from protocol.scenario import Scenario
 from tagswarm.recorder import Recorder
@@ -272,6 +273,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise ConfigError(f"--view: port must be 1..65535, got {args.view}")
         if args.record is not None and not args.record.parent.is_dir():
             raise ConfigError(f"--record: no such directory {str(args.record.parent)!r}")
+        # the scenario loader says at INFO what it filled in (robots beyond the scenario's list, tag scheme)
+        setup_logging(pick(args, env, "log_level"), "up")
         if args.replay is not None:
             from tagswarm.replay import scenario_for_replay
 

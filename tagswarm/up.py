@@ -26,8 +26,16 @@ from rich.live import Live
 from rich.table import Table
 
 from protocol.bus import BusConfig, open_bus
-from protocol.config import (ConfigError, OneLineParser, add_common_args, env_of, pick, run_main, scenario_from,
-                             setup_logging)
+from protocol.config import (
+    ConfigError,
+    OneLineParser,
+    add_common_args,
+    env_of,
+    pick,
+    run_main,
+    scenario_from,
+    setup_logging,
+)
 from protocol.keys import Keys
 from protocol.scenario import Scenario
 from tagswarm.recorder import Recorder
@@ -234,6 +242,14 @@ def _summary(console: Console, metrics: dict[str, Any]) -> None:
         ate = swarm.get(name, {}).get("ate_unaligned") or {}
         t.add_row(name, f"{ate.get('rmse', float('nan')):.3f}", f"{ate.get('max', float('nan')):.3f}")
     console.print(t)
+    fused, kid, contacts = swarm.get("fused", {}), swarm.get("kidnaps") or {}, swarm.get("contacts") or {}
+    tl = fused.get("time_localised")
+    worst = kid.get("max_time_to_relocalise_s")
+    console.print(f"time localised (< 10 cm) {'—' if tl is None else f'{tl:.1%}'} · re-localisations "
+                  f"{swarm.get('relocalisations', 0)} · kidnaps {kid.get('count', 0)} (recovered "
+                  f"{kid.get('recovered', 0)}{'' if worst is None else f', slowest {worst:.1f} s'}) · contacts "
+                  f"robot-robot {contacts.get('robot_robot', '—')}, obstacle {contacts.get('robot_obstacle', '—')}, "
+                  f"wall {contacts.get('robot_wall', '—')}", highlight=False)
 
 
 class _Null:

@@ -1,0 +1,126 @@
+"""Scenes nobody tuned for (part of the accuracy benchmark): the hall with
+occluding shelves, the crowd of 16, the long corridor and the kidnap scene, each
+a real lockstep ``tagswarm up`` at its own length.  Per scene: fused error of
+the swarm and of its worst robot, time localised (share of robot-time under
+10 cm), re-localisations and kidnap recovery times, contacts, and NEES of the
+fused position.  ``python bench/scenes.py`` runs them alone."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+# scene -> simulated seconds of its full run (its own duration_s) and of a quick one
+SCENES: dict[str, tuple[float, float]] = {"hall": (90.0, 30.0), "crowd": (60.0, 20.0), "corridor": (90.0, 30.0),
+                                          "kidnap": (40.0, 30.0)}
+TARGETS = ("every robot: fused RMSE <= 10 cm and final error <= 10 cm; swarm RMSE <= 5 cm; time localised >= 99 %; "
+           "kidnap: back under 10 cm within 3 s; zero robot-robot contacts")
+
+
+def final_error(run: Path, rid: int) -> float | None:
+    """Fused position error (m) at the end of the run, None if never localised."""
+    tf, ff = run / "trajectories" / f"truth_{rid}.tum", run / "trajectories" / f"fused_{rid}.tum"
+    if not ff.exists() or ff.stat().st_size == 0:
+        return None
+    truth, fused = np.loadtxt(tf, ndmin=2), np.loadtxt(ff, ndmin=2)
+    i = int(np.argmin(np.abs(fused[:, 0] - truth[-1, 0])))
+    return math.hypot(fused[i, 1] - truth[-1, 1], fused[i, 2] - truth[-1, 2])
+
+
+def scene_run(up: Callable[..., Path], work: Path, scene: str, duration: float, seed: int = 0) -> dict[str, Any]:
+    """One scene end to end; the numbers the README table shows."""
+    run = up(work / f"scene_{scene}_{seed}", "--scenario", scene, "--seed", str(seed), "--duration", str(duration))
+    m = json.loads((run / "metrics.json").read_text())
+    sw, robots = m["swarm"], m["robots"]
+    fused = sw.get("fused") or {}
+
+    def rmse(r: dict[str, Any]) -> float | None:
+        return ((r.get("fused") or {}).get("ate_unaligned") or {}).get("rmse")
+
+    per_robot = {rid: {"rmse_m": rmse(r), "final_m": final_error(run, int(rid)),
+                       "time_localised": (r.get("fused") or {}).get("time_localised"),
+                       "relocalisations": r.get("relocalisations"), "contacts": r.get("contacts")}
+                 for rid, r in robots.items()}
+    worst_rmse = max((v["rmse_m"] for v in per_robot.values() if v["rmse_m"] is not None), default=None)
+    finals = [v["final_m"] for v in per_robot.values()]
+    return {
+        "scene": scene, "seed": seed, "duration_s": duration, "robots": len(robots),
+        "fused_ate_rmse_m": (fused.get("ate_unaligned") or {}).get("rmse"),
+        "fused_ate_max_m": (fused.get("ate_unaligned") or {}).get("max"),
+        "odom_ate_rmse_m": ((sw.get("odom") or {}).get("ate_unaligned") or {}).get("rmse"),
+        "worst_robot_rmse_m": worst_rmse,
+        "worst_final_m": None if None in finals else max(finals, default=None),
+        "time_localised": fused.get("time_localised"),
+        "time_localised_min_robot": min((v["time_localised"] for v in per_robot.values()
+                                         if v["time_localised"] is not None), default=None),
+        "relocalisations": sw.get("relocalisations"), "kidnaps": sw.get("kidnaps"), "contacts": sw.get("contacts"),
+        "nees": fused.get("nees"), "searches": sw.get("searches"), "rtf": m["cost"].get("real_time_factor"),
+        "per_robot": per_robot,
+    }
+
+
+def table_rows(results: list[dict[str, Any]]) -> list[list[str]]:
+    """README-style rows: scene, robots, s, swarm RMSE, worst robot RMSE, worst final, time localised (swarm / worst
+    robot), re-localisations, kidnap recovery, robot-robot contacts, NEES median."""
+    def cm(v: float | None) -> str:
+        return "-" if v is None else f"{100 * v:.1f}"
+
+    rows = []
+    for r in results:
+        kid = r.get("kidnaps") or {}
+        rec = "-" if not kid.get("count") else f"{kid.get('recovered')}/{kid.get('count')}, max " \
+              f"{kid.get('max_time_to_relocalise_s') or float('nan'):.1f} s"
+        tl, tlm = r.get("time_localised"), r.get("time_localised_min_robot")
+        nees = (r.get("nees") or {}).get("median")
+        rows.append([r["scene"], str(r["robots"]), f"{r['duration_s']:.0f}", cm(r["fused_ate_rmse_m"]),
+                     cm(r["worst_robot_rmse_m"]), cm(r["worst_final_m"]),
+                     "-" if tl is None else f"{100 * tl:.1f} / {100 * (tlm or 0):.1f} %",
+                     str(r.get("relocalisations") or 0), rec,
+                     str((r.get("contacts") or {}).get("robot_robot", "-")),
+                     "-" if nees is None else f"{nees:.2f}"])
+    return rows
+
+
+HEADER = ["scene", "robots", "s", "swarm RMSE cm", "worst robot RMSE cm", "worst final cm", "time localised",
+          "re-loc.", "kidnaps", "robot contacts", "NEES median"]
+
+
+def main() -> int:
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    import tempfile
+
+    from accuracy import machine, up  # type: ignore[import-not-found]
+    from rich.console import Console
+    from rich.table import Table
+
+    p = argparse.ArgumentParser(description=__doc__)
+    p.add_argument("--quick", action="store_true", help="shorter runs (see SCENES)")
+    p.add_argument("--scenes", nargs="*", default=list(SCENES))
+    p.add_argument("--out", type=Path, default=None)
+    a = p.parse_args()
+    root = Path(__file__).resolve().parents[1]
+    out = a.out or root / "bench" / "results" / ("scenes_quick.json" if a.quick else "scenes.json")
+    t0 = time.monotonic()
+    with tempfile.TemporaryDirectory(prefix="tagswarm-scenes-") as tmp:
+        results = [scene_run(up, Path(tmp), s, SCENES[s][1 if a.quick else 0]) for s in a.scenes]
+    out.write_text(json.dumps({"bench": "scenes", "machine": machine(), "targets": TARGETS, "scenes": results,
+                               "wall_time_s": time.monotonic() - t0}, indent=2))
+    t = Table(title="scenes")
+    for c in HEADER:
+        t.add_column(c)
+    for row in table_rows(results):
+        t.add_row(*row)
+    Console().print(t)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

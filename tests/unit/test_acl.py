@@ -53,7 +53,9 @@ def test_world_server_viewer_and_operator() -> None:
     assert not allowed(g["server"].sub, K.ack("render/0")) and not allowed(g["server"].sub, K.ack("server/0"))
     assert g["viewer"].put == () and g["viewer"].token == () and g["viewer"].serve == ()
     assert allowed(g["viewer"].sub, K.truth(1)) and allowed(g["viewer"].sub, K.image(1, "front"))
-    assert g["operator"].put == (K.goal(),)
+    assert g["operator"].put == (K.goal(), K.world_command())  # tagswarm goto, tagswarm kidnap
+    assert allowed(g["world"].sub, K.world_command())
+    assert not any(allowed(g[u].put, K.world_command()) for u in ("world", "server", "viewer", "agent0"))
     # nobody outside the run's own keys
     for grant in g.values():
         for field in ("put", "sub", "serve", "ask", "token", "watch", "discover"):

@@ -141,9 +141,12 @@ def convert(table: dict[str, Any], cls: type[Any], what: str) -> Any:
         raise ScenarioError(f"{what}: {text}") from None
 
 
-def _trim_to_count(table: dict[str, Any]) -> None:
+def _trim_to_count(table: dict[str, Any], scenario_count: int | None = None) -> None:
     """``robots.count`` below the length of an explicit start list keeps the first
-    robots and their missions and events, so ``--robots 2`` works on any scenario."""
+    robots and their missions and events, so ``--robots 2`` works on any scenario.
+    Only the missions and events of robots that were cut go (those of robots
+    ``count .. scenario_count - 1``): one naming a robot the scenario never had
+    stays, and fails validation with its field named."""
     robots = table.get("robots")
     if not isinstance(robots, dict):
         return
@@ -152,10 +155,11 @@ def _trim_to_count(table: dict[str, Any]) -> None:
         return
     if isinstance(start, list) and len(start) > count and robots.get("placement", "ring") == "explicit":
         robots["start"] = start[:count]
+    cut = range(count, max(count, scenario_count if scenario_count is not None else count))
     for section in ("missions", "events"):
         items = table.get(section)
         if isinstance(items, list):
-            table[section] = [it for it in items if not isinstance(it, dict) or it.get("robot", 0) < count]
+            table[section] = [it for it in items if not isinstance(it, dict) or it.get("robot", 0) not in cut]
 
 
 def load_scenario(name_or_path: str = "paper", overrides: tuple[str, ...] | list[str] = ()) -> Scenario:
@@ -169,7 +173,7 @@ def load_scenario(name_or_path: str = "paper", overrides: tuple[str, ...] | list
     toml_count = robots.get("count") if isinstance(robots, dict) else None
     for o in overrides:
         apply_override(table, o)
-    _trim_to_count(table)
+    _trim_to_count(table, toml_count if isinstance(toml_count, int) else None)
     scenario: Scenario = convert(table, Scenario, f"scenario {name_or_path!r}")
     scenario, notes = complete(scenario, toml_count if isinstance(toml_count, int) else Robots().count)
     for note in notes:

@@ -10,7 +10,7 @@ import importlib
 import sys
 from collections.abc import Callable, Sequence
 
-from protocol.scenario import builtin_names
+from protocol.scenario import builtin_descriptions
 
 # name -> (help, module, function); modules are imported only when their command
 # runs, so `tagswarm alive` (a compose healthcheck) does not load pybullet or GTSAM
@@ -65,7 +65,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 0
     name, rest = args[0], args[1:]
     if name == "scenarios":
-        print("\n".join(builtin_names()))
+        print("\n".join(f"{n:<10} {d}" for n, d in builtin_descriptions().items()))
         return 0
     if name not in COMMANDS:
         sys.stderr.write(f"tagswarm: error: unknown command {name!r} (commands: {', '.join(COMMANDS)}, scenarios)\n")

@@ -168,7 +168,10 @@ class Correction(Msg, frozen=True, kw_only=True, tag="correction"):
     time of the newest data the estimate includes; ``last_fix_ns`` the time of the
     newest accepted observation involving this robot (as observer or observed).
     In lockstep the server sends one every tick; ``localised=False`` (pose fields
-    zero) means the server cannot place this robot yet."""
+    zero) means the server cannot place this robot yet.  ``cov`` is GTSAM's
+    marginal of the Pose2 in its tangent space: the position block is in the
+    robot's own axes (x forward, y left), so rotate it by the yaw for the map
+    frame."""
 
     robot_id: RobotId
     map_odom_x_m: float
@@ -192,7 +195,8 @@ class Goal(Msg, frozen=True, kw_only=True, tag="goal"):
 
 
 class MapEntry(msgspec.Struct, frozen=True, kw_only=True):
-    """One robot in the global map (map frame)."""
+    """One robot in the global map (map frame); ``cov`` as in :class:`Correction`
+    (position block in the robot's own axes)."""
 
     robot_id: RobotId
     x_m: float

@@ -102,6 +102,7 @@ _TEMPLATES: dict[type[m.Msg], m.Msg] = {
     m.OdometryEstimate: m.OdometryEstimate(seq=0, stamp_ns=0, robot_id=0, x_m=1.0, y_m=0.0, yaw_rad=0.1, cov=COV,
                                            distance_m=1.0),
     m.RenderPoses: m.RenderPoses(seq=0, stamp_ns=0, step=0, robot_ids=(0, 1), poses=(POSE, POSE), cameras=()),
+    m.WorldCommand: m.WorldCommand(seq=0, stamp_ns=0, robot_id=0, action="push", x_m=0.1, y_m=0.0),
 }
 
 
@@ -198,6 +199,12 @@ def build_plan(keys: Keys, seed: int = 7) -> Plan:
     bad_bytes(key, m.Tick, 0, everyone_ticking)
     plan.add(key, _oversized(m.Tick, rng), "oversized", dict.fromkeys(everyone_ticking, "oversized"), COPIES // 4)
     plan.add(key, codec.encode(_TEMPLATES[m.Tick]), "spoofed", dict.fromkeys(everyone_ticking, "foreign_run"))
+    # world commands (teleport / push) -> the world: none may move a robot
+    key = keys.world_command()
+    bad_bytes(key, m.WorldCommand, 0, world)
+    plan.add(key, _oversized(m.WorldCommand, rng), "oversized", {"world": "oversized"})
+    for j, x in enumerate(nan_inf):
+        plan.add(key, _r(m.WorldCommand, x_m=x, seq=j), "non_finite", {"world": "non_finite"})
     # render requests -> the render worker
     key = keys.render(0)
     bad_bytes(key, m.RenderPoses, 0, ["render/0"])

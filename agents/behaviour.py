@@ -19,6 +19,13 @@ the robot stays in ``odometry`` mode and keeps its mission on dead reckoning
 (a search cannot help), and searches again once a server is back if it has
 gone too long without a fix meanwhile.
 
+Missions and run-time goals go through :mod:`agents.avoid` (unless
+``agent.avoid`` is off): the go-to-goal command is kept while its path is
+clear of the other robots (``neighbours``, from the server's map) and of the
+arena's walls and obstacles (``static_obstacles``), and replaced by an avoiding
+one otherwise; a waypoint or goal occupied by another robot counts as reached
+as close as the clearance allows.  Holding and searching are not affected.
+
 Frames: poses are (x_m, y_m, yaw_rad) of base_link in the map frame; waypoints
 are given in the arena frame and converted with ``arena_to_map``.
 """
@@ -26,11 +33,14 @@ are given in the arena frame and converted with ``arena_to_map``.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from enum import StrEnum
 
+from agents.avoid import Avoider, Box, Neighbour
 from protocol.geometry import Pose2, wrap_angle
 from protocol.geometry import se2_compose as compose
+from protocol.layout import footprint_radius
 from protocol.scenario import Agent, Mission, Robot
 
 
@@ -76,6 +86,7 @@ class Behaviour:
     robot: Robot
     arena_to_map: Pose2 = (0.0, 0.0, 0.0)
     leapfrog_team: tuple[int, ...] = ()
+    static_obstacles: tuple[Box, ...] = ()  # map frame (agents.avoid.static_boxes)
     mode: Mode = Mode.ODOMETRY
     counter: int = 0
     since_fix: int = 1_000_000
@@ -90,6 +101,12 @@ class Behaviour:
     direction: int = 1
     done: bool = False
     _last_yaw: float | None = field(default=None, repr=False)
+    _neighbours: tuple[Neighbour, ...] = field(default=(), repr=False)
+    avoider: Avoider = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        self.avoider = Avoider(footprint_radius(self.robot), self.cfg.avoid_clearance_m, self.cfg.avoid_horizon_s,
+                               self.robot_id, self.cfg.avoid_stall_s)
 
     def set_goal(self, x_m: float, y_m: float, tolerance_m: float) -> None:
         """A run-time goal (map frame) replaces the mission until reached."""
@@ -104,10 +121,16 @@ class Behaviour:
         turn = int(t_s // self.mission.leapfrog_period_s) % len(self.leapfrog_team)
         return self.leapfrog_team[turn] == self.robot_id
 
+    def _slack(self, goal: tuple[float, float]) -> float:
+        """Extra tolerance for a goal that cannot be reached with the clearance kept."""
+        if not self.cfg.avoid:
+            return 0.0
+        return self.avoider.goal_slack(goal, self._neighbours, self.static_obstacles)
+
     def _target(self, pose: Pose2, t_s: float) -> tuple[float, float] | None:
         """Current goal (map frame) or None to stand still; advances waypoints."""
         if self.goal is not None:
-            if math.dist(pose[:2], self.goal) < self.goal_tolerance_m:
+            if math.dist(pose[:2], self.goal) < self.goal_tolerance_m + self._slack(self.goal):
                 self.goal = None
                 self.done = True
                 return None
@@ -116,7 +139,7 @@ class Behaviour:
             return None
         wps = self._waypoints()
         target = wps[self.waypoint_index]
-        if math.dist(pose[:2], target) < self.cfg.goal_tolerance_m:
+        if math.dist(pose[:2], target) < self.cfg.goal_tolerance_m + self._slack(target):
             nxt = self.waypoint_index + self.direction
             if self.mission.kind == "patrol":
                 if not 0 <= nxt < len(wps):
@@ -137,12 +160,14 @@ class Behaviour:
         return target
 
     def cycle(self, *, t_s: float, map_pose: Pose2 | None, odom_yaw: float, moved: bool,
-              fix: bool, server_up: bool = True) -> tuple[float, float]:
+              fix: bool, server_up: bool = True, neighbours: Sequence[Neighbour] = ()) -> tuple[float, float]:
         """One control step.  ``map_pose`` is the corrected pose (None if never
         localised), ``odom_yaw`` the smooth odometry heading (to measure the sweep),
         ``moved`` whether the encoders moved since the last cycle, ``fix`` whether
         a visual fix arrived, ``server_up`` whether a map server is reachable (see
-        the module docstring).  Returns (v_m_s, w_rad_s)."""
+        the module docstring), ``neighbours`` the other robots now (map frame).
+        Returns (v_m_s, w_rad_s)."""
+        self._neighbours = tuple(neighbours)
         swept = 0.0 if self._last_yaw is None else abs(wrap_angle(odom_yaw - self._last_yaw))
         self._last_yaw = odom_yaw
         if fix:
@@ -178,4 +203,13 @@ class Behaviour:
         target = self._target(map_pose, t_s)
         if target is None:
             return 0.0, 0.0
-        return go_to(map_pose, target, self.cfg, self.cfg.lost_speed_factor if self.mode == Mode.LOST else 1.0)
+        factor = self.cfg.lost_speed_factor if self.mode == Mode.LOST else 1.0
+        if not self.cfg.avoid:
+            return go_to(map_pose, target, self.cfg, factor)
+
+        def steer(p: Pose2) -> tuple[float, float]:
+            return go_to(p, target, self.cfg, factor)
+
+        return self.avoider.command(pose=map_pose, target=target, steer=steer, v_max=self.cfg.max_speed_m_s * factor,
+                                    w_max=self.cfg.max_turn_rad_s * factor, neighbours=self._neighbours,
+                                    boxes=self.static_obstacles, t_s=t_s)

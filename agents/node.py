@@ -2,12 +2,17 @@
 
 Subscribes to its own robot's camera images (newest-only per camera: a slow
 detector skips frames, it never queues them), encoder ticks, the world clock,
-the server's corrections and run-time goals.  Publishes relative observations,
-odometry, wheel commands and status.  It never reads ground truth.
+the server's corrections, run-time goals and the server's global map (the other
+robots, which missions and goals steer around: :mod:`agents.avoid`).  Publishes
+relative observations, odometry (with slip evidence from commanded against
+measured wheel rotation), wheel commands and status.  It never reads ground
+truth.
 
 Realtime: each :meth:`AgentNode.step` handles what has arrived.  Lockstep:
 for each world tick it waits (bounded) for that tick's frames, processes them,
-publishes, then acknowledges the tick.
+publishes, then acknowledges the tick.  A lockstep agent steers by maps stamped
+two ticks back or earlier, which the server sent before the correction it has
+waited for, so the run does not depend on when a map arrives.
 
 Faults it rides out:
 - restart of this agent: it resumes from the server's last pose for its robot
@@ -31,24 +36,28 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
+from agents.avoid import Neighbour, static_boxes
 from agents.behaviour import Behaviour, wheel_speeds
 from agents.config import AgentConfig, build_config
 from agents.cubepose import CameraModel, CubePoseEstimator, PoseEstimate
 from agents.detect import TagMap, make_detector
-from agents.odometry import DiffDriveOdometry, DiffDriveParams
+from agents.neighbours import NeighbourTracker
+from agents.odometry import DiffDriveOdometry, DiffDriveParams, SlipMonitor
 from protocol import codec
 from protocol import messages as m
 from protocol.bus import Bus, Inbox
 from protocol.config import serve_node
 from protocol.geometry import Pose2, se2_compose
 from protocol.keys import Keys
-from protocol.layout import arena_to_map
+from protocol.layout import arena_to_map, footprint_radius
 
 log = logging.getLogger("tagswarm.agent")
 PRIOR_MAX_AGE_NS = 500_000_000  # robots move ~15 cm in 0.5 s: older relative poses mislead more than help
 LOCKSTEP_FRAME_QUEUE = 16  # per camera, lockstep only (bounded memory under a flood)
 # the server's clock never runs ahead of our odometry by more than its watermark slack (1 s, server/node.py)
 CORRECTION_AHEAD_NS = 1_000_000_000
+MAP_QUEUE = 64  # global maps waiting to be used (a few at 2 Hz; bounded under a flood)
+REALTIME_CMD_DELAY_TICKS = 2  # a realtime world applies a command up to this many ticks after its stamp
 
 
 class AgentNode:
@@ -81,6 +90,8 @@ class AgentNode:
         self.tick_in = bus.subscribe(self.keys.tick())
         self.corr_in = bus.subscribe(self.keys.correction(rid))
         self.goal_in = bus.subscribe(self.keys.goal(rid))
+        self.map_in = bus.subscribe(self.keys.map(), capacity=MAP_QUEUE)
+        self.static_obstacles = static_boxes(s)
         self.server_alive_in = bus.watch_liveliness(self.keys.alive_role("server"))
         self.world_alive_in = bus.watch_liveliness(self.keys.alive_role("world"))
         self.server_alive = False
@@ -102,7 +113,14 @@ class AgentNode:
         # map -> odom; the origin robot's first pose *is* the map frame (unless landmarks pin it)
         self.map_odom: Pose2 | None = (0.0, 0.0, 0.0) if rid == s.map.origin_id and not s.landmarks else None
         team = tuple(sorted(mi.robot for mi in s.missions if mi.kind == "leapfrog"))
-        self.behaviour = Behaviour(rid, s.mission(rid), a, s.robot, arena_to_map(s), team)
+        self.behaviour = Behaviour(rid, s.mission(rid), a, s.robot, arena_to_map(s), team,
+                                   static_obstacles=self.static_obstacles)
+        r = s.robot
+        self.neighbours = NeighbourTracker(rid, footprint_radius(r), r.max_wheel_speed_rad_s * r.wheel_radius_m)
+        tick_ns = round(1e9 / s.clock.tick_hz)
+        self.slip = SlipMonitor(r.wheel_radius_m, s.encoders.ticks_per_rev, a.odom_wheel_sigma,
+                                delay_ns=0 if self.lockstep else REALTIME_CMD_DELAY_TICKS * tick_ns,
+                                timeout_ns=round(s.clock.command_timeout_s * 1e9))
         self.time_ns = 0
         self.last_fix_ns = 0
         self._moved = False
@@ -213,6 +231,9 @@ class AgentNode:
             self._last_enc_ns = enc.stamp_ns
             self.gaps.seen(item.key, enc.seq, "encoders")
             ds, dth = self.odom.update(enc.left_ticks, enc.right_ticks)
+            slip = self.slip.measured(enc.stamp_ns, enc.left_ticks, enc.right_ticks)
+            if slip > 0:
+                self.odom.add_slip(slip)
             self._moved = self._moved or abs(ds) > 1e-4 or abs(dth) > 1e-4
             self.time_ns = max(self.time_ns, enc.stamp_ns)
 
@@ -304,22 +325,35 @@ class AgentNode:
         self.counters["observations"] += 1
 
     # ------------------------------------------------------------------ control
+    def _others(self) -> tuple[Neighbour, ...]:
+        """The other robots now (map frame), from the newest usable global map."""
+        for _, gmap in self.rejects.decoded(self.map_in.drain(), m.GlobalMap):
+            if gmap.stamp_ns > self.time_ns + CORRECTION_AHEAD_NS:
+                self.counters["stale_maps"] += 1  # of a previous world run
+                continue
+            self.neighbours.offer(gmap.stamp_ns, gmap.robots)
+        # lockstep: the map of tick k-2 left the server before its correction of tick k-1, which
+        # we have waited for; a newer one may or may not be here yet
+        usable = self.time_ns - 2 * round(1e9 / self.s.clock.tick_hz) if self.lockstep else None
+        return self.neighbours.neighbours(self.time_ns, usable)
+
     def _control(self) -> None:
         b = self.behaviour
         v, w = b.cycle(t_s=self.time_ns / 1e9, map_pose=self.map_pose, odom_yaw=self.odom.yaw_rad,
-                       moved=self._moved, fix=self._fix, server_up=self.server_alive)
+                       moved=self._moved, fix=self._fix, server_up=self.server_alive, neighbours=self._others())
         self._moved = self._fix = False
         left, right = wheel_speeds(v, w, self.s.robot)
         key = self.keys.cmd(self.rid)
         self._publish(key, m.WheelCommand(seq=self.seq.next(key), stamp_ns=self.time_ns, robot_id=self.rid,
                                           left_rad_s=left, right_rad_s=right))
+        self.slip.commanded(self.time_ns, left, right)
         key = self.keys.odometry(self.rid)
         if self._odom_since_ns is None:
             self._odom_since_ns = self.time_ns
         self._publish(key, m.OdometryEstimate(
             seq=self.seq.next(key), stamp_ns=self.time_ns, robot_id=self.rid, x_m=self.odom.x_m, y_m=self.odom.y_m,
             yaw_rad=self.odom.yaw_rad, cov=tuple(float(v) for v in self.odom.cov.ravel()),
-            distance_m=self.odom.distance_m))
+            distance_m=self.odom.distance_m, slip_m=self.slip.slip_m))
         if self.time_ns >= self._next_status_ns:
             self._publish_status()
             self._next_status_ns = self.time_ns + int(self.s.agent.status_period_s * 1e9)
@@ -330,6 +364,9 @@ class AgentNode:
         received = sum(inbox.received for inbox in self.images.values())
         out.update(fixes=b.fixes, searches=b.searches, lost_events=b.lost_events, odometry_cycles=b.counter,
                    localised=int(self.map_odom is not None), server_alive=int(self.server_alive),
+                   avoiding_cycles=b.avoider.cycles_avoiding, avoid_yields=b.avoider.yields,
+                   avoid_side_flips=b.avoider.side_flips, maps_used=self.neighbours.maps_adopted,
+                   slip_mm=round(self.slip.slip_m * 1000), slip_events=self.slip.events,
                    frames_received=received,
                    # overwritten in the newest-only inbox, or replaced while pending
                    frames_skipped=received - self._frames_taken + self.counters["frames_replaced"])

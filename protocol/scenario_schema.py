@@ -187,7 +187,16 @@ class Agent(Spec, frozen=True, kw_only=True, forbid_unknown_fields=True):
     ``odom_wheel_sigma^2 * |d|`` (sqrt-metre model), so the covariance grows with
     distance.  ``fix_threshold`` is the number of consecutive odometry-only
     control cycles (encoder updates) after which the robot stops and searches
-    by rotating in place (the paper's active re-localisation)."""
+    by rotating in place (the paper's active re-localisation).
+
+    Collision avoidance (``avoid``, :mod:`agents.avoid`): missions and run-time
+    goals steer around the other robots (their poses in the server's map) and
+    the arena's walls and obstacles, keeping ``avoid_clearance_m`` between
+    footprints (the circle of ``protocol.layout.footprint_radius``); it only
+    steps in when the next ``avoid_horizon_s`` of the path would come closer
+    than that, and after ``avoid_stall_s`` without progress it tries the other
+    side (or backs off for a robot with a lower id).  Holding station and the
+    searching rotation are never changed by it."""
 
     detector: Literal["apriltag", "aruco"] = "apriltag"
     # "cube": every visible face of a cube (and every camera) in one estimate;
@@ -210,6 +219,10 @@ class Agent(Spec, frozen=True, kw_only=True, forbid_unknown_fields=True):
     frame_wait_s: Pos = 2.0
     # fault injection: extra wall seconds spent on every camera frame (a deliberately slow detector)
     inject_frame_delay_s: NonNeg = 0.0
+    avoid: bool = True
+    avoid_clearance_m: NonNeg = 0.1  # kept between footprints (robot-robot, robot-wall/obstacle)
+    avoid_horizon_s: Annotated[float, msgspec.Meta(ge=0.5, le=10)] = 2.0
+    avoid_stall_s: Pos = 6.0
 
 
 class Mission(Spec, frozen=True, kw_only=True, forbid_unknown_fields=True):

@@ -1,0 +1,366 @@
+"""Local collision avoidance for missions and run-time goals (pure code, no I/O).
+
+Method: a dynamic-window sampler (Fox, Burgard & Thrun 1997).  Each control
+cycle the go-to-goal command (the *nominal* twist) is rolled out over
+``horizon_s`` as a constant-twist arc; if that path keeps more than
+``SOFT_GAP_M`` of room beyond the required clearance from everything, the
+nominal command is used unchanged, so robots that only pass each other (the
+paper's patrols 0.9 m apart) never swerve.  Otherwise a grid of (v, w) twists
+is rolled out against the other robots (moving at their estimated velocity)
+and the static boxes; twists whose path would come closer than the clearance
+(or closer than now, when already inside it) are inadmissible, and the best of
+the rest by progress to the goal, room kept, a preference for one side and
+smoothness is taken.  Turning in place is always admissible (the footprint is
+a circle about ``base_link``), so nobody's searching rotation is ever stopped.
+
+Deadlocks: every robot prefers to pass on the right (``side`` -1), so two
+robots driving at each other head-on both veer right and pass; a robot that
+makes no progress while avoiding for ``stall_s`` tries the other side.  A goal
+that another robot stands on (or that lies inside a wall's footprint) counts
+as reached when the robot is as close as the clearance allows
+(:meth:`Avoider.goal_slack`); near a goal that is itself close to a wall the
+wall clearance shrinks to what the goal needs, so such a goal is reached.
+
+Frames and units: everything in the map frame, metres, radians, seconds;
+poses are (x_m, y_m, yaw_rad) of base_link.  Deterministic: no clocks, no
+unordered iteration.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from protocol.geometry import Pose2
+from protocol.geometry import se2_compose as compose
+from protocol.layout import arena_to_map, wall_boxes
+from protocol.scenario import Scenario
+
+Arr = NDArray[np.float64]
+Mask = NDArray[np.bool_]
+STEP_S = 0.1  # rollout resolution: at 0.6 m/s closing speed 6 cm between samples
+SOFT_GAP_M = 0.1  # room beyond the clearance below which the nominal command is reconsidered
+STATIC_MIN_GAP_M = 0.01  # a goal beside a wall may bring the footprint this close to it
+PROGRESS_EPS_M = 0.05  # progress smaller than this over stall_s is a stall
+PASS_RANGE_M = 0.5  # passing another robot closer than this (beyond the clearance) on the wrong side costs
+NEIGHBOUR_PREDICT_S = 1.0  # others keep their velocity this long, then stand (they turn at waypoints, avoid too)
+YIELD_S = 2.5  # how long a stalled robot backs away from a jam for a robot with a lower id
+YIELD_SPEED_M_S = 0.12
+
+
+@dataclass(frozen=True)
+class Box:
+    """A static obstacle: centre (x_m, y_m) and heading yaw_rad in the map frame, half extents in metres."""
+
+    x_m: float
+    y_m: float
+    yaw_rad: float
+    half_x_m: float
+    half_y_m: float
+
+
+@dataclass(frozen=True)
+class Neighbour:
+    """Another robot: map-frame position now, velocity (m/s, map frame) and the radius (m) of the
+    circle it may occupy (footprint plus its pose uncertainty)."""
+
+    robot_id: int
+    x_m: float
+    y_m: float
+    vx_m_s: float
+    vy_m_s: float
+    radius_m: float
+
+
+def static_boxes(s: Scenario) -> tuple[Box, ...]:
+    """The arena's walls and ``arena.obstacles`` as map-frame boxes."""
+    t = arena_to_map(s)
+    out = []
+    for (cx, cy, _), (hx, hy, _) in wall_boxes(s.arena):
+        x, y, yaw = compose(t, (cx, cy, 0.0))
+        out.append(Box(x, y, yaw, hx, hy))
+    for ob in s.arena.obstacles:
+        x, y, yaw = compose(t, (ob.x_m, ob.y_m, ob.yaw_rad))
+        out.append(Box(x, y, yaw, ob.size_x_m / 2, ob.size_y_m / 2))
+    return tuple(out)
+
+
+def box_distance(b: Box, x: Arr | float, y: Arr | float) -> Arr:
+    """Signed distance (m) from points to the box's boundary, negative inside."""
+    c, s = math.cos(b.yaw_rad), math.sin(b.yaw_rad)
+    dx, dy = np.asarray(x, float) - b.x_m, np.asarray(y, float) - b.y_m
+    qx = np.abs(c * dx + s * dy) - b.half_x_m
+    qy = np.abs(-s * dx + c * dy) - b.half_y_m
+    outside = np.hypot(np.maximum(qx, 0.0), np.maximum(qy, 0.0))
+    return np.asarray(outside + np.minimum(np.maximum(qx, qy), 0.0))
+
+
+def closed_loop(pose: Pose2, steer: Callable[[Pose2], tuple[float, float]], times: Arr) -> tuple[Arr, Arr, Arr]:
+    """Positions and headings (each (1, len(times))) of following the controller ``steer``
+    (pose -> twist) from ``pose``: the path the go-to-goal command is about to drive."""
+    x, y, th = pose
+    out = np.empty((3, len(times)))
+    t_prev = 0.0
+    for j, t in enumerate(times):
+        v, w = steer((x, y, th))
+        dt = float(t) - t_prev
+        t_prev = float(t)
+        mid = th + w * dt / 2
+        x, y, th = x + v * dt * math.cos(mid), y + v * dt * math.sin(mid), th + w * dt
+        out[:, j] = (x, y, th)
+    return out[0:1], out[1:2], out[2:3]
+
+
+def rollout(pose: Pose2, v: Arr, w: Arr, times: Arr, max_travel_m: float) -> tuple[Arr, Arr, Arr]:
+    """Positions and headings (each (len(v), len(times))) of constant twists (v m/s, w rad/s)
+    from ``pose``; a path stops after ``max_travel_m`` (the robot stops at its goal)."""
+    v2, w2, t2 = v[:, None], w[:, None], times[None, :]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        te = np.where(v2 > 0, np.minimum(t2, max_travel_m / np.where(v2 > 0, v2, 1.0)), t2)
+    th = pose[2] + w2 * te
+    straight = np.abs(w2) < 1e-6
+    safe_w = np.where(straight, 1.0, w2)
+    x = np.where(straight, pose[0] + v2 * te * math.cos(pose[2]),
+                 pose[0] + v2 / safe_w * (np.sin(th) - math.sin(pose[2])))
+    y = np.where(straight, pose[1] + v2 * te * math.sin(pose[2]),
+                 pose[1] - v2 / safe_w * (np.cos(th) - math.cos(pose[2])))
+    return x, y, th
+
+
+@dataclass
+class Avoider:
+    """Per-robot avoidance state; :meth:`command` once per control cycle."""
+
+    footprint_m: float
+    clearance_m: float
+    horizon_s: float = 2.0
+    robot_id: int = 0
+    stall_s: float = 6.0
+    side: int = -1  # preferred turn while avoiding: -1 right (pass on the right), +1 left
+    avoiding: bool = False
+    side_flips: int = 0
+    yields: int = 0
+    cycles_avoiding: int = 0
+    _yield_until: float = -math.inf
+    _assertive_until: float = -math.inf
+    _last_w: float = 0.0
+    _best_dist: float = math.inf
+    _best_t: float = 0.0
+    _target: tuple[float, float] | None = field(default=None, repr=False)
+
+    # ------------------------------------------------------------------ geometry
+    def _required(self, nb: Neighbour) -> float:
+        return self.footprint_m + nb.radius_m + self.clearance_m
+
+    def _static_required(self, b: Box, goal: tuple[float, float]) -> float:
+        """Room to keep from a box: footprint + clearance, less if the goal itself is closer to it."""
+        full = self.footprint_m + self.clearance_m
+        at_goal = float(box_distance(b, goal[0], goal[1]))
+        return max(self.footprint_m + STATIC_MIN_GAP_M, min(full, at_goal - STATIC_MIN_GAP_M))
+
+    def goal_slack(self, goal: tuple[float, float], neighbours: Sequence[Neighbour], boxes: Sequence[Box]) -> float:
+        """Extra goal tolerance (m) when the goal cannot be reached with the clearance kept: a robot
+        stands on it (then the nearest admissible point is the goal) or it lies within a wall."""
+        slack = 0.0
+        for nb in neighbours:
+            gap = math.hypot(goal[0] - nb.x_m, goal[1] - nb.y_m) - self._required(nb)
+            if gap < 0:
+                slack = max(slack, -gap + STATIC_MIN_GAP_M)
+        for b in boxes:
+            gap = float(box_distance(b, goal[0], goal[1])) - self.footprint_m - STATIC_MIN_GAP_M
+            if gap < 0:
+                slack = max(slack, -gap + STATIC_MIN_GAP_M)
+        return slack
+
+    def _gaps(self, x: Arr, y: Arr, times: Arr, pose: Pose2, goal: tuple[float, float],
+              neighbours: Sequence[Neighbour], boxes: Sequence[Box], reach_m: float) -> tuple[Arr, Mask, Arr]:
+        """For each rollout: how far (0..1 of SOFT_GAP_M) it cuts into the soft room beyond the
+        clearance (never more than the goal itself needs: a goal near something is approached
+        without penalty), whether it stays admissible (never inside the clearance, or never
+        deeper inside than it is now), and how much (0..1, by closeness) it passes another
+        robot on the side not preferred (``side`` -1: keep the others on the left)."""
+        n = x.shape[0]
+        tight: Arr = np.zeros(n)
+        wrong_side: Arr = np.zeros(n)
+        ok: Mask = np.ones(n, bool)
+        gx, gy = goal[0] - pose[0], goal[1] - pose[1]
+        norm = math.hypot(gx, gy)
+        gx, gy = (gx / norm, gy / norm) if norm > 1e-9 else (math.cos(pose[2]), math.sin(pose[2]))
+        rows = np.arange(n)
+
+        def account(gap: Arr, gap0: float, gap_goal: float) -> None:
+            nonlocal tight, ok
+            soft = min(SOFT_GAP_M, max(gap_goal, 0.0))
+            tight = np.asarray(np.maximum(tight, np.maximum(soft - gap, 0.0) / SOFT_GAP_M), np.float64)
+            ok &= gap >= min(0.0, gap0) - 1e-6
+
+        for nb in neighbours:
+            req = self._required(nb)
+            gap0 = math.hypot(pose[0] - nb.x_m, pose[1] - nb.y_m) - req
+            if gap0 > reach_m + math.hypot(nb.vx_m_s, nb.vy_m_s) * NEIGHBOUR_PREDICT_S:
+                continue  # cannot come near within the horizon
+            ahead = np.minimum(times, NEIGHBOUR_PREDICT_S)
+            qx, qy = nb.x_m + nb.vx_m_s * ahead, nb.y_m + nb.vy_m_s * ahead
+            dist = np.hypot(x - qx[None, :], y - qy[None, :])
+            closest = dist.argmin(axis=1)
+            gap = dist[rows, closest] - req
+            account(gap, gap0, math.hypot(goal[0] - nb.x_m, goal[1] - nb.y_m) - req)
+            # which side of us it is at the closest approach, seen along the way to the goal
+            cross = gx * (qy[closest] - y[rows, closest]) - gy * (qx[closest] - x[rows, closest])
+            near = np.clip((PASS_RANGE_M - gap) / PASS_RANGE_M, 0.0, 1.0)
+            wrong = (self.side * cross >= 0) & (closest > 0)  # closest at the start: it is behind us
+            wrong_side = np.maximum(wrong_side, np.where(wrong, near, 0.0))
+        for b in boxes:
+            req = self._static_required(b, goal)
+            gap0 = float(box_distance(b, pose[0], pose[1])) - req
+            if gap0 > reach_m:
+                continue
+            account(box_distance(b, x, y).min(axis=1) - req, gap0, float(box_distance(b, goal[0], goal[1])) - req)
+        return tight, ok, wrong_side
+
+    # ------------------------------------------------------------------ control
+    def command(self, *, pose: Pose2, target: tuple[float, float], steer: Callable[[Pose2], tuple[float, float]],
+                v_max: float, w_max: float, neighbours: Sequence[Neighbour], boxes: Sequence[Box],
+                t_s: float) -> tuple[float, float]:
+        """The twist (v_m_s, w_rad_s) to drive towards ``target`` from ``pose``; ``steer`` is the
+        go-to-goal controller (pose -> twist), whose command is kept whenever the path it is about
+        to drive is clear (see the module docstring)."""
+        times: Arr = np.arange(1, round(self.horizon_s / STEP_S) + 1, dtype=np.float64) * STEP_S
+        dist = math.hypot(target[0] - pose[0], target[1] - pose[1])
+        reach = v_max * self.horizon_s + SOFT_GAP_M
+        nominal = steer(pose)
+        v0, w0 = nominal
+        xn, yn, thn = closed_loop(pose, steer, times)
+        tight, ok, _ = self._gaps(xn, yn, times, pose, target, neighbours, boxes, reach)
+        if self._target != target:
+            self._target, self._best_dist, self._best_t = target, dist, t_s
+        if ok[0]:
+            self.avoiding = False
+            self._last_w = w0
+            self._best_dist, self._best_t = dist, t_s
+            return nominal
+        self.avoiding = True
+        self.cycles_avoiding += 1
+        if dist < self._best_dist - PROGRESS_EPS_M:
+            self._best_dist, self._best_t = dist, t_s
+        elif t_s - self._best_t > self.stall_s:
+            # stuck: back away if a robot with a lower id is in the jam (it goes first); otherwise
+            # try the other side, ignoring the soft costs for a while
+            if any(nb.robot_id < self.robot_id and math.hypot(pose[0] - nb.x_m, pose[1] - nb.y_m)
+                   - self._required(nb) < PASS_RANGE_M for nb in neighbours):
+                self._yield_until = t_s + YIELD_S
+                self.yields += 1
+            else:
+                self.side = -self.side
+                self.side_flips += 1
+                self._assertive_until = t_s + self.stall_s
+            self._best_dist, self._best_t = dist + 1.0, t_s + YIELD_S
+        if t_s < self._yield_until:
+            return self._back_away(pose, neighbours, boxes, target, times, w_max, reach)
+        v_top = min(v_max, 0.8 * dist)
+        vs = np.linspace(0.0, v_top, 6)
+        ws = np.linspace(-w_max, w_max, 13)
+        v = np.concatenate([np.repeat(vs, len(ws)), [v0]])
+        w = np.concatenate([np.tile(ws, len(vs)), [w0]])
+        x, y, th = rollout(pose, v[:-1], w[:-1], times, dist)
+        x, y, th = np.vstack([x, xn]), np.vstack([y, yn]), np.vstack([th, thn])
+        tight, ok, wrong_side = self._gaps(x, y, times, pose, target, neighbours, boxes, reach)
+        ok |= v == 0.0  # turning in place never brings the footprint closer to anything
+        scale = max(v_max * self.horizon_s, 1e-6)
+        aim = self._via(pose, target, neighbours, boxes, reach) or target
+        end_dist = np.hypot(aim[0] - x[:, -1], aim[1] - y[:, -1])
+        off = np.arctan2(aim[1] - y[:, -1], aim[0] - x[:, -1]) - th[:, -1]
+        heading = np.abs((off + math.pi) % (2.0 * math.pi) - math.pi)
+        soft = 0.0 if t_s < self._assertive_until else 1.0
+        cost = ((end_dist - math.hypot(aim[0] - pose[0], aim[1] - pose[1])) / scale  # progress to the goal
+                + 0.1 * heading / math.pi
+                + soft * 0.6 * tight  # room kept from everything
+                + soft * 0.3 * wrong_side
+                + 0.08 * np.maximum(0.0, -self.side * w) / max(w_max, 1e-6)  # turning to the unpreferred side
+                + 0.05 * np.abs(w - self._last_w) / max(w_max, 1e-6))
+        cost = np.where(ok, cost, np.inf)
+        best = int(np.argmin(cost))  # first minimum: ties resolve the same way every run
+        self._last_w = float(w[best])
+        return float(v[best]), float(w[best])
+
+    def _via(self, pose: Pose2, target: tuple[float, float], neighbours: Sequence[Neighbour],
+             boxes: Sequence[Box], reach: float) -> tuple[float, float] | None:
+        """Where to head instead of the goal when the straight way to it is blocked within reach:
+        past the first obstacle on it, on the preferred side (a tangent to the robot's circle, or
+        the box's corner), so that a robot standing on the way or a shelf across it is driven
+        around rather than approached head-on.  None when the way is clear, or the goal itself lies
+        in the obstacle's room (it is approached as far as the clearance lets)."""
+        px, py = pose[0], pose[1]
+        gx, gy = target[0] - px, target[1] - py
+        length = math.hypot(gx, gy)
+        if length < 1e-9:
+            return None
+        ux, uy = gx / length, gy / length
+        first, heading = math.inf, 0.0
+        for nb in neighbours:
+            rho = self._required(nb) + SOFT_GAP_M
+            cx, cy = nb.x_m - px, nb.y_m - py
+            if math.hypot(target[0] - nb.x_m, target[1] - nb.y_m) <= rho:
+                continue
+            along = cx * ux + cy * uy
+            off = abs(cx * uy - cy * ux)
+            if off >= rho or along < -rho or along > min(length, reach) + rho:
+                continue
+            entry = along - math.sqrt(rho * rho - off * off)
+            if entry < first:
+                d = math.hypot(cx, cy)
+                bearing = math.atan2(cy, cx)
+                # tangent on the preferred side; from inside the room, along its edge
+                heading = bearing + self.side * (math.asin(rho / d) if d > rho else math.pi / 2)
+                first = entry
+        steps: Arr = np.arange(0.0, min(length, reach) + 1e-9, 0.05, dtype=np.float64)
+        sx, sy = px + ux * steps, py + uy * steps
+        for b in boxes:
+            rho = self._static_required(b, target) + SOFT_GAP_M
+            if float(box_distance(b, target[0], target[1])) <= rho:
+                continue
+            hit = np.nonzero(box_distance(b, sx, sy) < rho)[0]
+            if len(hit) == 0 or steps[hit[0]] >= first:
+                continue
+            first = float(steps[hit[0]])
+            c, s_ = math.cos(b.yaw_rad), math.sin(b.yaw_rad)
+            goal_bearing = math.atan2(gy, gx)
+            best_off = math.inf
+            for kx, ky in ((1, 1), (1, -1), (-1, 1), (-1, -1)):
+                lx, ly = kx * (b.half_x_m + rho), ky * (b.half_y_m + rho)
+                cx, cy = b.x_m + c * lx - s_ * ly - px, b.y_m + s_ * lx + c * ly - py
+                bearing = math.atan2(cy, cx)
+                rel = (bearing - goal_bearing + math.pi) % (2 * math.pi) - math.pi
+                if self.side * rel < best_off:  # furthest round on the preferred side
+                    best_off, heading = self.side * rel, bearing
+            best_off = -best_off
+        if not math.isfinite(first):
+            return None
+        far = max(length, 0.5)
+        return px + far * math.cos(heading), py + far * math.sin(heading)
+
+    def _back_away(self, pose: Pose2, neighbours: Sequence[Neighbour], boxes: Sequence[Box],
+                   target: tuple[float, float], times: Arr, w_max: float, reach: float) -> tuple[float, float]:
+        """Yielding: the admissible twist (reversing allowed) that best opens the distance to the
+        robots with a lower id."""
+        ws = np.linspace(-w_max, w_max, 13)
+        v = np.repeat(np.array([-YIELD_SPEED_M_S, -YIELD_SPEED_M_S / 2, YIELD_SPEED_M_S / 2, YIELD_SPEED_M_S]),
+                      len(ws))
+        w = np.tile(ws, 4)
+        x, y, _ = rollout(pose, v, w, times, YIELD_SPEED_M_S * self.horizon_s)
+        _, ok, _ = self._gaps(x, y, times, pose, target, neighbours, boxes, reach)
+        gain = np.zeros(len(v))
+        for nb in neighbours:
+            if nb.robot_id < self.robot_id:
+                d0 = math.hypot(pose[0] - nb.x_m, pose[1] - nb.y_m)
+                gain += np.hypot(x[:, -1] - nb.x_m, y[:, -1] - nb.y_m) - d0
+        cost = np.where(ok, -gain + 0.05 * np.abs(w) / max(w_max, 1e-6), np.inf)
+        best = int(np.argmin(cost))
+        if not np.isfinite(cost[best]):
+            return 0.0, 0.0
+        self._last_w = float(w[best])
+        return float(v[best]), float(w[best])

@@ -1,0 +1,101 @@
+"""The other robots as obstacles, from the server's global map (pure code, no I/O).
+
+The server publishes its :class:`~protocol.messages.GlobalMap` at a low rate
+(``map_rate_hz``, 2 Hz by default), so each robot's entry is extrapolated to
+the agent's time with a velocity estimated from the previous map in which it
+appeared, and its circle is widened by its position uncertainty and by how
+far a velocity error could have carried it since.  Robots whose agent is gone
+(``alive`` false) stay obstacles at rest: the world stops a robot whose
+commands stop.
+
+Lockstep determinism: which map an agent uses must not depend on when the map
+happened to arrive, so maps wait in :meth:`NeighbourTracker.offer` and are
+adopted in stamp order only once their stamp is at or before the bound the
+caller passes to :meth:`NeighbourTracker.neighbours` (one whose maps must have
+arrived by then; no bound in realtime).
+
+Frames and units: map frame, metres, seconds, nanosecond stamps.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+from agents.avoid import Neighbour
+from protocol.messages import MapEntry
+
+MAX_PENDING = 8  # maps not yet usable (bounded memory under a flood)
+MAX_EXTRAPOLATE_S = 1.0  # never predict further than this past a map
+VELOCITY_MAX_DT_S = 1.5  # two maps further apart than this give no velocity
+SIGMA_WIDEN = 2.0  # the circle grows by this many standard deviations of the position ...
+SIGMA_WIDEN_MAX_M = 0.15  # ... at most
+AGE_WIDEN = 0.25  # ... and by this share of the distance extrapolated (velocity error)
+
+
+@dataclass(frozen=True)
+class _Track:
+    stamp_ns: int
+    x_m: float
+    y_m: float
+    vx_m_s: float
+    vy_m_s: float
+    sigma_m: float
+    alive: bool
+
+
+@dataclass
+class NeighbourTracker:
+    """Newest map-frame poses and velocities of the other robots."""
+
+    robot_id: int
+    footprint_m: float
+    max_speed_m_s: float
+    pending: list[tuple[int, tuple[MapEntry, ...]]] = field(default_factory=list)
+    tracks: dict[int, _Track] = field(default_factory=dict)
+    adopted_ns: int = -1
+    maps_adopted: int = 0
+
+    def offer(self, stamp_ns: int, entries: Sequence[MapEntry]) -> None:
+        """A received map; older than the one in use, or a repeat, is ignored."""
+        if stamp_ns <= self.adopted_ns or any(s == stamp_ns for s, _ in self.pending):
+            return
+        self.pending.append((stamp_ns, tuple(entries)))
+        self.pending.sort(key=lambda p: p[0])
+        del self.pending[:-MAX_PENDING]
+
+    def _adopt(self, stamp_ns: int, entries: tuple[MapEntry, ...]) -> None:
+        tracks = {}
+        for e in sorted(entries, key=lambda e: e.robot_id):
+            if e.robot_id == self.robot_id:
+                continue
+            vx = vy = 0.0
+            prev = self.tracks.get(e.robot_id)
+            if prev is not None and e.alive:
+                dt = (stamp_ns - prev.stamp_ns) / 1e9
+                if 0 < dt <= VELOCITY_MAX_DT_S:
+                    vx, vy = (e.x_m - prev.x_m) / dt, (e.y_m - prev.y_m) / dt
+                    speed = math.hypot(vx, vy)
+                    if speed > self.max_speed_m_s:  # a jump of the estimate, not motion
+                        vx, vy = vx * self.max_speed_m_s / speed, vy * self.max_speed_m_s / speed
+            var = max(e.cov[0], e.cov[4], 0.0) if len(e.cov) == 9 else 0.0
+            tracks[e.robot_id] = _Track(stamp_ns, e.x_m, e.y_m, vx, vy, math.sqrt(var), e.alive)
+        self.tracks = tracks
+        self.adopted_ns = stamp_ns
+        self.maps_adopted += 1
+
+    def neighbours(self, now_ns: int, usable_until_ns: int | None = None) -> tuple[Neighbour, ...]:
+        """The other robots predicted to ``now_ns``, in robot-id order, after adopting every waiting
+        map stamped at or before ``usable_until_ns`` (all of them if None)."""
+        while self.pending and (usable_until_ns is None or self.pending[0][0] <= usable_until_ns):
+            stamp, entries = self.pending.pop(0)
+            self._adopt(stamp, entries)
+        out = []
+        for rid, tr in sorted(self.tracks.items()):
+            age = min(max((now_ns - tr.stamp_ns) / 1e9, 0.0), MAX_EXTRAPOLATE_S)
+            speed = math.hypot(tr.vx_m_s, tr.vy_m_s)
+            widen = min(SIGMA_WIDEN * tr.sigma_m, SIGMA_WIDEN_MAX_M) + AGE_WIDEN * speed * age
+            out.append(Neighbour(rid, tr.x_m + tr.vx_m_s * age, tr.y_m + tr.vy_m_s * age, tr.vx_m_s, tr.vy_m_s,
+                                 self.footprint_m + widen))
+        return tuple(out)

@@ -1,0 +1,221 @@
+"""Collision avoidance (agents/avoid.py, agents/neighbours.py) in a small kinematic
+simulation of several Behaviours: each robot sees the others only through a global
+map published at the server's default 2 Hz, as the agents do."""
+
+from __future__ import annotations
+
+import itertools
+import math
+
+import pytest
+
+from agents.avoid import Avoider, Box, Neighbour, box_distance, static_boxes
+from agents.behaviour import Behaviour, wheel_speeds
+from agents.neighbours import NeighbourTracker
+from protocol import messages as m
+from protocol.geometry import Pose2, se2_compose
+from protocol.layout import arena_to_map, footprint_radius, start_poses
+from protocol.scenario import Agent, Mission, Robot, load_scenario
+
+ROBOT = Robot()
+FOOT = footprint_radius(ROBOT)
+CFG = Agent()
+CLEAR = 2 * FOOT + CFG.avoid_clearance_m  # centre distance the avoidance keeps between two robots
+DT = 1 / 30
+MAP_PERIOD_S = 0.5
+
+
+def hold(rid: int) -> Mission:
+    return Mission(robot=rid, kind="hold")
+
+
+class World:
+    """Unicycle robots driven by their Behaviours; others known from a 2 Hz map (or exactly)."""
+
+    def __init__(self, robots: dict[int, tuple[Pose2, Mission, tuple[float, float] | None]],
+                 boxes: tuple[Box, ...] = (), cfg: Agent = CFG, exact: bool = False,
+                 arena_to_map: Pose2 = (0.0, 0.0, 0.0), goal_tolerance_m: float = 0.1) -> None:
+        self.beh: dict[int, Behaviour] = {}
+        self.pose: dict[int, Pose2] = {}
+        self.trackers = {rid: NeighbourTracker(rid, FOOT, 0.5) for rid in robots}
+        for rid, (pose, mission, goal) in robots.items():
+            b = Behaviour(rid, mission, cfg, ROBOT, arena_to_map, static_obstacles=boxes)
+            if goal is not None:
+                b.set_goal(goal[0], goal[1], goal_tolerance_m)
+            self.beh[rid], self.pose[rid] = b, pose
+        self.exact, self.t, self.next_map = exact, 0.0, 0.0
+        self.min_dist = math.inf
+        self.paths: dict[int, list[Pose2]] = {rid: [] for rid in robots}
+        self.velocity = {rid: (0.0, 0.0) for rid in robots}
+
+    def _neighbours(self, rid: int) -> tuple[Neighbour, ...]:
+        if self.exact:
+            return tuple(Neighbour(o, p[0], p[1], *self.velocity[o], FOOT)
+                         for o, p in sorted(self.pose.items()) if o != rid)
+        return self.trackers[rid].neighbours(round(self.t * 1e9))
+
+    def run(self, seconds: float) -> World:
+        for _ in range(round(seconds / DT)):
+            if self.t >= self.next_map - 1e-9:
+                cov = (1e-4, 0.0, 0.0, 0.0, 1e-4, 0.0, 0.0, 0.0, 1e-4)
+                entries = [m.MapEntry(robot_id=r, x_m=p[0], y_m=p[1], yaw_rad=p[2], cov=cov, last_seen_ns=0, alive=True)
+                           for r, p in sorted(self.pose.items())]
+                for tracker in self.trackers.values():
+                    tracker.offer(round(self.t * 1e9), entries)
+                self.next_map += MAP_PERIOD_S
+            cmds = {rid: b.cycle(t_s=self.t, map_pose=self.pose[rid], odom_yaw=self.pose[rid][2], moved=True, fix=True,
+                                 neighbours=self._neighbours(rid)) for rid, b in self.beh.items()}
+            for rid, (v, w) in cmds.items():
+                left, right = wheel_speeds(v, w, ROBOT)
+                v = ROBOT.wheel_radius_m * (left + right) / 2
+                w = ROBOT.wheel_radius_m * (right - left) / ROBOT.wheel_base_m
+                before = self.pose[rid]
+                self.pose[rid] = se2_compose(before, (v * DT, 0.0, w * DT))
+                self.velocity[rid] = ((self.pose[rid][0] - before[0]) / DT, (self.pose[rid][1] - before[1]) / DT)
+                self.paths[rid].append(self.pose[rid])
+            for a, b in itertools.combinations(sorted(self.pose), 2):
+                self.min_dist = min(self.min_dist, math.dist(self.pose[a][:2], self.pose[b][:2]))
+            self.t += DT
+        return self
+
+
+@pytest.mark.parametrize("exact", [True, False])
+def test_head_on_pair_both_get_through_keeping_the_clearance(exact: bool) -> None:
+    w = World({1: ((0.0, 0.0, 0.0), hold(1), (4.0, 0.0)), 2: ((4.0, 0.0, math.pi), hold(2), (0.0, 0.0))},
+              exact=exact).run(30.0)
+    assert w.beh[1].done and w.beh[2].done, w.pose
+    assert math.dist(w.pose[1][:2], (4.0, 0.0)) < 0.11 and math.dist(w.pose[2][:2], (0.0, 0.0)) < 0.11
+    # with exact knowledge nobody comes inside the clearance; through a 2 Hz map, never near contact
+    assert w.min_dist >= (CLEAR - 1e-3 if exact else 2 * FOOT + 0.05), w.min_dist
+    # both passed on their right: robot 1 (eastbound) swerved south, robot 2 (westbound) north
+    assert min(p[1] for p in w.paths[1]) < -0.15 and max(p[1] for p in w.paths[2]) > 0.15
+    assert w.beh[1].avoider.yields == w.beh[2].avoider.yields == 0
+
+
+def test_without_avoidance_the_same_pair_collides() -> None:
+    off = Agent(avoid=False)
+    w = World({1: ((0.0, 0.0, 0.0), hold(1), (4.0, 0.0)), 2: ((4.0, 0.0, math.pi), hold(2), (0.0, 0.0))},
+              cfg=off).run(30.0)
+    assert w.min_dist < 0.05  # a kinematic world lets them drive through each other
+
+
+def test_patrol_goes_around_a_robot_holding_station_on_its_line() -> None:
+    patrol = Mission(robot=1, kind="patrol", waypoints=((0.0, 0.0), (3.0, 0.0)))
+    w = World({0: ((1.5, 0.0, 0.3), hold(0), None), 1: ((0.0, 0.0, 0.0), patrol, None)}).run(40.0)
+    assert w.pose[0] == pytest.approx((1.5, 0.0, 0.3))  # the holding robot never moved
+    xs = [p[0] for p in w.paths[1]]
+    # it reached the far end and came back past the holder at least once each way
+    reached_far = next(i for i, x in enumerate(xs) if x > 2.85)
+    assert min(xs[reached_far:]) < 0.5
+    assert w.min_dist >= CLEAR - 0.02, w.min_dist
+    passing = [abs(p[1]) for p in w.paths[1] if abs(p[0] - 1.5) < 0.1]
+    assert passing and min(passing) >= CLEAR - 0.02  # it went round, not through
+
+
+def test_waypoint_on_a_holding_robot_counts_as_reached_at_the_clearance() -> None:
+    # the grid case: robot 4 holds exactly on robot 3's patrol waypoint
+    patrol = Mission(robot=3, kind="patrol", waypoints=((0.0, 0.0), (1.2, 0.0)))
+    w = World({4: ((0.0, 0.0, 1.0), hold(4), None), 3: ((-1.9, 0.0, 0.0), patrol, None)}).run(40.0)
+    assert w.pose[4] == pytest.approx((0.0, 0.0, 1.0))
+    assert max(p[0] for p in w.paths[3]) > 1.1  # got past the holder to the other waypoint
+    assert w.min_dist >= CLEAR - 0.02, w.min_dist
+
+
+@pytest.mark.parametrize("goal_x", [1.68, 1.72])
+def test_goal_beside_a_wall_is_reached(goal_x: float) -> None:
+    wall = Box(2.0, 0.0, 0.0, 0.05, 2.0)  # inner face at x = 1.95
+    assert FOOT < 1.95 - goal_x < FOOT + CFG.avoid_clearance_m  # closer to the wall than the clearance
+    w = World({1: ((0.0, 0.3, 0.5), hold(1), (goal_x, 0.0))}, boxes=(wall,), goal_tolerance_m=0.03).run(20.0)
+    assert w.beh[1].done and math.dist(w.pose[1][:2], (goal_x, 0.0)) < 0.03 + 1e-6
+    assert min(float(box_distance(wall, p[0], p[1])) for p in w.paths[1]) > FOOT  # never touched it
+
+
+def test_goal_behind_a_shelf_is_reached_around_it() -> None:
+    shelf = Box(1.5, 0.0, 0.0, 0.3, 0.8)
+    w = World({1: ((0.0, 0.0, 0.0), hold(1), (3.0, 0.0))}, boxes=(shelf,)).run(40.0)
+    assert w.beh[1].done
+    assert min(float(box_distance(shelf, p[0], p[1])) for p in w.paths[1]) >= FOOT + 0.05
+
+
+def test_nothing_changes_when_nobody_is_near() -> None:
+    # the paper's layout: patrols 0.9 m apart in parallel lines, the origin holding 1.5 m away
+    def layout(cfg: Agent) -> World:
+        def patrol(rid: int, a: tuple[float, float], b: tuple[float, float]) -> Mission:
+            return Mission(robot=rid, kind="patrol", waypoints=(a, b))
+
+        return World({0: ((-1.5, 0.0, 0.0), hold(0), None),
+                      1: ((0.0, 0.9, 0.0), patrol(1, (0.0, 0.9), (2.0, 0.9)), None),
+                      2: ((2.0, 0.0, math.pi), patrol(2, (2.0, 0.0), (0.0, 0.0)), None),
+                      3: ((0.0, -0.9, 0.0), patrol(3, (0.0, -0.9), (2.0, -0.9)), None)}, cfg=cfg).run(30.0)
+
+    on, off = layout(CFG), layout(Agent(avoid=False))
+    assert on.paths == off.paths
+    assert all(b.avoider.cycles_avoiding == 0 for b in on.beh.values())
+
+
+def test_searching_rotation_is_never_stopped() -> None:
+    b = Behaviour(1, Mission(robot=1, kind="waypoints", waypoints=((3.0, 0.0),)), Agent(fix_threshold=5), ROBOT)
+    crowd = tuple(Neighbour(i, 0.45 * math.cos(a), 0.45 * math.sin(a), 0.0, 0.0, FOOT)
+                  for i, a in enumerate((0.0, 1.6, 3.2, 4.8), start=2))
+    b.cycle(t_s=0.0, map_pose=(0.0, 0.0, 0.0), odom_yaw=0.0, moved=True, fix=True, neighbours=crowd)
+    for k in range(1, 30):
+        v, w = b.cycle(t_s=k * 0.1, map_pose=(0.0, 0.0, 0.0), odom_yaw=0.0, moved=True, fix=False, neighbours=crowd)
+    assert b.mode == "searching" and (v, w) == (0.0, CFG.search_speed_rad_s)
+
+
+def test_hemmed_in_robot_turns_in_place_but_never_drives_closer() -> None:
+    a = Avoider(FOOT, CFG.avoid_clearance_m)
+    pose = (0.0, 0.0, 0.0)
+    ahead = (Neighbour(2, CLEAR - 0.05, 0.0, 0.0, 0.0, FOOT),)  # already inside the clearance, dead ahead
+
+    def steer(p: Pose2) -> tuple[float, float]:
+        return 0.3, 0.0
+
+    v, _ = a.command(pose=pose, target=(3.0, 0.0), steer=steer, v_max=0.3, w_max=1.2, neighbours=ahead, boxes=(),
+                     t_s=0.0)
+    assert a.avoiding and v <= 1e-9  # no forward motion into it; turning on the spot is allowed
+
+
+def test_swap_on_a_circle_resolves_without_contact() -> None:
+    robots: dict[int, tuple[Pose2, Mission, tuple[float, float] | None]] = {}
+    for k in range(6):
+        a = 2 * math.pi * k / 6
+        c, s = math.cos(a), math.sin(a)
+        robots[k] = ((1.5 * c, 1.5 * s, a + math.pi), hold(k), (-1.5 * c, -1.5 * s))
+    w = World(robots).run(60.0)
+    assert all(b.done for b in w.beh.values()), w.pose
+    assert w.min_dist > 2 * FOOT + 0.05, w.min_dist
+
+
+def test_tracker_extrapolates_and_uses_only_maps_it_may() -> None:
+    t = NeighbourTracker(1, FOOT, 0.5)
+
+    def entry(rid: int, x: float, alive: bool = True) -> m.MapEntry:
+        return m.MapEntry(robot_id=rid, x_m=x, y_m=0.0, yaw_rad=0.0, cov=(0.0,) * 9, last_seen_ns=0, alive=alive)
+
+    t.offer(0, [entry(1, 5.0), entry(2, 0.0), entry(3, 1.0)])
+    t.offer(500_000_000, [entry(1, 5.0), entry(2, 0.1), entry(3, 1.0, alive=False)])
+    assert [n.robot_id for n in t.neighbours(400_000_000, usable_until_ns=400_000_000)] == [2, 3]
+    assert t.adopted_ns == 0  # the newer map is not usable yet
+    nbs = t.neighbours(1_000_000_000)
+    assert t.adopted_ns == 500_000_000
+    two = nbs[0]
+    assert two.vx_m_s == pytest.approx(0.2) and two.x_m == pytest.approx(0.2)  # 0.1 + 0.2 m/s * 0.5 s
+    assert two.radius_m > FOOT  # widened by the extrapolation
+    three = nbs[1]
+    assert (three.vx_m_s, three.x_m, three.radius_m) == (0.0, 1.0, FOOT)  # gone agent: an obstacle at rest
+    t.offer(200_000_000, [entry(2, 9.0)])  # older than the one in use
+    assert t.neighbours(1_000_000_000)[0].x_m == pytest.approx(0.2)
+
+
+def test_static_boxes_are_the_walls_and_obstacles_in_the_map_frame() -> None:
+    s = load_scenario("hall")
+    boxes = static_boxes(s)
+    assert len(boxes) == 4 + len(s.arena.obstacles)
+    t = arena_to_map(s)
+    # the origin robot's start is the map origin, and a shelf's centre is where the arena puts it
+    shelf = s.arena.obstacles[0]
+    cx, cy, _ = se2_compose(t, (shelf.x_m, shelf.y_m, 0.0))
+    assert float(box_distance(boxes[4], cx, cy)) == pytest.approx(-min(shelf.size_x_m, shelf.size_y_m) / 2)
+    origin = se2_compose(t, start_poses(s)[0])
+    assert math.hypot(origin[0], origin[1]) < 1e-9

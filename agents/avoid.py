@@ -1,29 +1,34 @@
 """Local collision avoidance for missions and run-time goals (pure code, no I/O).
 
 Method: a dynamic-window sampler (Fox, Burgard & Thrun 1997).  Each control
-cycle the go-to-goal command (the *nominal* twist) is rolled out over
-``horizon_s`` as a constant-twist arc; if that path keeps more than
-``SOFT_GAP_M`` of room beyond the required clearance from everything, the
-nominal command is used unchanged, so robots that only pass each other (the
-paper's patrols 0.9 m apart) never swerve.  Otherwise a grid of (v, w) twists
-is rolled out against the other robots (moving at their estimated velocity)
-and the static boxes; twists whose path would come closer than the clearance
-(or closer than now, when already inside it) are inadmissible, and the best of
-the rest by progress to the goal, room kept, a preference for one side and
-smoothness is taken.  Turning in place is always admissible (the footprint is
-a circle about ``base_link``), so nobody's searching rotation is ever stopped.
+cycle the path the go-to-goal controller is about to drive over ``horizon_s``
+is simulated (closed loop) against the other robots, moving at their estimated
+velocity for ``NEIGHBOUR_PREDICT_S`` and then standing, and against the static
+boxes.  If it never comes closer than the clearance, the go-to-goal command is
+used unchanged: robots that merely pass each other (the paper's patrols 0.9 m
+apart) never swerve.  Otherwise a grid of constant (v, w) twists is rolled out;
+twists whose path would come closer than the clearance (or closer than now,
+when already inside it) are inadmissible, and the best of the rest is taken by
+progress, room kept beyond the clearance (``SOFT_GAP_M``; never more than the
+goal itself has), passing other robots on the preferred side, and smoothness.
+While an obstacle stands on the straight way to the goal, progress is measured
+towards a point past it on the preferred side (a tangent to its circle, or the
+box's corner), so a robot drives around a robot or a shelf rather than creeping
+up to it.  Turning in place is always admissible (the footprint is a circle
+about ``base_link``), so nobody's searching rotation is ever stopped.
 
-Deadlocks: every robot prefers to pass on the right (``side`` -1), so two
-robots driving at each other head-on both veer right and pass; a robot that
-makes no progress while avoiding for ``stall_s`` tries the other side.  A goal
-that another robot stands on (or that lies inside a wall's footprint) counts
-as reached when the robot is as close as the clearance allows
+Deadlocks: every robot prefers to keep the others on its left (``side`` -1),
+so two robots driving at each other head-on both veer right and pass.  A robot
+that makes no progress while avoiding for ``stall_s`` backs away for a while if
+a robot with a lower id is close (priority by id: it goes first), else tries
+the other side.  A goal that another robot stands on (or that lies inside a
+wall's footprint) counts as reached as close as the clearance allows
 (:meth:`Avoider.goal_slack`); near a goal that is itself close to a wall the
 wall clearance shrinks to what the goal needs, so such a goal is reached.
 
 Frames and units: everything in the map frame, metres, radians, seconds;
 poses are (x_m, y_m, yaw_rad) of base_link.  Deterministic: no clocks, no
-unordered iteration.
+unordered iteration, ties go to the first candidate.
 """
 
 from __future__ import annotations
@@ -43,7 +48,7 @@ from protocol.scenario import Scenario
 Arr = NDArray[np.float64]
 Mask = NDArray[np.bool_]
 STEP_S = 0.1  # rollout resolution: at 0.6 m/s closing speed 6 cm between samples
-SOFT_GAP_M = 0.1  # room beyond the clearance below which the nominal command is reconsidered
+SOFT_GAP_M = 0.1  # room beyond the clearance that alternatives try to keep
 STATIC_MIN_GAP_M = 0.01  # a goal beside a wall may bring the footprint this close to it
 PROGRESS_EPS_M = 0.05  # progress smaller than this over stall_s is a stall
 PASS_RANGE_M = 0.5  # passing another robot closer than this (beyond the clearance) on the wrong side costs
@@ -235,7 +240,7 @@ class Avoider:
         nominal = steer(pose)
         v0, w0 = nominal
         xn, yn, thn = closed_loop(pose, steer, times)
-        tight, ok, _ = self._gaps(xn, yn, times, pose, target, neighbours, boxes, reach)
+        _, ok, _ = self._gaps(xn, yn, times, pose, target, neighbours, boxes, reach)
         if self._target != target:
             self._target, self._best_dist, self._best_t = target, dist, t_s
         if ok[0]:
@@ -258,7 +263,7 @@ class Avoider:
                 self.side = -self.side
                 self.side_flips += 1
                 self._assertive_until = t_s + self.stall_s
-            self._best_dist, self._best_t = dist + 1.0, t_s + YIELD_S
+            self._best_dist, self._best_t = math.inf, t_s  # a fresh stall_s from the next cycle
         if t_s < self._yield_until:
             return self._back_away(pose, neighbours, boxes, target, times, w_max, reach)
         v_top = min(v_max, 0.8 * dist)
@@ -269,7 +274,9 @@ class Avoider:
         x, y, th = rollout(pose, v[:-1], w[:-1], times, dist)
         x, y, th = np.vstack([x, xn]), np.vstack([y, yn]), np.vstack([th, thn])
         tight, ok, wrong_side = self._gaps(x, y, times, pose, target, neighbours, boxes, reach)
-        ok |= v == 0.0  # turning in place never brings the footprint closer to anything
+        # turning in place never brings the footprint closer to anything (the last row is the
+        # controller's path, which may turn first and drive later: it stays as judged)
+        ok[:-1] |= v[:-1] == 0.0
         scale = max(v_max * self.horizon_s, 1e-6)
         aim = self._via(pose, target, neighbours, boxes, reach) or target
         end_dist = np.hypot(aim[0] - x[:, -1], aim[1] - y[:, -1])

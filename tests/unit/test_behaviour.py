@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import math
 
+from agents.avoid import Neighbour
 from agents.behaviour import Behaviour, Mode, go_to, wheel_speeds
 from protocol.geometry import se2_compose
+from protocol.layout import footprint_radius
 from protocol.scenario import Agent, Mission, Robot
 
 CFG = Agent(fix_threshold=10, search_speed_rad_s=1.0, search_max_sweep_rad=6.3)
@@ -128,3 +130,22 @@ def test_never_localised_and_no_server_stands_still() -> None:
     for k in range(50):
         assert b.cycle(t_s=k, map_pose=None, odom_yaw=0.0, moved=False, fix=False, server_up=False) == (0.0, 0.0)
     assert b.mode == Mode.ODOMETRY and b.searches == 0
+
+
+def test_run_time_goal_on_a_spot_another_robot_stands_on_is_done_at_the_clearance() -> None:
+    foot = footprint_radius(ROBOT)
+    b = Behaviour(1, Mission(robot=1, kind="hold"), CFG, ROBOT)
+    b.set_goal(2.0, 0.0, 0.05)
+    other = (Neighbour(2, 2.0, 0.0, 0.0, 0.0, foot),)
+    pose = (0.0, 0.0, 0.0)
+    for k in range(600):
+        v, w = b.cycle(t_s=k * 0.05, map_pose=pose, odom_yaw=pose[2], moved=True, fix=True, neighbours=other)
+        pose = se2_compose(pose, (v * 0.05, 0.0, w * 0.05))
+    assert b.done and b.goal is None
+    keep = 2 * foot + CFG.avoid_clearance_m
+    assert keep - 0.01 <= math.dist(pose[:2], (2.0, 0.0)) <= keep + 0.05 + 0.02
+    # without avoidance the same goal is driven onto
+    plain = Behaviour(1, Mission(robot=1, kind="hold"), Agent(avoid=False), ROBOT)
+    plain.set_goal(2.0, 0.0, 0.05)
+    end = _drive(plain, (0.0, 0.0, 0.0), 30.0)
+    assert math.dist(end[:2], (2.0, 0.0)) < 0.05

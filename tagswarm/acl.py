@@ -15,7 +15,7 @@ world         publish the clock, world status, render requests and every robot's
               images and acks ``render/<i>``)
 agent<k>      publish robot k's observation, odometry, status, wheel command and
               the ack ``agent/<k>``; receive robot k's images, encoders,
-              correction, goal and the clock; query the map
+              correction, goal, the clock and the map (collision avoidance); query the map
 server        publish the map, its status, every robot's correction and the ack
               ``server/0``; receive observations, odometry, the clock and the
               agents' acks ``agent/<k>`` (lockstep: an ack without its odometry
@@ -121,7 +121,8 @@ def grants(keys: Keys, robot_ids: Sequence[int]) -> dict[str, Grant]:
         me = f"agent/{int(rid)}"
         out[agent_user(rid)] = Grant(
             put=(keys.observation(rid), keys.odometry(rid), keys.robot_status(rid), keys.cmd(rid), keys.ack(me)),
-            sub=(keys.images(rid), keys.encoders(rid), keys.tick(), keys.correction(rid), keys.goal(rid)),
+            sub=(keys.images(rid), keys.encoders(rid), keys.tick(), keys.correction(rid), keys.goal(rid),
+                 keys.map()),
             ask=(keys.map(),),
             token=(keys.alive(me),),
             watch=(keys.alive_all(),))

@@ -16,6 +16,8 @@ ENV PYTHONUNBUFFERED=1 \
     PIP_DISABLE_PIP_VERSION_CHECK=1
 
 WORKDIR /opt/tagswarm
+# tagswarm/protocol, tagswarm/world, ... are relative symlinks to these folders (one installed
+# name, tagswarm.*): COPY keeps them as links, and `pip install .` puts real files in the wheel.
 COPY pyproject.toml README.md ./
 COPY protocol ./protocol
 COPY world ./world

@@ -40,10 +40,10 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from protocol.geometry import Pose2
-from protocol.geometry import se2_compose as compose
-from protocol.layout import arena_to_map, wall_boxes
-from protocol.scenario import Scenario
+from tagswarm.protocol.geometry import Pose2
+from tagswarm.protocol.geometry import se2_compose as compose
+from tagswarm.protocol.layout import arena_to_map, wall_boxes
+from tagswarm.protocol.scenario import Scenario
 
 Arr = NDArray[np.float64]
 Mask = NDArray[np.bool_]

@@ -19,7 +19,7 @@ the robot stays in ``odometry`` mode and keeps its mission on dead reckoning
 (a search cannot help), and searches again once a server is back if it has
 gone too long without a fix meanwhile.
 
-Missions and run-time goals go through :mod:`agents.avoid` (unless
+Missions and run-time goals go through :mod:`tagswarm.agents.avoid` (unless
 ``agent.avoid`` is off): the go-to-goal command is kept while its path is
 clear of the other robots (``neighbours``, from the server's map) and of the
 arena's walls and obstacles (``static_obstacles``), and replaced by an avoiding
@@ -37,11 +37,11 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from enum import StrEnum
 
-from agents.avoid import Avoider, Box, Neighbour
-from protocol.geometry import Pose2, wrap_angle
-from protocol.geometry import se2_compose as compose
-from protocol.layout import footprint_radius
-from protocol.scenario import Agent, Mission, Robot
+from tagswarm.agents.avoid import Avoider, Box, Neighbour
+from tagswarm.protocol.geometry import Pose2, wrap_angle
+from tagswarm.protocol.geometry import se2_compose as compose
+from tagswarm.protocol.layout import footprint_radius
+from tagswarm.protocol.scenario import Agent, Mission, Robot
 
 
 class Mode(StrEnum):
@@ -86,7 +86,7 @@ class Behaviour:
     robot: Robot
     arena_to_map: Pose2 = (0.0, 0.0, 0.0)
     leapfrog_team: tuple[int, ...] = ()
-    static_obstacles: tuple[Box, ...] = ()  # map frame (agents.avoid.static_boxes)
+    static_obstacles: tuple[Box, ...] = ()  # map frame (tagswarm.agents.avoid.static_boxes)
     mode: Mode = Mode.ODOMETRY
     counter: int = 0
     since_fix: int = 1_000_000

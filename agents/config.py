@@ -7,10 +7,19 @@ from collections.abc import Mapping, Sequence
 
 import msgspec
 
-from protocol.bus import BusConfig
-from protocol.config import ConfigError, OneLineParser, add_common_args, bus_from, env_of, parse, pick, scenario_from
-from protocol.keys import Keys
-from protocol.scenario import Scenario
+from tagswarm.protocol.bus import BusConfig
+from tagswarm.protocol.config import (
+    ConfigError,
+    OneLineParser,
+    add_common_args,
+    bus_from,
+    env_of,
+    parse,
+    pick,
+    scenario_from,
+)
+from tagswarm.protocol.keys import Keys
+from tagswarm.protocol.scenario import Scenario
 
 
 class AgentConfig(msgspec.Struct, frozen=True, kw_only=True):

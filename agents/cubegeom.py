@@ -3,12 +3,12 @@
 Frames: a result is ``T_base_target``, the pose of the observed robot's BASE frame
 (on the floor, x forward, y left, z up) -- or of a landmark tag's frame (origin at
 the plate centre, +x the tag's outward normal, z up; see
-``world.assets.landmark_mesh``) -- in the OBSERVER's base frame.  Cameras are OpenCV
+``tagswarm.world.assets.landmark_mesh``) -- in the OBSERVER's base frame.  Cameras are OpenCV
 pinholes (pixel centres at integer coordinates, no distortion) mounted at
 ``T_base_cam``.  Metres, radians, pixels.
 
-:mod:`agents.cubepose` is the estimator; :mod:`agents.sixdof` its 6-DOF core and
-:mod:`agents.planar` its planar model.
+:mod:`tagswarm.agents.cubepose` is the estimator; :mod:`tagswarm.agents.sixdof` its 6-DOF core and
+:mod:`tagswarm.agents.planar` its planar model.
 """
 
 from __future__ import annotations
@@ -20,13 +20,13 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from agents.detect import TargetKind
-from protocol import tags
-from protocol.geometry import Mat, matrix_to_pose3, pose3_to_matrix
-from protocol.messages import CameraImage, RelativeObservation
+from tagswarm.agents.detect import TargetKind
+from tagswarm.protocol import tags
+from tagswarm.protocol.geometry import Mat, matrix_to_pose3, pose3_to_matrix
+from tagswarm.protocol.messages import CameraImage, RelativeObservation
 
 #: Thickness of a landmark plate; the tag is painted on its +x face, at x = +thickness/2.
-#: Mirrors the default of ``world.assets.landmark_mesh`` (tests/unit/test_cubepose.py pins it).
+#: Mirrors the default of ``tagswarm.world.assets.landmark_mesh`` (tests/unit/test_cubepose.py pins it).
 LANDMARK_PLATE_THICKNESS_M: Final = 0.01
 
 #: The identity: a view's ``T_cam_c0`` when it is the start camera itself (compared by identity).
@@ -36,7 +36,7 @@ Arr = NDArray[Any]  # float64 arrays that come out of OpenCV (its stubs do not s
 
 class Rejected(Exception):
     """A target the estimator drops; ``str(exc)`` is the reason counted in
-    :attr:`agents.cubepose.CubePoseEstimator.rejects`."""
+    :attr:`tagswarm.agents.cubepose.CubePoseEstimator.rejects`."""
 
 
 @dataclass(frozen=True)
@@ -59,7 +59,7 @@ class CameraModel:
 
     @classmethod
     def from_message(cls, msg: CameraImage) -> CameraModel:
-        """Intrinsics and mount of a :class:`~protocol.messages.CameraImage`."""
+        """Intrinsics and mount of a :class:`~tagswarm.protocol.messages.CameraImage`."""
         k = np.array([[msg.fx_px, 0.0, msg.cx_px], [0.0, msg.fy_px, msg.cy_px], [0.0, 0.0, 1.0]])
         return cls(msg.camera, k, pose3_to_matrix(msg.mount), msg.width, msg.height)
 
@@ -116,7 +116,7 @@ class TagGeom:
     def make(cls, kind: TargetKind, target_id: int, centre: NDArray[np.float64], n: NDArray[np.float64],
              u: NDArray[np.float64], r: NDArray[np.float64], size: float) -> TagGeom:
         """A ``size`` (m) square at ``centre`` with outward normal ``n``, up ``u`` and right ``r``
-        (unit vectors in the target frame, :func:`protocol.tags.face_axes`)."""
+        (unit vectors in the target frame, :func:`tagswarm.protocol.tags.face_axes`)."""
         obj = tags.square_corners(centre, u, r, size)
         t_target_tag = np.eye(4)
         t_target_tag[:3, :3] = np.stack([r, u, n], axis=1)  # tag frame: x right, y up, z out of the face

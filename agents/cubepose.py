@@ -7,7 +7,7 @@ the target's geometry known.
 Frames: the result is ``T_base_target``, the pose of the observed robot's BASE
 frame (on the floor, x forward, y left, z up) -- or of a landmark tag's frame
 (origin at the plate centre, +x the tag's outward normal, z up; see
-``world.assets.landmark_mesh``) -- in the OBSERVER's base frame.  Cameras are
+``tagswarm.world.assets.landmark_mesh``) -- in the OBSERVER's base frame.  Cameras are
 OpenCV pinholes (pixel centres at integer coordinates, no distortion) mounted at
 ``T_base_cam``.  Metres, radians, pixels.
 
@@ -41,7 +41,7 @@ Algorithm per target (``c0``: the camera that sees the target's largest tag):
    one floor, so once the 6-DOF stage has found a plausible pose (step 5 still
    rejects a target its 6-DOF fit puts off the floor or tilted), (x, y, yaw) of
    ``T_base_target`` is re-solved with z = 0 and roll = pitch = 0
-   (:mod:`agents.planar`: Gauss-Newton over every corner of every camera, each at
+   (:mod:`tagswarm.agents.planar`: Gauss-Newton over every corner of every camera, each at
    its ``T_base_cam``) from the plausible 6-DOF pose(s) -- one tag: from the better
    IPPE pose and from the pose with the tag's normal mirrored about the horizontal
    line of sight, the two-fold ambiguity in the plane.  The lowest score wins (a
@@ -56,8 +56,8 @@ Algorithm per target (``c0``: the camera that sees the target's largest tag):
    2.5-4 m; tests/unit/test_cubepose.py).  Landmarks stay 6-DOF unless
    ``planar_landmarks`` (z fixed at the scenario's height).
 
-Modules: :mod:`agents.cubegeom` (cameras, targets, results, frame Jacobians),
-:mod:`agents.sixdof` (steps 1-5), :mod:`agents.planar` (the planar model of step 6);
+Modules: :mod:`tagswarm.agents.cubegeom` (cameras, targets, results, frame Jacobians),
+:mod:`tagswarm.agents.sixdof` (steps 1-5), :mod:`tagswarm.agents.planar` (the planar model of step 6);
 this module groups the detections per target and runs the steps.
 
 Cost: the single-camera path is a handful of OpenCV calls per target (IPPE,
@@ -75,8 +75,8 @@ from typing import Final
 import numpy as np
 from numpy.typing import NDArray
 
-from agents import planar
-from agents.cubegeom import (
+from tagswarm.agents import planar
+from tagswarm.agents.cubegeom import (
     EYE4,
     LANDMARK_PLATE_THICKNESS_M,
     CameraModel,
@@ -87,12 +87,12 @@ from agents.cubegeom import (
     output_jacobian,
     quad_area,
 )
-from agents.detect import TagDetection, TagMap
-from agents.planar import PlanarProblem
-from agents.sixdof import AMBIGUITY_GAP, Prior, SixDofSolver
-from protocol import tags
-from protocol.geometry import wrap_angle
-from protocol.scenario import Scenario
+from tagswarm.agents.detect import TagDetection, TagMap
+from tagswarm.agents.planar import PlanarProblem
+from tagswarm.agents.sixdof import AMBIGUITY_GAP, Prior, SixDofSolver
+from tagswarm.protocol import tags
+from tagswarm.protocol.geometry import wrap_angle
+from tagswarm.protocol.scenario import Scenario
 
 __all__ = ["LANDMARK_PLATE_THICKNESS_M", "CameraModel", "CubePoseEstimator", "PoseEstimate", "output_jacobian"]
 
@@ -115,7 +115,7 @@ class CubePoseEstimator:
     wrong flip can fit a small tag slightly better than the truth, and judging
     that with 0.3 px made some flips look certain (NEES ~400); 0.8 px keeps
     them flagged.  ``max_rms_px``, ``z_tol_m`` and ``tilt_tol_rad`` gate the result
-    (see :meth:`agents.sixdof.SixDofSolver.is_plausible`); ``prior_sigma_xy_m``/``prior_sigma_yaw_rad`` weigh a
+    (see :meth:`tagswarm.agents.sixdof.SixDofSolver.is_plausible`); ``prior_sigma_xy_m``/``prior_sigma_yaw_rad`` weigh a
     caller's prior pose when choosing between the two-fold solutions.
 
     ``planar`` (default) answers with the planar fit of step 6 of the module
@@ -157,7 +157,7 @@ class CubePoseEstimator:
                                  max_rms_px=max_rms_px, z_tol_m=z_tol_m, tilt_tol_rad=tilt_tol_rad,
                                  prior_sigma_xy_m=prior_sigma_xy_m, prior_sigma_yaw_rad=prior_sigma_yaw_rad,
                                  max_iterations=max_iterations)
-        # the planar fit's last step, below 0.1 in chi^2 (~0.3 sigma), is taken blind (agents.planar.solve)
+        # the planar fit's last step, below 0.1 in chi^2 (~0.3 sigma), is taken blind (tagswarm.agents.planar.solve)
         self._planar_tiny_px2 = 1e-1 * pixel_sigma_px**2
         self._geom: dict[int, TagGeom] = {}
         self._expected_z: dict[tuple[str, int], float] = {}
@@ -185,7 +185,7 @@ class CubePoseEstimator:
         """Poses of every target seen in ``views`` (one synchronised frame per camera).
 
         Detections of tags that belong to nothing in the scenario are ignored (the
-        caller counts them with :class:`~agents.detect.TagMap`).  ``priors`` maps
+        caller counts them with :class:`~tagswarm.agents.detect.TagMap`).  ``priors`` maps
         ``(kind, target_id)`` to a predicted (x_m, y_m, yaw_rad) of the target in the
         observer's base frame; it only helps choose between the two-fold solutions.
         Rejected targets are counted in :attr:`rejects` by reason.
@@ -286,7 +286,7 @@ class CubePoseEstimator:
                 cameras: tuple[str, ...], n_corners: int) -> PoseEstimate:
         """The planar answer (step 6 of the module docstring): Gauss-Newton on (x, y, yaw) at the
         known height from each distinct seed (plausible 6-DOF poses projected onto the floor); one
-        tag: also from its mirror (:func:`agents.planar.mirror`).  The lowest score wins; a distinct
+        tag: also from its mirror (:func:`tagswarm.agents.planar.mirror`).  The lowest score wins; a distinct
         runner-up within the ambiguity gap is folded into the covariance as in the 6-DOF path.  Raises
         :class:`Rejected`."""
         pr = self._planar_problem(vlist, z_exp)

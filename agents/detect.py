@@ -3,7 +3,7 @@
 Pixel convention: every corner this module returns is in OpenCV's convention (the
 centre of pixel (u, v) is at integer coordinates (u, v)), i.e. the AprilTag 3
 library's corners minus 0.5 px (DESIGN.md section 4).  Corner order is the
-contract of :func:`protocol.tags.square_corners`: top-right, top-left,
+contract of :func:`tagswarm.protocol.tags.square_corners`: top-right, top-left,
 bottom-left, bottom-right of the upright tag (counter-clockwise in the image).
 
 Two backends:
@@ -28,8 +28,8 @@ import numpy as np
 from numpy.typing import NDArray
 from pupil_apriltags import Detector as _PupilDetector
 
-from protocol import tags
-from protocol.scenario import Scenario
+from tagswarm.protocol import tags
+from tagswarm.protocol.scenario import Scenario
 
 TargetKind = Literal["robot", "landmark"]
 

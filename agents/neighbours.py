@@ -1,6 +1,6 @@
 """The other robots as obstacles, from the server's global map (pure code, no I/O).
 
-The server publishes its :class:`~protocol.messages.GlobalMap` at a low rate
+The server publishes its :class:`~tagswarm.protocol.messages.GlobalMap` at a low rate
 (``map_rate_hz``, 2 Hz by default), so each robot's entry is extrapolated to
 the agent's time with a velocity estimated from the previous map in which it
 appeared, and its circle is widened by its position uncertainty and by how
@@ -23,8 +23,8 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
-from agents.avoid import Neighbour
-from protocol.messages import MapEntry
+from tagswarm.agents.avoid import Neighbour
+from tagswarm.protocol.messages import MapEntry
 
 MAX_PENDING = 8  # maps not yet usable (bounded memory under a flood)
 MAX_EXTRAPOLATE_S = 1.0  # never predict further than this past a map

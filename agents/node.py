@@ -3,7 +3,7 @@
 Subscribes to its own robot's camera images (newest-only per camera: a slow
 detector skips frames, it never queues them), encoder ticks, the world clock,
 the server's corrections, run-time goals and the server's global map (the other
-robots, which missions and goals steer around: :mod:`agents.avoid`).  Publishes
+robots, which missions and goals steer around: :mod:`tagswarm.agents.avoid`).  Publishes
 relative observations, odometry (with slip evidence from commanded against
 measured wheel rotation), wheel commands and status.  It never reads ground
 truth.
@@ -36,20 +36,20 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from agents.avoid import Neighbour, static_boxes
-from agents.behaviour import Behaviour, wheel_speeds
-from agents.config import AgentConfig, build_config
-from agents.cubepose import CameraModel, CubePoseEstimator, PoseEstimate
-from agents.detect import TagMap, make_detector
-from agents.neighbours import NeighbourTracker
-from agents.odometry import DiffDriveOdometry, DiffDriveParams, SlipMonitor
-from protocol import codec
-from protocol import messages as m
-from protocol.bus import Bus, Inbox
-from protocol.config import serve_node
-from protocol.geometry import Pose2, se2_compose
-from protocol.keys import Keys
-from protocol.layout import arena_to_map, footprint_radius
+from tagswarm.agents.avoid import Neighbour, static_boxes
+from tagswarm.agents.behaviour import Behaviour, wheel_speeds
+from tagswarm.agents.config import AgentConfig, build_config
+from tagswarm.agents.cubepose import CameraModel, CubePoseEstimator, PoseEstimate
+from tagswarm.agents.detect import TagMap, make_detector
+from tagswarm.agents.neighbours import NeighbourTracker
+from tagswarm.agents.odometry import DiffDriveOdometry, DiffDriveParams, SlipMonitor
+from tagswarm.protocol import codec
+from tagswarm.protocol import messages as m
+from tagswarm.protocol.bus import Bus, Inbox
+from tagswarm.protocol.config import serve_node
+from tagswarm.protocol.geometry import Pose2, se2_compose
+from tagswarm.protocol.keys import Keys
+from tagswarm.protocol.layout import arena_to_map, footprint_radius
 
 log = logging.getLogger("tagswarm.agent")
 PRIOR_MAX_AGE_NS = 500_000_000  # robots move ~15 cm in 0.5 s: older relative poses mislead more than help

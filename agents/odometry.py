@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from protocol.geometry import wrap_angle
+from tagswarm.protocol.geometry import wrap_angle
 
 
 @dataclass(frozen=True)

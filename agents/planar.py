@@ -27,7 +27,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from protocol.geometry import Mat
+from tagswarm.protocol.geometry import Mat
 
 _Arr = NDArray[Any]
 

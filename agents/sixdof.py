@@ -1,11 +1,11 @@
 """The 6-DOF core of the cube pose estimator: IPPE start, two-fold ambiguity, Gauss-Newton (pure code).
 
-Steps 1-5 of :mod:`agents.cubepose`'s algorithm for one target: IPPE_SQUARE on the
+Steps 1-5 of :mod:`tagswarm.agents.cubepose`'s algorithm for one target: IPPE_SQUARE on the
 largest tag (with the mirror of a single tag rebuilt when IPPE loses it), Gauss-Newton
 on theta = (rvec, tvec) of ``T_c0_target`` (the pose of the target in the start
 camera ``c0``'s optical frame) over every corner of every view, candidates scored by
 a negative log-likelihood (chi^2 units), the ground-robot plausibility gate, and the
-6-DOF answer with its covariance.  Frames and units as in :mod:`agents.cubegeom`.
+6-DOF answer with its covariance.  Frames and units as in :mod:`tagswarm.agents.cubegeom`.
 """
 
 from __future__ import annotations
@@ -17,9 +17,19 @@ from typing import Final, cast
 import cv2
 import numpy as np
 
-from agents.cubegeom import EYE4, Arr, CameraModel, Rejected, TagGeom, View, output_jacobian, rt_to_matrix, se2_jacobian
-from agents.detect import TagDetection
-from protocol.geometry import Mat, wrap_angle
+from tagswarm.agents.cubegeom import (
+    EYE4,
+    Arr,
+    CameraModel,
+    Rejected,
+    TagGeom,
+    View,
+    output_jacobian,
+    rt_to_matrix,
+    se2_jacobian,
+)
+from tagswarm.agents.detect import TagDetection
+from tagswarm.protocol.geometry import Mat, wrap_angle
 
 Prior = tuple[float, float, float] | None  # a caller's predicted (x_m, y_m, yaw_rad) of the target, if any
 
@@ -109,7 +119,7 @@ def in_front(vlist: list[View], t_c0_target: Mat) -> bool:
 class SixDofSolver:
     """Candidates, refinement, plausibility and covariance of the 6-DOF pose of one target.
 
-    The parameters are :class:`agents.cubepose.CubePoseEstimator`'s (see there):
+    The parameters are :class:`tagswarm.agents.cubepose.CubePoseEstimator`'s (see there):
     ``pixel_sigma_px`` behind the covariance, ``choice_sigma_px`` (>= it) scaling the
     residuals when candidates are scored, ``max_rms_px``, ``z_tol_m``, ``tilt_tol_rad``
     gating the result, the prior sigmas weighing a caller's prior pose.
@@ -133,7 +143,7 @@ class SixDofSolver:
 
     def candidates(self, vlist: list[View], sg: TagGeom, sd: TagDetection, z_exp: float, prior: Prior,
                    starts_only: bool) -> list[Solution]:
-        """Scored candidates of one target, best first (steps 1-2 of :mod:`agents.cubepose`).
+        """Scored candidates of one target, best first (steps 1-2 of :mod:`tagswarm.agents.cubepose`).
 
         ``vlist``: its views, the start camera first; ``sg``/``sd``: the largest tag's geometry
         and detection; ``z_exp``: the expected height of the target's frame (m).  One tag with

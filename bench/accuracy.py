@@ -44,8 +44,8 @@ import numpy as np  # noqa: E402
 from rich.console import Console  # noqa: E402
 from rich.table import Table  # noqa: E402
 
-from protocol.geometry import se2_between, wrap_angle  # noqa: E402
-from server.stitch import Edge, stitch  # noqa: E402
+from tagswarm.protocol.geometry import se2_between, wrap_angle  # noqa: E402
+from tagswarm.server.stitch import Edge, stitch  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import scenes  # type: ignore[import-not-found]  # noqa: E402

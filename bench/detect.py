@@ -5,8 +5,8 @@ robot 0 observes, robots 1-3 stand at random poses 0.5-5 m in front of it, some
 occluding others) and then, frame by frame in the same loop, timed with
 
 * ``bare``: ``pupil_apriltags.Detector(quad_decimate=1, nthreads=1).detect`` -- the reference;
-* ``full``: :class:`agents.detect.AprilTagDetector` (same settings, filters, corner shift)
-  followed by :meth:`agents.cubepose.CubePoseEstimator.estimate` (the default: planar
+* ``full``: :class:`tagswarm.agents.detect.AprilTagDetector` (same settings, filters, corner shift)
+  followed by :meth:`tagswarm.agents.cubepose.CubePoseEstimator.estimate` (the default: planar
   fit of (x, y, yaw)) on its detections.
 
 The target is ``full / bare <= 1.3``.  Pose errors compare every estimate with the
@@ -38,12 +38,12 @@ from pupil_apriltags import Detector  # noqa: E402
 from rich.console import Console  # noqa: E402
 from rich.table import Table  # noqa: E402
 
-from agents.cubepose import CameraModel, CubePoseEstimator  # noqa: E402
-from agents.detect import AprilTagDetector  # noqa: E402
-from protocol.geometry import se2_matrix, wrap_angle, yaw_quat  # noqa: E402
-from protocol.layout import footprint_radius  # noqa: E402
-from protocol.scenario import Scenario, load_scenario  # noqa: E402
-from world.render import Renderer, image_message  # noqa: E402
+from tagswarm.agents.cubepose import CameraModel, CubePoseEstimator  # noqa: E402
+from tagswarm.agents.detect import AprilTagDetector  # noqa: E402
+from tagswarm.protocol.geometry import se2_matrix, wrap_angle, yaw_quat  # noqa: E402
+from tagswarm.protocol.layout import footprint_radius  # noqa: E402
+from tagswarm.protocol.scenario import Scenario, load_scenario  # noqa: E402
+from tagswarm.world.render import Renderer, image_message  # noqa: E402
 
 BINS = [(0.5, 1.0), (1.0, 2.0), (2.0, 3.0), (3.0, 4.0), (4.0, 5.0)]
 

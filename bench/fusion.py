@@ -25,7 +25,7 @@ import psutil  # noqa: E402
 from rich.console import Console  # noqa: E402
 from rich.table import Table  # noqa: E402
 
-from server.fusion import Fusion, FusionParams  # noqa: E402
+from tagswarm.server.fusion import Fusion, FusionParams  # noqa: E402
 from tests.synthetic import SyntheticSwarm  # noqa: E402
 
 

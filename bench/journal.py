@@ -29,8 +29,8 @@ sys.path.insert(0, str(ROOT))
 from rich.console import Console  # noqa: E402
 from rich.table import Table  # noqa: E402
 
-from server import journal as jr  # noqa: E402
-from server.fusion import Fusion, FusionParams  # noqa: E402
+from tagswarm.server import journal as jr  # noqa: E402
+from tagswarm.server.fusion import Fusion, FusionParams  # noqa: E402
 from tests.synthetic import SyntheticSwarm  # noqa: E402
 
 TICK_HZ = 30.0

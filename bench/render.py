@@ -5,7 +5,7 @@ For each resolution, robot count and render-worker count K the world runs in
 realtime mode with ``clock.speed`` set so that the cameras ask for 1.5x the frames
 the render cores can produce (saturated renderers, a world that does not spin);
 a subscriber counts the frames that arrive.  The raw reference
-runs K processes that each call :meth:`world.render.Renderer.render` in a loop on
+runs K processes that each call :meth:`tagswarm.world.render.Renderer.render` in a loop on
 the same scene (what K cores can render with no simulation, no encoding and no
 transport).  K = 0 means rendering inside the world process (compared with one
 raw process).  Writes ``bench/results/render.json``.
@@ -31,10 +31,10 @@ import psutil  # noqa: E402
 from rich.console import Console  # noqa: E402
 from rich.table import Table  # noqa: E402
 
-from protocol import codec  # noqa: E402
-from protocol import messages as m  # noqa: E402
-from protocol.keys import Keys  # noqa: E402
-from protocol.scenario import load_scenario  # noqa: E402
+from tagswarm.protocol import codec  # noqa: E402
+from tagswarm.protocol import messages as m  # noqa: E402
+from tagswarm.protocol.keys import Keys  # noqa: E402
+from tagswarm.protocol.scenario import load_scenario  # noqa: E402
 from tests.harness import client, endpoint, process, world_argv  # noqa: E402
 
 
@@ -46,10 +46,10 @@ def overrides(width: int, height: int, robots: int) -> list[str]:
 
 def _raw_worker(args: tuple[list[str], float, float]) -> int:
     ov, warmup, seconds = args
-    from protocol.geometry import se2_matrix
-    from protocol.layout import start_poses
-    from world._pybullet import pb
-    from world.render import Renderer
+    from tagswarm.protocol.geometry import se2_matrix
+    from tagswarm.protocol.layout import start_poses
+    from tagswarm.world._pybullet import pb
+    from tagswarm.world.render import Renderer
 
     s = load_scenario("paper", ov)
     poses = start_poses(s)

@@ -55,9 +55,9 @@ from render import raw_rate  # noqa: E402
 from rich.console import Console  # noqa: E402
 from rich.table import Table  # noqa: E402
 
-from protocol import codec  # noqa: E402
-from protocol import messages as m  # noqa: E402
-from protocol.keys import Keys  # noqa: E402
+from tagswarm.protocol import codec  # noqa: E402
+from tagswarm.protocol import messages as m  # noqa: E402
+from tagswarm.protocol.keys import Keys  # noqa: E402
 from tests.harness import client, endpoint  # noqa: E402
 
 TAGSWARM = str(Path(sys.executable).parent / "tagswarm")

@@ -11,7 +11,7 @@ Security (docs/security.md): a client presents a Zenoh user/password
 (``user`` + ``password_file``); a router checks them against a dictionary file
 (``users_file``) and may enforce an ACL (``access_control``).  Fault injection
 (``loss``, ``delay_ms`` on ``fault_keys``) impairs what this process receives;
-see :mod:`protocol.netfaults`.
+see :mod:`tagswarm.protocol.netfaults`.
 """
 
 from __future__ import annotations
@@ -30,8 +30,8 @@ from typing import Annotated, Any, Generic, Literal, TypeVar
 import msgspec
 import zenoh
 
-from protocol.keys import ROOT, Keys
-from protocol.netfaults import NetFaults
+from tagswarm.protocol.keys import ROOT, Keys
+from tagswarm.protocol.netfaults import NetFaults
 
 log = logging.getLogger(__name__)
 T = TypeVar("T")
@@ -76,7 +76,7 @@ class BusConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields
     of a Zenoh ``access_control`` block, see tagswarm/acl.py) limits what each user
     may publish, subscribe, query and declare.
 
-    Fault injection (receive side, see :mod:`protocol.netfaults`): samples that
+    Fault injection (receive side, see :mod:`tagswarm.protocol.netfaults`): samples that
     arrive on keys matching ``fault_keys`` (key expressions; empty = the
     :func:`default_fault_keys`) are lost with probability ``loss`` (0..1) and
     delivered ``delay_ms`` milliseconds late; ``fault_seed`` fixes the pattern.

@@ -26,7 +26,7 @@ from typing import Any, Final, Literal, TypeVar
 import msgspec
 import numpy as np
 
-from protocol import messages as m
+from tagswarm.protocol import messages as m
 
 T = TypeVar("T", bound=m.Msg)
 
@@ -234,7 +234,7 @@ class RejectCounter:
         return sum(self.counts.values())
 
     def as_counters(self, prefix: str = "rejected_") -> dict[str, int]:
-        """Counters for an :class:`~protocol.messages.AgentStatus`."""
+        """Counters for an :class:`~tagswarm.protocol.messages.AgentStatus`."""
         return {prefix + k: v for k, v in sorted(self.counts.items())}
 
 

@@ -2,7 +2,7 @@
 
 Precedence, lowest first: the scenario TOML, ``TAGSWARM_*`` environment
 variables, command-line flags.  Everything funnels into dotted scenario
-overrides (``clock.mode=lockstep``) plus a :class:`~protocol.bus.BusConfig`, so
+overrides (``clock.mode=lockstep``) plus a :class:`~tagswarm.protocol.bus.BusConfig`, so
 each process builds one frozen config object up front.  Errors become
 :class:`ConfigError` (one line, naming the field); :func:`run_main` turns them
 into exit code 2.
@@ -19,7 +19,7 @@ import threading
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any, NoReturn, Protocol, TypeVar
 
-from protocol.bus import (
+from tagswarm.protocol.bus import (
     DEFAULT_LEASE_MS,
     MAX_DELAY_MS,
     MAX_LEASE_MS,
@@ -30,8 +30,8 @@ from protocol.bus import (
     check_key_expr,
     open_bus,
 )
-from protocol.keys import KeyError_
-from protocol.scenario import Scenario, ScenarioError, convert, load_scenario
+from tagswarm.protocol.keys import KeyError_
+from tagswarm.protocol.scenario import Scenario, ScenarioError, convert, load_scenario
 
 ENV_PREFIX = "TAGSWARM_"
 

@@ -2,7 +2,7 @@
 walls, the obstacle boxes, a landmark tag or another robot's path (pure 2-D geometry).
 
 Everything is in the arena frame, metres.  A robot is treated as the circle of
-:func:`protocol.layout.footprint_radius` around its base; a path it drives along
+:func:`tagswarm.protocol.layout.footprint_radius` around its base; a path it drives along
 a straight segment sweeps a capsule, so "robot A on path a never touches robot B
 on path b" is ``segment_distance(a, b) >= 2 r``.  A standing robot is a segment
 of length zero.
@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import math
 
-from protocol.scenario_schema import Arena, Obstacle
+from tagswarm.protocol.scenario_schema import Arena, Obstacle
 
 XY = tuple[float, float]
 

@@ -1,6 +1,6 @@
 """Small rigid-body helpers shared by every process (numpy only).
 
-Quaternions are (x, y, z, w), as in pybullet and :class:`protocol.messages.Pose3`.
+Quaternions are (x, y, z, w), as in pybullet and :class:`tagswarm.protocol.messages.Pose3`.
 Homogeneous transforms are (4, 4) float64; ``T_a_b`` maps points in frame b to
 frame a.
 """
@@ -12,7 +12,7 @@ import math
 import numpy as np
 from numpy.typing import NDArray
 
-from protocol.messages import Pose3
+from tagswarm.protocol.messages import Pose3
 
 Mat = NDArray[np.float64]
 

@@ -1,5 +1,5 @@
 """Where things are: start poses, footprints, walls and the map frame of a
-scenario (pure geometry on top of :mod:`protocol.scenario`)."""
+scenario (pure geometry on top of :mod:`tagswarm.protocol.scenario`)."""
 
 from __future__ import annotations
 
@@ -7,8 +7,8 @@ import math
 
 import numpy as np
 
-from protocol.geometry import se2_inverse
-from protocol.scenario import Arena, Robot, Scenario
+from tagswarm.protocol.geometry import se2_inverse
+from tagswarm.protocol.scenario import Arena, Robot, Scenario
 
 
 def footprint_radius(robot: Robot) -> float:

@@ -1,6 +1,6 @@
 """Receive-side network fault injection: message loss and added delay (tests, demos).
 
-Pure logic, no Zenoh: :mod:`protocol.bus` asks :meth:`NetFaults.admit` for every
+Pure logic, no Zenoh: :mod:`tagswarm.protocol.bus` asks :meth:`NetFaults.admit` for every
 sample that arrives on a subscription whose key matches the fault keys, drops it
 if told so, and hands the rest to :meth:`NetFaults.hold`, which delivers them
 ``delay_s`` later from one timer thread (the Zenoh callback never sleeps).
@@ -27,7 +27,7 @@ import threading
 import time
 from collections.abc import Callable
 
-from protocol.keys import ROOT
+from tagswarm.protocol.keys import ROOT
 
 #: A sample whose delivery has been postponed: called when it is due.
 Deliver = Callable[[], None]

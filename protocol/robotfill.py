@@ -50,10 +50,10 @@ from collections.abc import Iterator, Sequence
 
 import msgspec
 
-from protocol import tags
-from protocol.freespace import XY, obstacle_clearance, segment_distance, sight_blocked, wall_clearance
-from protocol.layout import footprint_radius
-from protocol.scenario import Mission, Scenario, ScenarioError, StartPose
+from tagswarm.protocol import tags
+from tagswarm.protocol.freespace import XY, obstacle_clearance, segment_distance, sight_blocked, wall_clearance
+from tagswarm.protocol.layout import footprint_radius
+from tagswarm.protocol.scenario import Mission, Scenario, ScenarioError, StartPose
 
 MARGIN_M = 0.1
 MAX_SPACING_M = 1.0
@@ -267,7 +267,7 @@ def fit_tag_ids(s: Scenario, own: int) -> tuple[Scenario, str | None]:
     that no landmark uses (see the module docstring), and a note if it changed.  The
     scheme is only changed when it suits the scenario's ``own`` first robots and just
     not the extra ones: a scheme that clashes anyway is the author's to fix, and
-    :func:`protocol.scenario.validate` names the clash."""
+    :func:`tagswarm.protocol.scenario.validate` names the clash."""
     n, fam = s.robots.count, s.tags.family
     size = tags.family_size(fam)
     base, stride = s.tags.id_base, s.tags.id_stride

@@ -6,7 +6,7 @@ dotted overrides such as ``clock.mode=lockstep`` (see :func:`apply_override`).
 Types and ranges are checked by msgspec; cross-field rules by :func:`validate`.
 Every problem is reported as a :class:`ScenarioError` with a one-line message
 naming the field.  The section structs (:class:`Scenario`, :class:`Arena`,
-:class:`Robot`, :class:`Camera`, ...) are defined in :mod:`protocol.scenario_schema`
+:class:`Robot`, :class:`Camera`, ...) are defined in :mod:`tagswarm.protocol.scenario_schema`
 and re-exported here; this module loads, overrides and validates them.
 """
 
@@ -21,10 +21,10 @@ from typing import Any
 
 import msgspec
 
-from protocol import tags
-from protocol.freespace import segment_box_distance
-from protocol.keys import KeyError_, check_name, split_participant
-from protocol.scenario_schema import (
+from tagswarm.protocol import tags
+from tagswarm.protocol.freespace import segment_box_distance
+from tagswarm.protocol.keys import KeyError_, check_name, split_participant
+from tagswarm.protocol.scenario_schema import (
     Agent,
     Arena,
     Camera,
@@ -66,7 +66,7 @@ class ScenarioError(ValueError):
 
 def builtin_names() -> list[str]:
     """Names of the scenarios shipped in the package."""
-    folder = resources.files("protocol") / "scenarios"
+    folder = resources.files("tagswarm.protocol") / "scenarios"
     return sorted(p.name[:-5] for p in folder.iterdir() if p.name.endswith(".toml"))
 
 
@@ -74,7 +74,7 @@ def builtin_descriptions() -> dict[str, str]:
     """Each built-in scenario's one-line description: the first comment line of its TOML."""
     out = {}
     for name in builtin_names():
-        text = (resources.files("protocol") / "scenarios" / f"{name}.toml").read_text()
+        text = (resources.files("tagswarm.protocol") / "scenarios" / f"{name}.toml").read_text()
         first = next((ln for ln in text.splitlines() if ln.strip()), "")
         out[name] = first.lstrip("#").strip() if first.lstrip().startswith("#") else ""
     return out
@@ -91,7 +91,7 @@ def read_scenario_dict(name_or_path: str) -> dict[str, Any]:
         if path.suffix == ".toml" or path.exists():
             text = path.read_text()
         elif name_or_path in builtin_names():
-            text = (resources.files("protocol") / "scenarios" / f"{name_or_path}.toml").read_text()
+            text = (resources.files("tagswarm.protocol") / "scenarios" / f"{name_or_path}.toml").read_text()
         else:
             raise ScenarioError(
                 f"unknown scenario {name_or_path!r} (built-ins: {', '.join(builtin_names())}; or a .toml path)"
@@ -165,8 +165,8 @@ def _trim_to_count(table: dict[str, Any], scenario_count: int | None = None) -> 
 def load_scenario(name_or_path: str = "paper", overrides: tuple[str, ...] | list[str] = ()) -> Scenario:
     """Load, override and validate a scenario.  Robots beyond an explicit start list
     get free start poses and missions, and the tag-ID scheme is compacted if it has
-    no room for them (:mod:`protocol.robotfill`); each such step is logged at INFO."""
-    from protocol.robotfill import complete  # it builds on this module's types
+    no room for them (:mod:`tagswarm.protocol.robotfill`); each such step is logged at INFO."""
+    from tagswarm.protocol.robotfill import complete  # it builds on this module's types
 
     table = read_scenario_dict(name_or_path)
     robots = table.get("robots")
@@ -244,7 +244,7 @@ def validate(s: Scenario) -> None:
     if s.map.origin_id not in s.robot_ids:
         raise ScenarioError(f"map.origin_id={s.map.origin_id} is not a robot of this scenario")
     _validate_events(s)
-    from protocol.layout import footprint_radius, start_poses  # layout builds on these types
+    from tagswarm.protocol.layout import footprint_radius, start_poses  # layout builds on these types
 
     poses = start_poses(s)
     half_x = s.arena.size_x_m / 2 - s.arena.wall_thickness_m / 2
@@ -268,7 +268,7 @@ def _validate_events(s: Scenario) -> None:
     footprint and overlaps when it applies the event)."""
     half_x = s.arena.size_x_m / 2 - s.arena.wall_thickness_m / 2
     half_y = s.arena.size_y_m / 2 - s.arena.wall_thickness_m / 2
-    from protocol.layout import footprint_radius  # layout builds on these types
+    from tagswarm.protocol.layout import footprint_radius  # layout builds on these types
 
     r = footprint_radius(s.robot)
     for i, ev in enumerate(s.events):

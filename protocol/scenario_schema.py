@@ -2,8 +2,8 @@
 
 Types, defaults and single-field ranges live here (msgspec checks them when a table
 is converted); loading, ``--set`` overrides and the cross-field rules are in
-:mod:`protocol.scenario`, which re-exports every name of this module, so
-``from protocol.scenario import Scenario, Camera`` is the usual import.
+:mod:`tagswarm.protocol.scenario`, which re-exports every name of this module, so
+``from tagswarm.protocol.scenario import Scenario, Camera`` is the usual import.
 Frames and units: poses in the arena frame (metres, radians, z from the floor),
 mounts in the robot's base frame (x forward, y left, z up).
 """
@@ -14,7 +14,7 @@ from typing import Annotated, Literal
 
 import msgspec
 
-from protocol import tags
+from tagswarm.protocol import tags
 
 Pos = Annotated[float, msgspec.Meta(gt=0)]
 NonNeg = Annotated[float, msgspec.Meta(ge=0)]
@@ -121,7 +121,7 @@ class Robots(Spec, frozen=True, kw_only=True, forbid_unknown_fields=True):
     seeded random headings), ``random`` (seeded, non-overlapping) or
     ``explicit`` (``start`` lists one pose per robot; a longer list is cut to
     ``count``, and robots beyond a shorter one are placed at free poses with a
-    default mission: :mod:`protocol.robotfill`)."""
+    default mission: :mod:`tagswarm.protocol.robotfill`)."""
 
     count: Annotated[int, msgspec.Meta(ge=1, le=200)] = 4
     placement: Literal["ring", "grid", "random", "explicit"] = "ring"
@@ -189,10 +189,10 @@ class Agent(Spec, frozen=True, kw_only=True, forbid_unknown_fields=True):
     control cycles (encoder updates) after which the robot stops and searches
     by rotating in place (the paper's active re-localisation).
 
-    Collision avoidance (``avoid``, :mod:`agents.avoid`): missions and run-time
+    Collision avoidance (``avoid``, :mod:`tagswarm.agents.avoid`): missions and run-time
     goals steer around the other robots (their poses in the server's map) and
     the arena's walls and obstacles, keeping ``avoid_clearance_m`` between
-    footprints (the circle of ``protocol.layout.footprint_radius``); it only
+    footprints (the circle of ``tagswarm.protocol.layout.footprint_radius``); it only
     steps in when the next ``avoid_horizon_s`` of the path would come closer
     than that, and after ``avoid_stall_s`` without progress it tries the other
     side (or backs off for a robot with a lower id).  Holding station and the
@@ -250,7 +250,7 @@ class MapFrame(Spec, frozen=True, kw_only=True, forbid_unknown_fields=True):
 class Event(Spec, frozen=True, kw_only=True, forbid_unknown_fields=True):
     """A scheduled intervention in the physical world (a ``[[events]]`` table), applied
     by the world at the first step k with ``k / clock.tick_hz >= at_s`` (simulation
-    seconds) exactly like a :class:`protocol.messages.WorldCommand`: ``teleport`` puts
+    seconds) exactly like a :class:`tagswarm.protocol.messages.WorldCommand`: ``teleport`` puts
     ``robot``'s base at (x_m, y_m, yaw_rad) in the arena frame, ``push`` moves it by
     (x_m, y_m) in the arena frame and turns it by yaw_rad.  The wheels do not turn, so
     the robot's odometry does not see it (a kidnapped robot)."""
@@ -292,5 +292,5 @@ class Scenario(Spec, frozen=True, kw_only=True, forbid_unknown_fields=True):
         return Mission(robot=robot_id)
 
     def tag_ids(self, robot_id: int) -> tuple[int, ...]:
-        """The six tag IDs of ``robot_id`` in :class:`protocol.tags.Face` order."""
+        """The six tag IDs of ``robot_id`` in :class:`tagswarm.protocol.tags.Face` order."""
         return tags.robot_tag_ids(robot_id, self.tags.id_base, self.tags.id_stride)

@@ -1,7 +1,7 @@
-"""Fusion checkpoints: the whole state of a :class:`~server.fusion.Fusion` as bytes, and back.
+"""Fusion checkpoints: the whole state of a :class:`~tagswarm.server.fusion.Fusion` as bytes, and back.
 
 A checkpoint lets a restarted server skip the journal records before it (see
-:mod:`server.journal`).  It is a *full* snapshot, not a summary: the smoother's
+:mod:`tagswarm.server.journal`).  It is a *full* snapshot, not a summary: the smoother's
 factor graph (odometry, observation and prior factors of the lag window, and the
 ``LinearContainerFactor`` marginals of what was marginalised), its linearisation
 point and key timestamps, in GTSAM's own serialisation (boost text archive, doubles
@@ -24,7 +24,7 @@ are only accepted after the watermark, and placement candidates live
 ``init_window_s``, so samples older than that (plus a margin) are never read.
 
 Encoding: msgpack (msgspec) of :class:`FusionState`, zlib-compressed.  The blob is
-opaque to :mod:`server.journal_format` (a ``bytes`` field of the Checkpoint record).
+opaque to :mod:`tagswarm.server.journal_format` (a ``bytes`` field of the Checkpoint record).
 
 This module reads and writes the fusion's private state on purpose: it is the
 fusion's persistence, kept out of fusion.py only for size.  A field added to
@@ -42,9 +42,9 @@ import gtsam
 import msgspec
 import numpy as np
 
-from protocol.geometry import Pose2
-from server.fusion import Fusion, _Event, _Robot
-from server.placement import Candidate
+from tagswarm.protocol.geometry import Pose2
+from tagswarm.server.fusion import Fusion, _Event, _Robot
+from tagswarm.server.placement import Candidate
 
 P3 = tuple[float, float, float]
 # odometry kept before the watermark beyond the placement window: _odom_at tolerates 0.2 s
@@ -58,7 +58,7 @@ class CheckpointError(ValueError):
 
 
 class RobotState(msgspec.Struct, frozen=True, array_like=True):
-    """One robot's bookkeeping (see ``server.fusion._Robot``); covariances row-major (9)."""
+    """One robot's bookkeeping (see ``tagswarm.server.fusion._Robot``); covariances row-major (9)."""
 
     odom: list[tuple[int, float, float, float]]  # (stamp_ns, x_m, y_m, yaw_rad) in the robot's odom frame
     chain: int

@@ -9,7 +9,7 @@ relative-pose between-factors from observations (robust Huber noise, chi² gate
 against the current estimate), priors from landmark observations, and a prior
 on the origin robot's first keyframe (the map frame) unless landmarks pin it.
 
-Observations the gate rejects are not lost: :mod:`server.recovery` judges them
+Observations the gate rejects are not lost: :mod:`tagswarm.server.recovery` judges them
 by their consistency with each other, and a consistent set re-localises the
 robot they are about (a pushed or kidnapped robot): it is taken out of the map
 and placed again from that set, on a new chain of keyframes (its odometry
@@ -35,11 +35,11 @@ from typing import Literal
 import gtsam
 import numpy as np
 
-from protocol.geometry import Pose2, se2_between, se2_compose, se2_inverse
-from server.noise import CHI2_3DOF_999, Cov, FusionParams, inverse_cov, odom_increment_cov, tangent_cov
-from server.placement import Candidate, Placement, choose
-from server.recovery import LANDMARK_WITNESS, Recovery, Verdict
-from server.stitch import Edge, stitch
+from tagswarm.protocol.geometry import Pose2, se2_between, se2_compose, se2_inverse
+from tagswarm.server.noise import CHI2_3DOF_999, Cov, FusionParams, inverse_cov, odom_increment_cov, tangent_cov
+from tagswarm.server.placement import Candidate, Placement, choose
+from tagswarm.server.recovery import LANDMARK_WITNESS, Recovery, Verdict
+from tagswarm.server.stitch import Edge, stitch
 
 __all__ = ["CHI2_3DOF_999", "Cov", "Fusion", "FusionParams", "inverse_cov", "odom_increment_cov", "tangent_cov"]
 
@@ -358,7 +358,7 @@ class Fusion:
     def _contradiction(self, observer: int, target: int, stamp_ns: int, rel: Pose2, cov: Cov, po: Pose2, pg: Pose2,
                        oo: Pose2, go: Pose2) -> Verdict | None:
         """A gated-out observation as evidence about both robots (see
-        :mod:`server.recovery`); the verdict if it completes a consistent set."""
+        :mod:`tagswarm.server.recovery`); the verdict if it completes a consistent set."""
         meas = (observer, target, rel, cov)
         placed_g = se2_compose(po, rel)
         placed_o = se2_compose(pg, se2_inverse(rel))

@@ -1,7 +1,7 @@
 """The server's write-ahead journal: an append-only log of every input it accepted.
 
 The fusion state is a deterministic function of the sequence of calls made on
-:class:`~server.fusion.Fusion` (``add_odometry``, ``add_observation``,
+:class:`~tagswarm.server.fusion.Fusion` (``add_odometry``, ``add_observation``,
 ``add_landmark_observation`` and ``advance``), so the journal records exactly
 that sequence: every accepted odometry sample and observation, and every
 ``advance(watermark)``.  Replaying it through :func:`apply` (the same function
@@ -13,7 +13,7 @@ poses and fusion parameters come from the scenario; the header record stores
 them so that a journal is never replayed into a different map.
 
 The file format (magic, length + CRC32 framing, the record structs) and its
-reader live in :mod:`server.journal_format` and are re-exported here.  A crash can
+reader live in :mod:`tagswarm.server.journal_format` and are re-exported here.  A crash can
 leave a torn last frame (power loss mid-write); reading stops at the first bad
 frame, and :class:`Journal` truncates the file there before appending again.
 Writes go to the OS at every :meth:`Journal.flush` (so a SIGKILLed server loses
@@ -22,7 +22,7 @@ nothing it accepted); ``fsync`` (durability against power loss) is batched every
 the server's loop never waits for the disk.
 
 Checkpoints bound the rebuild time.  A :class:`Checkpoint` record holds the whole
-fusion state (:mod:`server.checkpoint`) plus the server's bookkeeping and the
+fusion state (:mod:`tagswarm.server.checkpoint`) plus the server's bookkeeping and the
 journal's record counts up to it; opening a journal replays from its last complete
 checkpoint, and the records before it are not even read.  To find it without
 reading the file, the offsets of the two newest checkpoints are kept in a small
@@ -48,9 +48,9 @@ from typing import Any
 
 import numpy as np
 
-from server import checkpoint as ckpt
-from server.fusion import Fusion
-from server.journal_format import (
+from tagswarm.server import checkpoint as ckpt
+from tagswarm.server.fusion import Fusion
+from tagswarm.server.journal_format import (
     MAGIC,
     MAX_RECORD_BYTES,
     VERSION,
@@ -69,7 +69,7 @@ from server.journal_format import (
     read_journal,
     write_index,
 )
-from server.journal_sync import Syncer, fsync_dir
+from tagswarm.server.journal_sync import Syncer, fsync_dir
 
 CheckpointError = ckpt.CheckpointError
 
@@ -152,7 +152,7 @@ class Journal:
     ``replay`` is called for every record after the header, in order (the
     server rebuilds its state with it), starting at the last usable checkpoint if
     there is one (``counters["replay_skipped"]`` records before it are not read;
-    ``replay`` must raise :class:`~server.checkpoint.CheckpointError` without
+    ``replay`` must raise :class:`~tagswarm.server.checkpoint.CheckpointError` without
     changing anything if a checkpoint does not restore).  Raises
     :class:`JournalError` if the file is not a journal or belongs to another map;
     truncates a torn or corrupt tail (counted in ``counters["truncated_bytes"]``).

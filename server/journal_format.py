@@ -1,6 +1,6 @@
 """The journal's file format: record structs, framing and CRC, and a tolerant reader.
 
-Pure bytes-in/bytes-out (no fusion, no locking, no fsync): :mod:`server.journal`
+Pure bytes-in/bytes-out (no fusion, no locking, no fsync): :mod:`tagswarm.server.journal`
 writes and replays through it, and tools (bench, tests) read journals with it.
 
 File format (little endian)::
@@ -103,7 +103,7 @@ class Checkpoint(msgspec.Struct, frozen=True, kw_only=True, tag="checkpoint"):
     ``checkpoints``) of everything before this record, so totals stay right without
     reading it.  ``node`` is the server's own bookkeeping (``time_ns`` and its
     ``accepted_*`` counters), ``latest_rx`` each robot's newest odometry stamp (ns), and
-    ``fusion`` the snapshot of :mod:`server.checkpoint` (compressed, opaque here)."""
+    ``fusion`` the snapshot of :mod:`tagswarm.server.checkpoint` (compressed, opaque here)."""
 
     seq: Annotated[int, msgspec.Meta(ge=1)]
     watermark_ns: int

@@ -1,12 +1,12 @@
 """The map server process (the only I/O of ``server``).
 
 Takes every robot's odometry and relative observations, feeds the
-:class:`~server.fusion.Fusion`, publishes each robot's correction after every
+:class:`~tagswarm.server.fusion.Fusion`, publishes each robot's correction after every
 update and the global map at ``map_rate_hz``, and answers map queries (late
 joiners).  Accepts data only from roster robots on their own keys.
 
 With ``--journal PATH`` every accepted input (and every fusion update) is
-written ahead to :mod:`server.journal`; a server started on an existing journal
+written ahead to :mod:`tagswarm.server.journal`; a server started on an existing journal
 first replays it through the same fusion code, so a crashed server comes back
 with the graph it had (same decisions, estimates equal to rounding), then
 declares itself alive and resumes.  Every ``--journal-checkpoint`` simulated
@@ -23,14 +23,14 @@ import time
 from collections import Counter, deque
 from collections.abc import Mapping, Sequence
 
-from protocol import codec
-from protocol import messages as m
-from protocol.bus import Bus
-from protocol.config import ConfigError, serve_node
-from protocol.keys import Keys
-from server import journal as jr
-from server.config import ServerConfig, build_config
-from server.fusion import Fusion, FusionParams
+from tagswarm.protocol import codec
+from tagswarm.protocol import messages as m
+from tagswarm.protocol.bus import Bus
+from tagswarm.protocol.config import ConfigError, serve_node
+from tagswarm.protocol.keys import Keys
+from tagswarm.server import journal as jr
+from tagswarm.server.config import ServerConfig, build_config
+from tagswarm.server.fusion import Fusion, FusionParams
 
 log = logging.getLogger("tagswarm.server")
 EDGE_MEMORY_NS = 5_000_000_000
@@ -421,7 +421,7 @@ class ServerNode:
         """Wait until every live robot's odometry of ``tick`` has arrived or is known to be
         lost: its agent acknowledged ``tick`` and the odometry, published before that ack,
         is still missing ``odometry_grace_s`` later (counted in ``odometry_lost``; fusion
-        then merges that increment with the next, see :mod:`server.fusion`).  A robot
+        then merges that increment with the next, see :mod:`tagswarm.server.fusion`).  A robot
         whose agent does not answer at all is waited for up to ``clock.ack_timeout_s``
         (``odometry_wait_timeouts``), as the world waits for its ack."""
         stamp, step = tick.stamp_ns, tick.step

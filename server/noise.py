@@ -9,7 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from protocol.geometry import Pose2
+from tagswarm.protocol.geometry import Pose2
 
 Cov = NDArray[np.float64]
 CHI2_3DOF_999 = 16.27

@@ -9,8 +9,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from protocol.geometry import Pose2
-from server.noise import FusionParams
+from tagswarm.protocol.geometry import Pose2
+from tagswarm.server.noise import FusionParams
 
 
 @dataclass

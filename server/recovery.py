@@ -19,7 +19,7 @@ Mangelson et al. 2018; Kimera-Multi) does for loop closures:
   therefore cannot drag its observers along;
 - the evidence about a suspect forms a consistent set when enough of it agrees
   (the same median test that places a robot the first time:
-  :func:`server.placement.choose`): at least ``reloc_min`` pieces from two or more
+  :func:`tagswarm.server.placement.choose`): at least ``reloc_min`` pieces from two or more
   witnesses, or ``reloc_min_single`` pieces spread over ``reloc_span_s`` from one
   witness (the same anchored observer, again and again);
 - accepted observations of the suspect during that time are counter-evidence:
@@ -37,8 +37,8 @@ from __future__ import annotations
 from collections import deque
 from dataclasses import dataclass, field
 
-from server.noise import FusionParams
-from server.placement import Candidate, choose
+from tagswarm.server.noise import FusionParams
+from tagswarm.server.placement import Candidate, choose
 
 LANDMARK_WITNESS = -1
 

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from protocol.geometry import Pose2, se2_compose, se2_inverse
+from tagswarm.protocol.geometry import Pose2, se2_compose, se2_inverse
 
 
 @dataclass(frozen=True)

@@ -2,7 +2,7 @@
 
 Every process is a Zenoh client of one router and logs in with its role's user
 name (Zenoh user/password authentication); the router's ACL, built here from
-:class:`protocol.keys.Keys` so it cannot drift from the keys the nodes use,
+:class:`tagswarm.protocol.keys.Keys` so it cannot drift from the keys the nodes use,
 allows each user exactly what its process does and denies everything else:
 
 ============  =====================================================================
@@ -49,7 +49,7 @@ from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any
 
-from protocol.keys import Keys
+from tagswarm.protocol.keys import Keys
 
 WORLD, SERVER, VIEWER, OPERATOR = "world", "server", "viewer", "operator"
 #: the file name of Zenoh's ``user:password`` dictionary written by :func:`make_secrets`

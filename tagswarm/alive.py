@@ -20,9 +20,18 @@ import sys
 import time
 from collections.abc import Sequence
 
-from protocol.bus import open_bus
-from protocol.config import ConfigError, OneLineParser, add_common_args, bus_from, env_of, pick, run_main, setup_logging
-from protocol.keys import Keys, split_participant
+from tagswarm.protocol.bus import open_bus
+from tagswarm.protocol.config import (
+    ConfigError,
+    OneLineParser,
+    add_common_args,
+    bus_from,
+    env_of,
+    pick,
+    run_main,
+    setup_logging,
+)
+from tagswarm.protocol.keys import Keys, split_participant
 
 PROG = "tagswarm alive"
 

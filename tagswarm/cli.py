@@ -10,7 +10,7 @@ import importlib
 import sys
 from collections.abc import Callable, Sequence
 
-from protocol.scenario import builtin_descriptions
+from tagswarm.protocol.scenario import builtin_descriptions
 
 # name -> (help, module, function); modules are imported only when their command
 # runs, so `tagswarm alive` (a compose healthcheck) does not load pybullet or GTSAM
@@ -20,10 +20,11 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
     "report": ("evaluate a run folder again: metrics.json + plots", "tagswarm.report", "main"),
     "snapshot": ("start a world, grab one frame per camera, decode tags, write PNGs + JSON", "tagswarm.snapshot",
                  "main"),
-    "world": ("run the world process (physics, cameras, encoders, clock)", "world.node", "main"),
-    "render": ("run one render worker for a world started with --no-spawn-workers", "world.render_worker", "main"),
-    "agent": ("run one robot's agent (detection, cube pose, odometry, behaviour)", "agents.node", "main"),
-    "server": ("run the map server (stitching, pose-graph fusion, corrections)", "server.node", "main"),
+    "world": ("run the world process (physics, cameras, encoders, clock)", "tagswarm.world.node", "main"),
+    "render": ("run one render worker for a world started with --no-spawn-workers",
+               "tagswarm.world.render_worker", "main"),
+    "agent": ("run one robot's agent (detection, cube pose, odometry, behaviour)", "tagswarm.agents.node", "main"),
+    "server": ("run the map server (stitching, pose-graph fusion, corrections)", "tagswarm.server.node", "main"),
     "router": ("run a Zenoh router for client-mode processes (compose), with a heartbeat file", "tagswarm.router",
                "main"),
     "spy": ("live table of a running system's keys: types, rates, bandwidth, last message", "tagswarm.spy", "main"),

@@ -13,9 +13,9 @@ from pathlib import Path
 
 import msgspec
 
-from protocol import keys as keys_module
-from protocol import messages as m
-from protocol.codec import MAX_BYTES
+from tagswarm.protocol import keys as keys_module
+from tagswarm.protocol import messages as m
+from tagswarm.protocol.codec import MAX_BYTES
 
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = ROOT / "docs"

@@ -28,9 +28,9 @@ from typing import Any
 
 from foxglove import messages as fg
 
-from protocol import messages as m
-from protocol.geometry import Pose2
 from tagswarm.mcapio import run_of
+from tagswarm.protocol import messages as m
+from tagswarm.protocol.geometry import Pose2
 
 View = tuple[str, Any, bytes]  # (topic, foxglove.Schema, encoded protobuf)
 CUBE_EDGE_M = 0.2  # drawn size of a robot in the map view (the scenario's cube edge when known)
@@ -62,7 +62,7 @@ class FoxgloveViews:
     """Turns decoded tagswarm messages into Foxglove views.
 
     ``map_from_arena`` is T_map_arena (x_m, y_m, yaw_rad) from the scenario
-    (:func:`protocol.layout.arena_to_map`); without it the truth stays in its own
+    (:func:`tagswarm.protocol.layout.arena_to_map`); without it the truth stays in its own
     ``arena`` frame, unconnected to ``map``.  ``image_scale`` is already applied to the
     images handed in (nothing is resampled here).
     """

@@ -4,7 +4,7 @@ Joins the network with the same flags and ``TAGSWARM_*`` variables as every
 process, waits (up to ``--timeout``) until the agent's liveliness token
 ``tagswarm/<run>/alive/agent/ROBOT`` is visible, so that its goal subscriber is
 known (agents subscribe before they declare the token), then publishes one
-:class:`protocol.messages.Goal` on ``tagswarm/<run>/robot/ROBOT/goal`` and
+:class:`tagswarm.protocol.messages.Goal` on ``tagswarm/<run>/robot/ROBOT/goal`` and
 exits 0.  The goal is stamped with the simulation time of the newest world
 tick, if the world is ticking.  Exit 1 (one line) when the agent is not alive;
 exit 2 (one line) for bad arguments, e.g. a non-finite X or Y.
@@ -17,14 +17,23 @@ import math
 import sys
 from collections.abc import Sequence
 
-from protocol import codec
-from protocol import messages as m
-from protocol.bus import Bus, open_bus
-from protocol.config import ConfigError, OneLineParser, add_common_args, bus_from, env_of, pick, run_main, setup_logging
-from protocol.keys import Keys
+from tagswarm.protocol import codec
+from tagswarm.protocol import messages as m
+from tagswarm.protocol.bus import Bus, open_bus
+from tagswarm.protocol.config import (
+    ConfigError,
+    OneLineParser,
+    add_common_args,
+    bus_from,
+    env_of,
+    pick,
+    run_main,
+    setup_logging,
+)
+from tagswarm.protocol.keys import Keys
 
 PROG = "tagswarm goto"
-MAX_ROBOT_ID = 100_000  # protocol.messages.RobotId
+MAX_ROBOT_ID = 100_000  # tagswarm.protocol.messages.RobotId
 TICK_WAIT_S = 0.5
 
 

@@ -11,7 +11,7 @@ encoders and odometry do not see the move: a kidnapped robot.
 Joins the network with the same flags and ``TAGSWARM_*`` variables as every
 process, waits (up to ``--timeout``) until the world's liveliness token
 ``tagswarm/<run>/alive/world/0`` is visible (the world subscribes before it
-declares it), publishes one :class:`protocol.messages.WorldCommand` on
+declares it), publishes one :class:`tagswarm.protocol.messages.WorldCommand` on
 ``tagswarm/<run>/world/command`` and exits 0.  The world applies it at the
 first step whose simulation time is >= ``--at`` seconds (default: its next
 step).  ``--at`` is rounded up to a whole world tick, so a lockstep run with the
@@ -32,10 +32,11 @@ import math
 import sys
 from collections.abc import Sequence
 
-from protocol import codec
-from protocol import messages as m
-from protocol.bus import Bus, open_bus
-from protocol.config import (
+from tagswarm.goto import MAX_ROBOT_ID, wait_alive
+from tagswarm.protocol import codec
+from tagswarm.protocol import messages as m
+from tagswarm.protocol.bus import Bus, open_bus
+from tagswarm.protocol.config import (
     ConfigError,
     OneLineParser,
     add_common_args,
@@ -46,8 +47,7 @@ from protocol.config import (
     scenario_from,
     setup_logging,
 )
-from protocol.keys import Keys
-from tagswarm.goto import MAX_ROBOT_ID, wait_alive
+from tagswarm.protocol.keys import Keys
 
 PROG = "tagswarm kidnap"
 TICK_WAIT_S = 0.5

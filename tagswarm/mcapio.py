@@ -31,8 +31,8 @@ from mcap.records import Channel, Chunk, ChunkIndex, DataEnd, Footer, Message, M
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
-from protocol import messages as m
-from protocol.keys import ROOT
+from tagswarm.protocol import messages as m
+from tagswarm.protocol.keys import ROOT
 
 RAW_ENCODING: Final = "msgpack"
 SCHEMA_ENCODING: Final = "jsonschema"
@@ -83,7 +83,7 @@ def _shape_of(key: str) -> tuple[str, ...] | None:
 
 
 def message_type_for_key(key: str) -> type[m.Msg] | None:
-    """The tagswarm message type a key carries (by its shape, see :mod:`protocol.keys`), or None."""
+    """The tagswarm message type a key carries (by its shape, see :mod:`tagswarm.protocol.keys`), or None."""
     shape = _shape_of(key)
     return None if shape is None else dict(_SHAPES)[shape]
 

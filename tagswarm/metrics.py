@@ -19,7 +19,7 @@ modules that compute it (import them from here):
 Frames and units
 ----------------
 Every pose is in the MAP frame (the origin robot's first pose, or the arena frame
-when the scenario has landmarks; see :func:`protocol.layout.arena_to_map`).
+when the scenario has landmarks; see :func:`tagswarm.protocol.layout.arena_to_map`).
 Positions and errors are metres, angles radians, timestamps simulation-time
 seconds (``stamp_ns`` columns are converted).  Estimates are associated with the
 truth by timestamp (evo ``associate_trajectories``, linear/slerp interpolation of

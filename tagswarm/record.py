@@ -39,10 +39,11 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
-from protocol import codec
-from protocol import messages as m
-from protocol.bus import Bus, Received, open_bus
-from protocol.config import (
+from tagswarm.mcapio import is_tick
+from tagswarm.protocol import codec
+from tagswarm.protocol import messages as m
+from tagswarm.protocol.bus import Bus, Received, open_bus
+from tagswarm.protocol.config import (
     ConfigError,
     OneLineParser,
     add_common_args,
@@ -54,9 +55,8 @@ from protocol.config import (
     scenario_from,
     setup_logging,
 )
-from protocol.keys import Keys, split_participant
-from protocol.scenario import Scenario
-from tagswarm.mcapio import is_tick
+from tagswarm.protocol.keys import Keys, split_participant
+from tagswarm.protocol.scenario import Scenario
 from tagswarm.recordmcap import (
     RECORD_PARTICIPANT,
     RECORDER_NAME,

@@ -22,13 +22,13 @@ from typing import Any
 
 import msgspec
 
-from protocol import codec
-from protocol import messages as m
-from protocol.bus import Bus
-from protocol.geometry import Pose2, se2_compose
-from protocol.keys import Keys
-from protocol.layout import arena_to_map
-from protocol.scenario import Scenario
+from tagswarm.protocol import codec
+from tagswarm.protocol import messages as m
+from tagswarm.protocol.bus import Bus
+from tagswarm.protocol.geometry import Pose2, se2_compose
+from tagswarm.protocol.keys import Keys
+from tagswarm.protocol.layout import arena_to_map
+from tagswarm.protocol.scenario import Scenario
 from tagswarm.runformat import FUSED_COV_HEADER, RELOC_HEADER, WORLD_COMMANDS_HEADER
 
 

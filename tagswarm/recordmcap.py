@@ -22,13 +22,13 @@ import cv2
 import msgspec
 import numpy as np
 
-from protocol import codec
-from protocol import messages as m
-from protocol.config import ConfigError
-from protocol.layout import arena_to_map
-from protocol.scenario import Scenario
 from tagswarm.foxglove_views import FoxgloveViews
 from tagswarm.mcapio import META_RUN, META_STATS, McapSink
+from tagswarm.protocol import codec
+from tagswarm.protocol import messages as m
+from tagswarm.protocol.config import ConfigError
+from tagswarm.protocol.layout import arena_to_map
+from tagswarm.protocol.scenario import Scenario
 
 RECORDER_NAME: Final = "tagswarm record"  # the tool named in a recording's metadata
 RECORD_PARTICIPANT: Final = "record/0"

@@ -44,23 +44,6 @@ from typing import Any
 
 import msgspec
 
-from protocol import codec
-from protocol import messages as m
-from protocol.bus import Bus, open_bus
-from protocol.config import (
-    ConfigError,
-    OneLineParser,
-    add_common_args,
-    bus_from,
-    env_of,
-    install_stop_signals,
-    pick,
-    run_main,
-    scenario_from,
-    setup_logging,
-)
-from protocol.keys import Keys, split_participant
-from protocol.scenario import Clock, Scenario
 from tagswarm.mcapio import (
     META_RUN,
     RecordingError,
@@ -74,7 +57,24 @@ from tagswarm.mcapio import (
     remap_run,
     run_of,
 )
-from world.lockstep import AckTracker
+from tagswarm.protocol import codec
+from tagswarm.protocol import messages as m
+from tagswarm.protocol.bus import Bus, open_bus
+from tagswarm.protocol.config import (
+    ConfigError,
+    OneLineParser,
+    add_common_args,
+    bus_from,
+    env_of,
+    install_stop_signals,
+    pick,
+    run_main,
+    scenario_from,
+    setup_logging,
+)
+from tagswarm.protocol.keys import Keys, split_participant
+from tagswarm.protocol.scenario import Clock, Scenario
+from tagswarm.world.lockstep import AckTracker
 
 PROG = "tagswarm replay"
 log = logging.getLogger("tagswarm.replay")

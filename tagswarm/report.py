@@ -17,7 +17,7 @@ Writes into the run folder:
   (like the paper's Fig. 5), subsampled in time.
 
 Everything is drawn in the MAP frame (metres); the arena, given in the arena
-frame by the scenario, is moved there with :func:`protocol.layout.arena_to_map`.
+frame by the scenario, is moved there with :func:`tagswarm.protocol.layout.arena_to_map`.
 Matplotlib is used through the Agg canvas only (no GUI, no global pyplot state).
 The printed summary is :mod:`tagswarm.reportsummary`.
 """
@@ -36,10 +36,10 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 
-from protocol.config import ConfigError, OneLineParser, parse, run_main
-from protocol.layout import arena_to_map
-from protocol.scenario import Scenario, ScenarioError, convert
 from tagswarm.metrics import F64, Evaluation, RunFolderError, evaluate, load_run
+from tagswarm.protocol.config import ConfigError, OneLineParser, parse, run_main
+from tagswarm.protocol.layout import arena_to_map
+from tagswarm.protocol.scenario import Scenario, ScenarioError, convert
 from tagswarm.reportsummary import print_summary, summary_tables
 
 __all__ = ["PLOTS", "main", "plot_error_over_time", "print_summary", "summary_tables", "write_report"]

@@ -1,4 +1,4 @@
-"""``tagswarm router``: a Zenoh router (in Python, through protocol.bus) for client-mode processes.
+"""``tagswarm router``: a Zenoh router (in Python, through tagswarm.protocol.bus) for client-mode processes.
 
     tagswarm router --listen tcp/0.0.0.0:7447 --heartbeat /tmp/tagswarm-router.heartbeat
 
@@ -38,8 +38,9 @@ from pathlib import Path
 
 import msgspec
 
-from protocol.bus import BusConfig, open_bus
-from protocol.config import (
+from tagswarm import acl
+from tagswarm.protocol.bus import BusConfig, open_bus
+from tagswarm.protocol.config import (
     ConfigError,
     OneLineParser,
     add_common_args,
@@ -51,8 +52,7 @@ from protocol.config import (
     scenario_from,
     setup_logging,
 )
-from protocol.keys import Keys
-from tagswarm import acl
+from tagswarm.protocol.keys import Keys
 
 PROG = "tagswarm router"
 DEFAULT_LISTEN = "tcp/0.0.0.0:7447"

@@ -7,10 +7,10 @@ importing either's dependencies (Zenoh on one side, evo on the other).
   (x_m, y_m, yaw_rad) as the server published it, in the robot's own axes (see
   :mod:`tagswarm.covframe`); m², m·rad, rad².
 - ``relocalisations.csv`` (:data:`RELOC_HEADER`): the server's
-  :class:`~protocol.messages.Relocalisation` events; poses in the MAP frame (m,
+  :class:`~tagswarm.protocol.messages.Relocalisation` events; poses in the MAP frame (m,
   rad); ``observers`` space-separated robot ids (``-1`` = a landmark).
 - ``world_commands.csv`` (:data:`WORLD_COMMANDS_HEADER`): the
-  :class:`~protocol.messages.WorldCommand` messages seen on the network (kidnaps:
+  :class:`~tagswarm.protocol.messages.WorldCommand` messages seen on the network (kidnaps:
   teleport to / push by (x_m, y_m, yaw_rad), ARENA frame); ``received_ns`` is the
   recorder's simulation time when it arrived (a tool may stamp 0).
 """

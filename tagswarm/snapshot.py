@@ -18,11 +18,11 @@ from pupil_apriltags import Detector
 from rich.console import Console
 from rich.table import Table
 
-from protocol import codec, tags
-from protocol import messages as m
-from protocol.bus import BusConfig, open_bus
-from protocol.config import ConfigError, OneLineParser, add_common_args, env_of, pick, run_main, scenario_from
-from protocol.keys import Keys
+from tagswarm.protocol import codec, tags
+from tagswarm.protocol import messages as m
+from tagswarm.protocol.bus import BusConfig, open_bus
+from tagswarm.protocol.config import ConfigError, OneLineParser, add_common_args, env_of, pick, run_main, scenario_from
+from tagswarm.protocol.keys import Keys
 
 
 def _free_endpoint() -> str:
@@ -75,7 +75,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         out = args.out or Path("runs") / f"snapshot-{datetime.now():%Y%m%d-%H%M%S}"
         out.mkdir(parents=True, exist_ok=True)
         ep = _free_endpoint()
-        world_argv = [sys.executable, "-m", "world.node", "--listen", ep, "--run", run, "--duration", "3600"]
+        world_argv = [sys.executable, "-m", "tagswarm.world.node", "--listen", ep, "--run", run, "--duration", "3600"]
         if args.scenario:
             world_argv += ["--scenario", args.scenario]
         for o in args.overrides:

@@ -4,7 +4,7 @@ Joins the network with the same flags and ``TAGSWARM_*`` variables as every
 process (``--connect``, ``--zenoh-mode``, ``--run`` ...) as a passive
 subscriber (it declares no liveliness token, so it never joins a lockstep) and
 shows, per key: the message type (every payload is decoded once with
-:func:`protocol.codec.decode_any`; undecodable ones are shown as
+:func:`tagswarm.protocol.codec.decode_any`; undecodable ones are shown as
 ``undecodable:<kind>``, never raised), the rate, the bandwidth, the simulation
 time and a short view of the newest message (images are summarised as
 ``320x240 mono8 robot 1 front``, never dumped).  Liveliness tokens matching
@@ -38,8 +38,8 @@ from rich.console import Console
 from rich.live import Live
 from rich.table import Table
 
-from protocol.bus import Bus, open_bus
-from protocol.config import (
+from tagswarm.protocol.bus import Bus, open_bus
+from tagswarm.protocol.config import (
     ConfigError,
     OneLineParser,
     add_common_args,
@@ -50,7 +50,7 @@ from protocol.config import (
     run_main,
     setup_logging,
 )
-from protocol.keys import Keys
+from tagswarm.protocol.keys import Keys
 
 # (not in the docstring: it is the --help text) message views live in tagswarm.spyview,
 # statistics and snapshots in tagswarm.spytraffic; their public names are re-exported here

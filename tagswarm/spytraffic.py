@@ -14,8 +14,8 @@ from dataclasses import dataclass, field
 from rich.table import Table
 from rich.text import Text
 
-from protocol import codec
-from protocol import messages as m
+from tagswarm.protocol import codec
+from tagswarm.protocol import messages as m
 from tagswarm.spyview import decode, summarise, type_name
 
 LAST_WIDTH = 90

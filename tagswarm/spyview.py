@@ -12,8 +12,8 @@ from typing import Any
 
 import msgspec
 
-from protocol import codec
-from protocol import messages as m
+from tagswarm.protocol import codec
+from tagswarm.protocol import messages as m
 
 
 def _pose(x: float, y: float, yaw: float) -> str:

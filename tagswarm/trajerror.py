@@ -22,7 +22,7 @@ from evo.core.sync_method import SyncMethod
 from evo.core.trajectory import PosePath3D, PoseTrajectory3D
 from evo.core.units import Unit
 
-from protocol.geometry import se2_matrix
+from tagswarm.protocol.geometry import se2_matrix
 from tagswarm.runfolder import F64, RunData
 
 ASSOC_MAX_DIFF_S = 0.05

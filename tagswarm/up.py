@@ -25,8 +25,8 @@ from rich.console import Console
 from rich.live import Live
 from rich.table import Table
 
-from protocol.bus import BusConfig, open_bus
-from protocol.config import (
+from tagswarm.protocol.bus import BusConfig, open_bus
+from tagswarm.protocol.config import (
     ConfigError,
     OneLineParser,
     add_common_args,
@@ -36,8 +36,8 @@ from protocol.config import (
     scenario_from,
     setup_logging,
 )
-from protocol.keys import Keys
-from protocol.scenario import Scenario
+from tagswarm.protocol.keys import Keys
+from tagswarm.protocol.scenario import Scenario
 from tagswarm.recorder import Recorder
 
 BIN = Path(sys.executable).parent
@@ -54,7 +54,8 @@ def _script(name: str) -> list[str]:
     path = BIN / name
     if path.exists():
         return [str(path)]
-    module = {"tagswarm-world": "world.node", "tagswarm-agent": "agents.node", "tagswarm-server": "server.node"}[name]
+    module = {"tagswarm-world": "tagswarm.world.node", "tagswarm-agent": "tagswarm.agents.node",
+              "tagswarm-server": "tagswarm.server.node"}[name]
     return [sys.executable, "-m", module]
 
 

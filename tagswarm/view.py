@@ -12,7 +12,7 @@ camera of a selected robot with the agent's detections reprojected onto it.
 Plain HTML/JS/CSS shipped in ``tagswarm/web``: no build step, nothing fetched
 from the internet.
 
-Threads: Zenoh callbacks only enqueue (:mod:`protocol.bus`); the node's loop
+Threads: Zenoh callbacks only enqueue (:mod:`tagswarm.protocol.bus`); the node's loop
 (:meth:`ViewNode.step`) drains, decodes (bad payloads are counted per kind and
 dropped), folds messages into :class:`~tagswarm.viewstate.ViewState` and hands a
 JSON snapshot to the :class:`Hub` at most ``--rate`` times a second (default
@@ -38,10 +38,10 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Final
 
-from protocol import codec
-from protocol import messages as m
-from protocol.bus import Bus, BusConfig, Inbox
-from protocol.config import (
+from tagswarm.protocol import codec
+from tagswarm.protocol import messages as m
+from tagswarm.protocol.bus import Bus, BusConfig, Inbox
+from tagswarm.protocol.config import (
     ConfigError,
     OneLineParser,
     add_common_args,
@@ -52,8 +52,8 @@ from protocol.config import (
     scenario_from,
     serve_node,
 )
-from protocol.keys import Keys
-from protocol.scenario import Scenario
+from tagswarm.protocol.keys import Keys
+from tagswarm.protocol.scenario import Scenario
 from tagswarm.viewcam import camera_message
 from tagswarm.viewserver import Hub, WebServer
 from tagswarm.viewstate import ViewState

@@ -1,8 +1,8 @@
 """Camera thumbnails for the live web view (pure: OpenCV and numpy, no I/O).
 
-A thumbnail is one :class:`~protocol.messages.CameraImage`, downscaled to at most
+A thumbnail is one :class:`~tagswarm.protocol.messages.CameraImage`, downscaled to at most
 ``max_width`` pixels and JPEG-encoded, plus the detections the robot's agent
-reported for that very frame (its :class:`~protocol.messages.RelativeObservation`
+reported for that very frame (its :class:`~tagswarm.protocol.messages.RelativeObservation`
 messages with the frame's stamp): each observed target's tag squares are
 reprojected from the agent's estimated pose into the image, so the overlay shows
 both what was detected and how well the estimate fits the pixels.
@@ -24,10 +24,10 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from protocol import messages as m
-from protocol import tags
-from protocol.geometry import pose3_to_matrix
-from protocol.scenario import Scenario
+from tagswarm.protocol import messages as m
+from tagswarm.protocol import tags
+from tagswarm.protocol.geometry import pose3_to_matrix
+from tagswarm.protocol.scenario import Scenario
 
 #: Points closer to the lens than this (m, along the optical axis) are not drawn.
 MIN_DEPTH_M: Final = 0.02

@@ -13,8 +13,8 @@ import math
 from collections import deque
 from typing import Any, Final
 
-from protocol import messages as m
-from protocol.geometry import Pose2, se2_compose
+from tagswarm.protocol import messages as m
+from tagswarm.protocol.geometry import Pose2, se2_compose
 
 #: Events kept for the page's list (the newest ones).
 EVENTS_KEPT: Final = 20

@@ -7,7 +7,7 @@ broadcast at a bounded rate).
 
 Frames: every pose in a snapshot is in the MAP frame (the origin robot's first
 pose, or the arena frame when the scenario has landmarks; see
-:func:`protocol.layout.arena_to_map`).  Ground truth arrives in the arena frame
+:func:`tagswarm.protocol.layout.arena_to_map`).  Ground truth arrives in the arena frame
 and is converted here; odometry arrives in each robot's ``odom`` frame and is
 shown as dead reckoning started from the robot's start pose (what the recorder
 writes as ``odom_<k>.tum``: pure drift).  The scene's walls, obstacles and
@@ -20,7 +20,7 @@ events and kidnaps (world commands) go to an :class:`~tagswarm.viewevents.EventL
 each robot's share of time localised (see :mod:`tagswarm.localised`) is counted
 from the truth samples the view received.
 
-Run changes: a :class:`~protocol.messages.Tick` with a new ``run_id`` (every
+Run changes: a :class:`~tagswarm.protocol.messages.Tick` with a new ``run_id`` (every
 world start draws a new one) or a clock that goes back (a restarted system, a
 replay started again) resets everything but the reject counts and bumps
 ``epoch``, so the page clears its trails.
@@ -33,14 +33,14 @@ from collections import deque
 from dataclasses import dataclass, field
 from typing import Any, Final
 
-from protocol import codec
-from protocol import messages as m
-from protocol.geometry import Pose2, se2_compose, se2_inverse
-from protocol.keys import Keys
-from protocol.layout import arena_to_map, footprint_radius, start_poses, wall_boxes
-from protocol.scenario import Scenario
 from tagswarm.covframe import ELLIPSE_SCALE_95, covariance_ellipse
 from tagswarm.localised import LOCALISED_HOLD_S, LOCALISED_M, LocalisedClock
+from tagswarm.protocol import codec
+from tagswarm.protocol import messages as m
+from tagswarm.protocol.geometry import Pose2, se2_compose, se2_inverse
+from tagswarm.protocol.keys import Keys
+from tagswarm.protocol.layout import arena_to_map, footprint_radius, start_poses, wall_boxes
+from tagswarm.protocol.scenario import Scenario
 from tagswarm.viewevents import MARKER_TTL_S, EventLog
 
 __all__ = ["EDGE_TTL_NS", "ELLIPSE_SCALE_95", "MAX_ROBOTS", "RobotView", "ViewState", "covariance_ellipse"]

@@ -6,9 +6,9 @@ import numpy as np
 from numpy.typing import NDArray
 from pupil_apriltags import Detector
 
-from protocol import tags
-from protocol.geometry import Mat, transform
-from protocol.scenario import Scenario
+from tagswarm.protocol import tags
+from tagswarm.protocol.geometry import Mat, transform
+from tagswarm.protocol.scenario import Scenario
 
 _DETECTORS: dict[str, Detector] = {}
 
@@ -56,6 +56,6 @@ def facing(observer_cam: Mat, target_pose: Mat) -> tuple[set[tags.Face], set[tag
 
 
 def pose_from(pos: tuple[float, float, float], quat: tuple[float, float, float, float]) -> Mat:
-    from protocol.geometry import quat_to_rot
+    from tagswarm.protocol.geometry import quat_to_rot
 
     return transform(quat_to_rot(quat), pos)

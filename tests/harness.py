@@ -11,10 +11,10 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
-from protocol import codec
-from protocol import messages as m
-from protocol.bus import Bus, BusConfig, open_bus
-from protocol.keys import Keys
+from tagswarm.protocol import codec
+from tagswarm.protocol import messages as m
+from tagswarm.protocol.bus import Bus, BusConfig, open_bus
+from tagswarm.protocol.keys import Keys
 
 BIN = Path(sys.executable).parent
 

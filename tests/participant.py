@@ -6,11 +6,11 @@ from __future__ import annotations
 import argparse
 import threading
 
-from protocol import codec
-from protocol import messages as m
-from protocol.bus import BusConfig, open_bus
-from protocol.config import install_stop_signals
-from protocol.keys import Keys
+from tagswarm.protocol import codec
+from tagswarm.protocol import messages as m
+from tagswarm.protocol.bus import BusConfig, open_bus
+from tagswarm.protocol.config import install_stop_signals
+from tagswarm.protocol.keys import Keys
 
 
 def main() -> int:

@@ -8,7 +8,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from protocol.geometry import Pose2, se2_between, se2_compose
+from tagswarm.protocol.geometry import Pose2, se2_between, se2_compose
 
 
 @dataclass

@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from protocol import tags
+from tagswarm.protocol import tags
 
 _ARUCO_DICT = {
     "tag36h11": cv2.aruco.DICT_APRILTAG_36h11,
@@ -63,7 +63,7 @@ def _write_obj(
     atlas: NDArray[np.uint8],
 ) -> Path:
     """Write ``stem.obj/.mtl/.png``: quad i (corners TR, TL, BL, BR as seen from
-    outside, see :func:`protocol.tags.square_corners`) gets atlas cell i."""
+    outside, see :func:`tagswarm.protocol.tags.square_corners`) gets atlas cell i."""
     folder.mkdir(parents=True, exist_ok=True)
     png, mtl, obj = folder / f"{stem}.png", folder / f"{stem}.mtl", folder / f"{stem}.obj"
     cv2.imwrite(str(png), atlas)
@@ -87,8 +87,8 @@ def _write_obj(
 
 
 def cube_mesh(folder: Path, family: str, ids: tuple[int, ...], edge_m: float, tag_m: float) -> Path:
-    """OBJ of a tag cube (cube frame, see :mod:`protocol.tags`) carrying ``ids`` in
-    :class:`~protocol.tags.Face` order; returns the OBJ path."""
+    """OBJ of a tag cube (cube frame, see :mod:`tagswarm.protocol.tags`) carrying ``ids`` in
+    :class:`~tagswarm.protocol.tags.Face` order; returns the OBJ path."""
     faces = [face_image(family, tid, edge_m, tag_m) for tid in ids]
     quads = [tags.cube_face_corners(f, edge_m) for f in tags.Face]
     return _write_obj(folder, f"cube_{family}_{'_'.join(map(str, ids))}_{edge_m:g}_{tag_m:g}", quads, _atlas(faces))

@@ -6,8 +6,8 @@ import math
 
 import numpy as np
 
-from protocol.geometry import Mat, transform
-from protocol.scenario import Camera
+from tagswarm.protocol.geometry import Mat, transform
+from tagswarm.protocol.scenario import Camera
 
 #: Principal-point offsets (px) of pybullet's TinyRenderer relative to (W/2, H/2),
 #: in OpenCV's pixel convention (pixel centres at integer coordinates).

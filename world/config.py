@@ -7,8 +7,8 @@ from collections.abc import Mapping, Sequence
 
 import msgspec
 
-from protocol.bus import BusConfig
-from protocol.config import (
+from tagswarm.protocol.bus import BusConfig
+from tagswarm.protocol.config import (
     ConfigError,
     OneLineParser,
     add_common_args,
@@ -18,8 +18,8 @@ from protocol.config import (
     pick,
     scenario_from,
 )
-from protocol.keys import Keys
-from protocol.scenario import Scenario
+from tagswarm.protocol.keys import Keys
+from tagswarm.protocol.scenario import Scenario
 
 
 class WorldConfig(msgspec.Struct, frozen=True, kw_only=True):

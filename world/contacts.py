@@ -26,7 +26,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Final
 
-from world._pybullet import pb
+from tagswarm.world._pybullet import pb
 
 TOUCH_M: Final = 1e-3
 """A pair starts touching when its nearest contact point is at most this far apart

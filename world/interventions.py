@@ -1,6 +1,6 @@
 """Teleports and pushes waiting to be applied to the world (pure logic, no I/O).
 
-Two sources feed one schedule: :class:`protocol.messages.WorldCommand` messages
+Two sources feed one schedule: :class:`tagswarm.protocol.messages.WorldCommand` messages
 (operator, tests; due at their ``stamp_ns``, 0 meaning "the next step") and the
 scenario's ``[[events]]`` (due at ``at_s``, taken as the first tick ``k`` with
 ``k / tick_hz >= at_s``: a tick's ``stamp_ns`` is ``k`` times the rounded tick
@@ -20,9 +20,9 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Final, Literal
 
-from protocol import messages as m
-from protocol.geometry import wrap_angle
-from protocol.scenario import Event
+from tagswarm.protocol import messages as m
+from tagswarm.protocol.geometry import wrap_angle
+from tagswarm.protocol.scenario import Event
 
 MAX_PENDING: Final = 1024
 """Interventions waiting at most; more are refused (a flood of far-future commands)."""

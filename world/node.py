@@ -2,9 +2,9 @@
 
 One cycle (:meth:`WorldNode.step`): apply the wheel commands that arrived,
 advance physics one tick, apply the teleports and pushes now due
-(:class:`~protocol.messages.WorldCommand` messages and the scenario's
-``[[events]]``, see :mod:`world.interventions`), publish ground truth, encoder
-ticks and due camera frames, then the :class:`~protocol.messages.Tick`; in
+(:class:`~tagswarm.protocol.messages.WorldCommand` messages and the scenario's
+``[[events]]``, see :mod:`tagswarm.world.interventions`), publish ground truth, encoder
+ticks and due camera frames, then the :class:`~tagswarm.protocol.messages.Tick`; in
 lockstep mode wait until every live participant acknowledged it.  So the state
 published for the first step whose time is >= an intervention's due time
 already has the robot where it was put.
@@ -12,7 +12,7 @@ already has the robot where it was put.
 Status counters besides the rejects: ``world_commands`` / ``world_events``
 (interventions applied from the network / the scenario), ``world_command_rejected``
 (refused, either source: unknown robot, outside the arena, overlapping something,
-queue full; each logged with why), the contact events of :mod:`world.contacts`
+queue full; each logged with why), the contact events of :mod:`tagswarm.world.contacts`
 (``contacts_robot_robot``, ``contacts_robot_obstacle``, ``contacts_robot_wall``,
 ``contacts_robot_<id>``).
 """
@@ -33,17 +33,17 @@ from pathlib import Path
 
 import msgspec
 
-from protocol import codec
-from protocol import messages as m
-from protocol.bus import Bus, open_bus
-from protocol.config import install_stop_signals, run_main, setup_logging
-from protocol.keys import Keys
-from protocol.scenario import Camera
-from world.config import WorldConfig, build_config
-from world.interventions import Schedule
-from world.lockstep import AckTracker
-from world.render import Renderer, image_message, pose_matrix
-from world.sim import PlacementError, Sim
+from tagswarm.protocol import codec
+from tagswarm.protocol import messages as m
+from tagswarm.protocol.bus import Bus, open_bus
+from tagswarm.protocol.config import install_stop_signals, run_main, setup_logging
+from tagswarm.protocol.keys import Keys
+from tagswarm.protocol.scenario import Camera
+from tagswarm.world.config import WorldConfig, build_config
+from tagswarm.world.interventions import Schedule
+from tagswarm.world.lockstep import AckTracker
+from tagswarm.world.render import Renderer, image_message, pose_matrix
+from tagswarm.world.sim import PlacementError, Sim
 
 log = logging.getLogger("tagswarm.world")
 MAX_REJECT_LOGS = 50  # refused interventions logged one by one, then only counted
@@ -336,7 +336,7 @@ def spawn_render_workers(config: WorldConfig, folder: Path) -> list[subprocess.P
     endpoints = [e for e in config.bus.listen if not e.endswith(":0")] + list(config.bus.connect)
     procs = []
     for i in range(s.render.workers):
-        argv = [sys.executable, "-m", "world.render_worker", "--worker-index", str(i), "--scenario", str(scen),
+        argv = [sys.executable, "-m", "tagswarm.world.render_worker", "--worker-index", str(i), "--scenario", str(scen),
                 "--run", config.run, "--log-level", config.log_level]
         for e in endpoints:
             argv += ["--connect", e]

@@ -20,13 +20,13 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from protocol.geometry import Mat, matrix_to_pose3, quat_to_rot, transform
-from protocol.layout import wall_boxes
-from protocol.messages import CameraImage
-from protocol.scenario import Camera, Scenario
-from world import assets
-from world._pybullet import pb
-from world.camera import intrinsics, mount_transform, vfov_deg
+from tagswarm.protocol.geometry import Mat, matrix_to_pose3, quat_to_rot, transform
+from tagswarm.protocol.layout import wall_boxes
+from tagswarm.protocol.messages import CameraImage
+from tagswarm.protocol.scenario import Camera, Scenario
+from tagswarm.world import assets
+from tagswarm.world._pybullet import pb
+from tagswarm.world.camera import intrinsics, mount_transform, vfov_deg
 
 WALL_RGBA = (0.55, 0.55, 0.6, 1.0)
 OBSTACLE_RGBA = (0.45, 0.35, 0.3, 1.0)

@@ -1,13 +1,13 @@
 """A render worker process: a visual-only replica of the scene that renders a
 subset of the robots' cameras and publishes them under the robots' image keys.
 
-The world sends :class:`~protocol.messages.RenderPoses` (all robot poses plus
+The world sends :class:`~tagswarm.protocol.messages.RenderPoses` (all robot poses plus
 the cameras this worker must render) on ``world/render/<i>``; the worker renders,
-publishes each :class:`~protocol.messages.CameraImage`, then acknowledges the
+publishes each :class:`~tagswarm.protocol.messages.CameraImage`, then acknowledges the
 step as participant ``render/<i>``.  In realtime mode the request inbox is
 newest-only, so a slow worker skips frames instead of queueing them.  Its
 counters (frames, rejected requests per kind) go out as an
-:class:`~protocol.messages.AgentStatus` with role ``render/<i>`` on the world's
+:class:`~tagswarm.protocol.messages.AgentStatus` with role ``render/<i>`` on the world's
 status key, every simulated second and when it stops.
 """
 
@@ -21,10 +21,10 @@ from collections.abc import Mapping, Sequence
 
 import msgspec
 
-from protocol import codec
-from protocol import messages as m
-from protocol.bus import Bus, BusConfig
-from protocol.config import (
+from tagswarm.protocol import codec
+from tagswarm.protocol import messages as m
+from tagswarm.protocol.bus import Bus, BusConfig
+from tagswarm.protocol.config import (
     ConfigError,
     OneLineParser,
     add_common_args,
@@ -35,9 +35,9 @@ from protocol.config import (
     scenario_from,
     serve_node,
 )
-from protocol.keys import Keys
-from protocol.scenario import Scenario
-from world.render import Renderer, image_message, pose_matrix
+from tagswarm.protocol.keys import Keys
+from tagswarm.protocol.scenario import Scenario
+from tagswarm.world.render import Renderer, image_message, pose_matrix
 
 log = logging.getLogger("tagswarm.render")
 STATUS_PERIOD_NS = 1_000_000_000

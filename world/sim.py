@@ -15,7 +15,7 @@ freely when the robot is blocked, so dead reckoning drifts like a real robot's.
 
 :meth:`Sim.place_robot` moves a robot by hand (teleport / push: a kidnapped
 robot) without turning its wheels.  Contact events (robot–robot, –obstacle,
-–wall) are counted after every physics step by :mod:`world.contacts`.
+–wall) are counted after every physics step by :mod:`tagswarm.world.contacts`.
 
 Frames: arena (world) frame, z up, origin at the arena centre.  A robot's base
 frame sits on the floor at the chassis centre, x forward, y left.
@@ -28,11 +28,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from protocol.geometry import wrap_angle
-from protocol.layout import start_poses, wall_boxes
-from protocol.scenario import Scenario
-from world._pybullet import pb
-from world.contacts import ContactCounter, StaticBox
+from tagswarm.protocol.geometry import wrap_angle
+from tagswarm.protocol.layout import start_poses, wall_boxes
+from tagswarm.protocol.scenario import Scenario
+from tagswarm.world._pybullet import pb
+from tagswarm.world.contacts import ContactCounter, StaticBox
 
 CONTACT_SLACK_M = 0.05
 """Added to the distance robots can cover in a tick when the contact broad phase

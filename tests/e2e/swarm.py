@@ -23,9 +23,9 @@ from typing import IO, Any
 import msgspec
 import numpy as np
 
-from protocol.bus import Bus, BusConfig, open_bus
-from protocol.keys import Keys
-from protocol.scenario import Scenario, load_scenario
+from tagswarm.protocol.bus import Bus, BusConfig, open_bus
+from tagswarm.protocol.keys import Keys
+from tagswarm.protocol.scenario import Scenario, load_scenario
 from tagswarm.recorder import Recorder
 from tests.harness import endpoint, script
 

@@ -6,9 +6,9 @@ import signal
 from contextlib import ExitStack
 from pathlib import Path
 
-from protocol import codec
-from protocol import messages as m
-from protocol.keys import Keys
+from tagswarm.protocol import codec
+from tagswarm.protocol import messages as m
+from tagswarm.protocol.keys import Keys
 from tests.harness import client, endpoint, process, script, wait_alive
 
 SCEN = ["--set", "robots.count=2", "--duration", "120"]

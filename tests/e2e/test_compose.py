@@ -23,15 +23,15 @@ from typing import Any
 
 import pytest
 
-from protocol import codec
-from protocol import messages as m
-from protocol.bus import BusConfig, open_bus
-from protocol.geometry import se2_compose
-from protocol.keys import Keys
-from protocol.layout import arena_to_map
+from tagswarm.protocol import codec
+from tagswarm.protocol import messages as m
+from tagswarm.protocol.bus import BusConfig, open_bus
+from tagswarm.protocol.geometry import se2_compose
+from tagswarm.protocol.keys import Keys
+from tagswarm.protocol.layout import arena_to_map
+from tagswarm.world.config import build_config as world_config
 from tests.harness import BIN, free_port, script
 from tests.unit.test_compose import PASSWORD_FILE, ROUTER_ENDPOINT, load_compose, service_env
-from world.config import build_config as world_config
 
 DURATION_S = 20.0
 MAX_ERROR_M = 0.15

@@ -21,9 +21,9 @@ from typing import Any
 
 import pytest
 
-from protocol import codec
-from protocol import messages as m
-from protocol.bus import DEFAULT_LEASE_MS
+from tagswarm.protocol import codec
+from tagswarm.protocol import messages as m
+from tagswarm.protocol.bus import DEFAULT_LEASE_MS
 from tests.e2e.swarm import PAPER_DURATION_S, PAPER_SEED, Swarm, clean_run, errors, rms, scenario, tum
 
 VICTIM = 1

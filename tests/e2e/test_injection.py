@@ -36,10 +36,10 @@ from typing import Any
 
 import msgspec
 
-from protocol import codec
-from protocol import messages as m
-from protocol.bus import Bus
-from protocol.keys import Keys
+from tagswarm.protocol import codec
+from tagswarm.protocol import messages as m
+from tagswarm.protocol.bus import Bus
+from tagswarm.protocol.keys import Keys
 from tests.harness import client, endpoint, script, wait_alive
 
 ROBOTS = (0, 1, 2, 3)

@@ -10,10 +10,10 @@ from pathlib import Path
 
 import pytest
 
-from protocol import codec
-from protocol import messages as m
-from protocol.bus import Received
-from protocol.keys import Keys
+from tagswarm.protocol import codec
+from tagswarm.protocol import messages as m
+from tagswarm.protocol.bus import Received
+from tagswarm.protocol.keys import Keys
 from tests.harness import client, endpoint, process, script, world_argv
 
 SCENE = ['clock.mode="lockstep"', 'clock.participants=["agent/0"]', "clock.ack_timeout_s=60",

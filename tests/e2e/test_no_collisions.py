@@ -12,8 +12,8 @@ from pathlib import Path
 
 import numpy as np
 
-from protocol.layout import footprint_radius
-from protocol.scenario import load_scenario
+from tagswarm.protocol.layout import footprint_radius
+from tagswarm.protocol.scenario import load_scenario
 from tests.harness import script
 
 ARGS = ["--robots", "8", "--set", 'robots.placement="grid"', "--duration", "20", "--clock", "lockstep", "--seed", "2"]

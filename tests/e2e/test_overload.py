@@ -14,8 +14,8 @@ from pathlib import Path
 import numpy as np
 import psutil
 
-from protocol import codec
-from protocol import messages as m
+from tagswarm.protocol import codec
+from tagswarm.protocol import messages as m
 from tests.e2e.swarm import Swarm, scenario
 
 SLOW = 1

@@ -7,11 +7,11 @@ from pathlib import Path
 
 import numpy as np
 
-from protocol import codec
-from protocol import messages as m
-from protocol.keys import Keys
+from tagswarm.protocol import codec
+from tagswarm.protocol import messages as m
+from tagswarm.protocol.keys import Keys
+from tagswarm.world.node import due
 from tests.harness import Participant, client, endpoint, process, script, world_argv
-from world.node import due
 
 SCENE = ['clock.mode="lockstep"', 'clock.participants=["agent/0"]', "robots.count=4", "seed=5",
          'robot.cameras=[{name="front", rate_hz=10}, {name="rear", yaw_deg=180, rate_hz=5}]', "duration_s=30"]

@@ -20,14 +20,14 @@ import msgspec
 import pytest
 from mcap.reader import make_reader
 
-from protocol import codec
-from protocol import messages as m
-from protocol.bus import Bus
-from protocol.geometry import se2_compose
-from protocol.keys import Keys
-from protocol.layout import arena_to_map
-from protocol.scenario import load_scenario
 from tagswarm.mcapio import iter_raw, keyexpr_matches, remap_run, verify
+from tagswarm.protocol import codec
+from tagswarm.protocol import messages as m
+from tagswarm.protocol.bus import Bus
+from tagswarm.protocol.geometry import se2_compose
+from tagswarm.protocol.keys import Keys
+from tagswarm.protocol.layout import arena_to_map
+from tagswarm.protocol.scenario import load_scenario
 from tagswarm.replay import recorded_scenario
 from tests.harness import client, endpoint, free_port, process, script, wait_alive
 

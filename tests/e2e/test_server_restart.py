@@ -23,15 +23,15 @@ from collections.abc import Callable
 from contextlib import ExitStack
 from pathlib import Path
 
-from protocol import codec
-from protocol import messages as m
-from protocol.bus import BusConfig, open_bus
-from protocol.geometry import Pose2, se2_compose, se2_inverse
-from protocol.keys import Keys
-from protocol.layout import arena_to_map
-from server import journal as jr
-from server.config import build_config
-from server.node import make_fusion
+from tagswarm.protocol import codec
+from tagswarm.protocol import messages as m
+from tagswarm.protocol.bus import BusConfig, open_bus
+from tagswarm.protocol.geometry import Pose2, se2_compose, se2_inverse
+from tagswarm.protocol.keys import Keys
+from tagswarm.protocol.layout import arena_to_map
+from tagswarm.server import journal as jr
+from tagswarm.server.config import build_config
+from tagswarm.server.node import make_fusion
 from tests.harness import endpoint, process, script
 
 ROBOTS = (0, 1, 2, 3)

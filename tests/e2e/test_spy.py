@@ -20,11 +20,11 @@ from pathlib import Path
 import msgspec
 import pytest
 
-from protocol import codec
-from protocol import messages as m
-from protocol.bus import Inbox
-from protocol.keys import Keys
 from tagswarm import spy
+from tagswarm.protocol import codec
+from tagswarm.protocol import messages as m
+from tagswarm.protocol.bus import Inbox
+from tagswarm.protocol.keys import Keys
 from tests.harness import client, endpoint, script, wait_alive
 
 ROBOTS = (0, 1)
@@ -319,7 +319,7 @@ class _Tty(io.StringIO):
 
 
 class _FakeBus:
-    """Just enough of protocol.bus.Bus for a Spy: two inboxes fed by the test."""
+    """Just enough of tagswarm.protocol.bus.Bus for a Spy: two inboxes fed by the test."""
 
     def __init__(self) -> None:
         wake = threading.Condition()

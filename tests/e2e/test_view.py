@@ -42,13 +42,13 @@ import pytest
 from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import connect as ws_connect
 
-from protocol import codec
-from protocol import messages as m
-from protocol.bus import Bus
-from protocol.geometry import Pose2, se2_compose
-from protocol.keys import Keys
-from protocol.layout import arena_to_map
-from protocol.scenario import load_scenario
+from tagswarm.protocol import codec
+from tagswarm.protocol import messages as m
+from tagswarm.protocol.bus import Bus
+from tagswarm.protocol.geometry import Pose2, se2_compose
+from tagswarm.protocol.keys import Keys
+from tagswarm.protocol.layout import arena_to_map
+from tagswarm.protocol.scenario import load_scenario
 from tests.harness import client, endpoint, free_port, script
 
 #: Debian's chromium (scripts/setup.sh installs it); VIEW_TEST_CHROMIUM points elsewhere (tests of the gate)

@@ -13,12 +13,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from agents.odometry import DiffDriveOdometry, DiffDriveParams
-from protocol import codec, tags
-from protocol import messages as m
-from protocol.geometry import pose3_to_matrix
-from protocol.keys import Keys
-from protocol.scenario import load_scenario
+from tagswarm.agents.odometry import DiffDriveOdometry, DiffDriveParams
+from tagswarm.protocol import codec, tags
+from tagswarm.protocol import messages as m
+from tagswarm.protocol.geometry import pose3_to_matrix
+from tagswarm.protocol.keys import Keys
+from tagswarm.protocol.scenario import load_scenario
 from tests.geometry_check import detector, facing, project, tag_owner, world_corners
 from tests.harness import Participant, client, endpoint, process, script, world_argv
 

@@ -14,8 +14,8 @@ import math
 
 import pytest
 
-from protocol import codec
-from protocol import messages as m
+from tagswarm.protocol import codec
+from tagswarm.protocol import messages as m
 from tests.e2e.swarm import PAPER_DURATION_S, PAPER_SEED, Swarm, clean_run, errors, scenario
 
 KILL_AT_S = 6.0

@@ -16,9 +16,9 @@ from pathlib import Path
 
 import pytest
 
-from protocol.bus import Bus, BusConfig, BusError, Inbox, open_bus
-from protocol.keys import Keys
 from tagswarm import acl, router
+from tagswarm.protocol.bus import Bus, BusConfig, BusError, Inbox, open_bus
+from tagswarm.protocol.keys import Keys
 from tests.harness import endpoint
 
 ROBOTS = (0, 1, 2)

@@ -8,13 +8,13 @@ from contextlib import ExitStack, contextmanager
 
 import pytest
 
-from agents.behaviour import Mode
-from agents.config import build_config
-from agents.node import AgentNode
-from protocol import codec
-from protocol import messages as m
-from protocol.bus import Bus, BusConfig, open_bus
-from protocol.keys import Keys
+from tagswarm.agents.behaviour import Mode
+from tagswarm.agents.config import build_config
+from tagswarm.agents.node import AgentNode
+from tagswarm.protocol import codec
+from tagswarm.protocol import messages as m
+from tagswarm.protocol.bus import Bus, BusConfig, open_bus
+from tagswarm.protocol.keys import Keys
 from tests.harness import endpoint, wait_alive
 
 RID = 1

@@ -5,13 +5,13 @@ from __future__ import annotations
 import itertools
 import math
 
-from agents.config import build_config
-from agents.node import AgentNode
-from protocol import codec
-from protocol import messages as m
-from protocol.bus import BusConfig, open_bus
-from protocol.geometry import se2_compose
-from protocol.keys import Keys
+from tagswarm.agents.config import build_config
+from tagswarm.agents.node import AgentNode
+from tagswarm.protocol import codec
+from tagswarm.protocol import messages as m
+from tagswarm.protocol.bus import BusConfig, open_bus
+from tagswarm.protocol.geometry import se2_compose
+from tagswarm.protocol.keys import Keys
 from tests.harness import endpoint, wait_alive
 
 

@@ -7,9 +7,9 @@ from __future__ import annotations
 import math
 import time
 
-from protocol.bus import Bus, BusConfig, Inbox, open_bus
-from protocol.keys import Keys
-from protocol.netfaults import NetFaults
+from tagswarm.protocol.bus import Bus, BusConfig, Inbox, open_bus
+from tagswarm.protocol.keys import Keys
+from tagswarm.protocol.netfaults import NetFaults
 from tests.harness import endpoint
 
 N = 600

@@ -13,11 +13,11 @@ from pathlib import Path
 
 import pytest
 
-from protocol.bus import BusConfig, open_bus
-from server import checkpoint as ckpt
-from server import journal as jr
-from server.config import build_config
-from server.node import ServerNode
+from tagswarm.protocol.bus import BusConfig, open_bus
+from tagswarm.server import checkpoint as ckpt
+from tagswarm.server import journal as jr
+from tagswarm.server.config import build_config
+from tagswarm.server.node import ServerNode
 from tests.harness import endpoint
 
 COV = (1e-4, 0.0, 0.0, 0.0, 1e-4, 0.0, 0.0, 0.0, 1e-4)

@@ -16,13 +16,13 @@ from pathlib import Path
 
 import pytest
 
-from protocol import codec
-from protocol import messages as m
-from protocol.bus import Bus, BusConfig, open_bus
-from protocol.keys import Keys
-from server import journal as jr
-from server.config import build_config
-from server.node import ServerNode
+from tagswarm.protocol import codec
+from tagswarm.protocol import messages as m
+from tagswarm.protocol.bus import Bus, BusConfig, open_bus
+from tagswarm.protocol.keys import Keys
+from tagswarm.server import journal as jr
+from tagswarm.server.config import build_config
+from tagswarm.server.node import ServerNode
 from tests.harness import client, endpoint
 
 COV = (1e-4, 0, 0, 0, 1e-4, 0, 0, 0, 1e-4)
@@ -152,7 +152,7 @@ def test_new_runs_early_inputs_are_carried_into_the_fresh_map(net: tuple[str, Bu
         assert after[:3] == ["Odometry", "Odometry", "Observation"]
         fresh = build_config(["--run", RUN, "--set", "robots.count=2", "--set", 'robots.placement="ring"',
                               "--set", "missions=[]"], {})
-        from server.node import make_fusion
+        from tagswarm.server.node import make_fusion
 
         fusion = make_fusion(fresh)
         for r in records[1:]:

@@ -17,12 +17,12 @@ from collections.abc import Iterator
 
 import pytest
 
-from protocol import codec
-from protocol import messages as m
-from protocol.bus import Bus, BusConfig, open_bus
-from protocol.keys import Keys
-from server.config import build_config
-from server.node import ServerNode
+from tagswarm.protocol import codec
+from tagswarm.protocol import messages as m
+from tagswarm.protocol.bus import Bus, BusConfig, open_bus
+from tagswarm.protocol.keys import Keys
+from tagswarm.server.config import build_config
+from tagswarm.server.node import ServerNode
 from tests.harness import client, endpoint
 
 COV = (1e-4, 0, 0, 0, 1e-4, 0, 0, 0, 1e-4)

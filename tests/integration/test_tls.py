@@ -11,9 +11,9 @@ from pathlib import Path
 
 import pytest
 
-from protocol.bus import BusConfig, BusError, open_bus
-from protocol.keys import Keys
 from tagswarm import acl, router
+from tagswarm.protocol.bus import BusConfig, BusError, open_bus
+from tagswarm.protocol.keys import Keys
 from tests.harness import free_port
 
 DEPLOY = Path(__file__).resolve().parents[2] / "deploy"

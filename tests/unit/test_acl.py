@@ -10,9 +10,9 @@ from pathlib import Path
 import pytest
 import zenoh
 
-from protocol.bus import key_matches
-from protocol.keys import Keys
 from tagswarm import acl, router
+from tagswarm.protocol.bus import key_matches
+from tagswarm.protocol.keys import Keys
 
 ROOT = Path(__file__).resolve().parents[2]
 DEPLOY = ROOT / "deploy"
@@ -125,7 +125,7 @@ def test_router_security_mistakes_exit_2_with_one_line(argv: list[str], message:
 
 
 def test_client_credentials_from_flags_and_environment(tmp_path: Path) -> None:
-    from world.config import build_config
+    from tagswarm.world.config import build_config
 
     pw = tmp_path / "pw"
     pw.write_text("s3cret\n")
@@ -134,7 +134,7 @@ def test_client_credentials_from_flags_and_environment(tmp_path: Path) -> None:
     assert "s3cret" not in repr(c)  # the config holds the file, never the password
     c = build_config([], {"TAGSWARM_ZENOH_USER": "agent0", "TAGSWARM_ZENOH_PASSWORD_FILE": str(pw)})
     assert (c.bus.user, c.bus.password_file) == ("agent0", str(pw))
-    from protocol.config import ConfigError
+    from tagswarm.protocol.config import ConfigError
     with pytest.raises(ConfigError, match="cannot read"):
         build_config(["--zenoh-user", "world", "--zenoh-password-file", str(tmp_path / "missing")], {})
     with pytest.raises(ConfigError, match="no ':'"):

@@ -9,13 +9,13 @@ import math
 
 import pytest
 
-from agents.avoid import Avoider, Box, Neighbour, box_distance, static_boxes
-from agents.behaviour import Behaviour, wheel_speeds
-from agents.neighbours import NeighbourTracker
-from protocol import messages as m
-from protocol.geometry import Pose2, se2_compose
-from protocol.layout import arena_to_map, footprint_radius, start_poses
-from protocol.scenario import Agent, Mission, Robot, load_scenario
+from tagswarm.agents.avoid import Avoider, Box, Neighbour, box_distance, static_boxes
+from tagswarm.agents.behaviour import Behaviour, wheel_speeds
+from tagswarm.agents.neighbours import NeighbourTracker
+from tagswarm.protocol import messages as m
+from tagswarm.protocol.geometry import Pose2, se2_compose
+from tagswarm.protocol.layout import arena_to_map, footprint_radius, start_poses
+from tagswarm.protocol.scenario import Agent, Mission, Robot, load_scenario
 
 ROBOT = Robot()
 FOOT = footprint_radius(ROBOT)

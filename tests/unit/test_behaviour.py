@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import math
 
-from agents.avoid import Neighbour
-from agents.behaviour import Behaviour, Mode, go_to, wheel_speeds
-from protocol.geometry import se2_compose
-from protocol.layout import footprint_radius
-from protocol.scenario import Agent, Mission, Robot
+from tagswarm.agents.avoid import Neighbour
+from tagswarm.agents.behaviour import Behaviour, Mode, go_to, wheel_speeds
+from tagswarm.protocol.geometry import se2_compose
+from tagswarm.protocol.layout import footprint_radius
+from tagswarm.protocol.scenario import Agent, Mission, Robot
 
 CFG = Agent(fix_threshold=10, search_speed_rad_s=1.0, search_max_sweep_rad=6.3)
 ROBOT = Robot()

@@ -11,12 +11,12 @@ import time
 
 import pytest
 
-from protocol.bus import BusConfig, BusError, default_fault_keys, key_matches, net_faults
-from protocol.config import ConfigError
-from protocol.keys import Keys
-from protocol.netfaults import NetFaults
 from tagswarm import router
-from world.config import build_config
+from tagswarm.protocol.bus import BusConfig, BusError, default_fault_keys, key_matches, net_faults
+from tagswarm.protocol.config import ConfigError
+from tagswarm.protocol.keys import Keys
+from tagswarm.protocol.netfaults import NetFaults
+from tagswarm.world.config import build_config
 
 N = 4000
 

@@ -16,9 +16,9 @@ import msgspec
 import numpy as np
 import pytest
 
-from server import checkpoint as ckpt
-from server import journal as jr
-from server.fusion import Fusion, FusionParams
+from tagswarm.server import checkpoint as ckpt
+from tagswarm.server import journal as jr
+from tagswarm.server.fusion import Fusion, FusionParams
 from tests.synthetic import SyntheticSwarm
 
 N = 4

@@ -1,4 +1,4 @@
-"""protocol.codec: round trips, typed rejects and fuzzing (no network)."""
+"""tagswarm.protocol.codec: round trips, typed rejects and fuzzing (no network)."""
 
 from __future__ import annotations
 
@@ -13,8 +13,8 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from protocol import codec
-from protocol import messages as m
+from tagswarm.protocol import codec
+from tagswarm.protocol import messages as m
 
 KINDS = {"oversized", "malformed", "non_finite", "inconsistent"}
 FUZZ = settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.too_slow])
@@ -481,10 +481,10 @@ def test_reject_counter_defaults_to_codec_logger(caplog: pytest.LogCaptureFixtur
     counter = codec.RejectCounter()
     assert counter.total() == 0
     assert counter.as_counters() == {}
-    with caplog.at_level(logging.WARNING, logger="protocol.codec"):
+    with caplog.at_level(logging.WARNING, logger="tagswarm.protocol.codec"):
         counter.reject("oversized", "9 MB")
         counter.reject("oversized", "10 MB")
-    records = [r for r in caplog.records if r.name == "protocol.codec"]
+    records = [r for r in caplog.records if r.name == "tagswarm.protocol.codec"]
     assert [r.getMessage().count("oversized") for r in records] == [1]
     assert counter.counts["oversized"] == 2
 
@@ -505,7 +505,7 @@ def test_reject_counter_with_real_decode_errors() -> None:
 
 
 def test_reject_counter_decoded_yields_good_and_counts_bad() -> None:
-    from protocol.bus import Received
+    from tagswarm.protocol.bus import Received
 
     good = BY_TYPE[m.TickAck]
     items = [Received("k/1", codec.encode(good)), Received("k/2", b"\xff\x00"), Received("k/3", b"\xc1")]

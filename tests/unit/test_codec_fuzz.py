@@ -1,6 +1,6 @@
 """Property-based fuzzing of every wire decoder (no network).
 
-The property, for every message type ``cls`` in ``protocol.messages`` and for
+The property, for every message type ``cls`` in ``tagswarm.protocol.messages`` and for
 ``decode_any``: ``codec.decode(cls, payload)`` returns a valid ``cls`` (it round
 trips) or raises ``codec.DecodeError`` whose ``kind`` is one of
 ``codec.DECODE_KINDS`` -- never any other exception, whatever the bytes.
@@ -28,9 +28,9 @@ import pytest
 from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
-from protocol import codec
-from protocol import messages as m
-from protocol.bus import Received
+from tagswarm.protocol import codec
+from tagswarm.protocol import messages as m
+from tagswarm.protocol.bus import Received
 
 TYPES: list[type[m.Msg]] = list(codec.MAX_BYTES)
 KINDS = codec.DECODE_KINDS

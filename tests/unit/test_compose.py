@@ -10,6 +10,7 @@ without a value); tests/e2e/test_compose.py runs the services with them."""
 from __future__ import annotations
 
 import json
+import os
 import re
 import tomllib
 from collections.abc import Mapping
@@ -21,10 +22,10 @@ import msgspec
 import pytest
 import yaml
 
-from agents.config import build_config as agent_config
-from protocol.scenario import load_scenario
-from server.config import build_config as server_config
-from world.config import build_config as world_config
+from tagswarm.agents.config import build_config as agent_config
+from tagswarm.protocol.scenario import load_scenario
+from tagswarm.server.config import build_config as server_config
+from tagswarm.world.config import build_config as world_config
 
 ROOT = Path(__file__).resolve().parents[2]
 COMPOSE = ROOT / "compose.yaml"
@@ -336,6 +337,10 @@ def test_dockerfile_installs_every_package_and_runs_tagswarm_as_a_user() -> None
     pyproject = tomllib.loads((ROOT / "pyproject.toml").read_text())
     packages = {p.rstrip("*") for p in pyproject["tool"]["setuptools"]["packages"]["find"]["include"]}
     assert packages and packages <= copied, f"packages {sorted(packages - copied)} are not copied into the image"
+    # tagswarm/protocol -> ../protocol etc.: COPY keeps the links, so their targets must be copied beside them
+    links = {os.path.normpath(os.path.join(p, os.readlink(ROOT / p / e.name)))
+             for p in packages for e in (ROOT / p).iterdir() if e.is_symlink()}
+    assert links == {"protocol", "world", "agents", "server"} and links <= copied
     assert {"pyproject.toml", "README.md"} <= set(" ".join(a for w, a in ins if w == "COPY").split())
     assert any(w == "RUN" and "pip install ." in a for w, a in ins)
     users = [a for w, a in ins if w == "USER"]

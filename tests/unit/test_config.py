@@ -9,12 +9,12 @@ from pathlib import Path
 
 import pytest
 
-from protocol.bus import DEFAULT_LEASE_MS, zenoh_config
-from protocol.config import ConfigError, env_of
-from protocol.keys import KeyError_
-from protocol.scenario import ScenarioError, load_scenario
-from world import node
-from world.config import WorldConfig, build_config
+from tagswarm.protocol.bus import DEFAULT_LEASE_MS, zenoh_config
+from tagswarm.protocol.config import ConfigError, env_of
+from tagswarm.protocol.keys import KeyError_
+from tagswarm.protocol.scenario import ScenarioError, load_scenario
+from tagswarm.world import node
+from tagswarm.world.config import WorldConfig, build_config
 
 CONFIG_ERRORS = (ConfigError, ScenarioError)
 

@@ -18,21 +18,29 @@ import numpy as np
 import pytest
 from numpy.typing import NDArray
 
-from agents import planar
-from agents.cubepose import (
+from tagswarm.agents import planar
+from tagswarm.agents.cubepose import (
     LANDMARK_PLATE_THICKNESS_M,
     CameraModel,
     CubePoseEstimator,
     PoseEstimate,
     output_jacobian,
 )
-from agents.detect import AprilTagDetector, TagDetection
-from agents.sixdof import SixDofSolver
-from protocol import tags
-from protocol.geometry import Mat, matrix_to_pose3, pose3_to_matrix, se2_matrix, transform, wrap_angle, yaw_quat
-from protocol.scenario import Camera, Scenario, convert, validate
-from world import assets, camera
-from world.render import Renderer, image_message
+from tagswarm.agents.detect import AprilTagDetector, TagDetection
+from tagswarm.agents.sixdof import SixDofSolver
+from tagswarm.protocol import tags
+from tagswarm.protocol.geometry import (
+    Mat,
+    matrix_to_pose3,
+    pose3_to_matrix,
+    se2_matrix,
+    transform,
+    wrap_angle,
+    yaw_quat,
+)
+from tagswarm.protocol.scenario import Camera, Scenario, convert, validate
+from tagswarm.world import assets, camera
+from tagswarm.world.render import Renderer, image_message
 
 W, H = 640, 480
 LANDMARKS = [{"id": 200, "x_m": -4.0, "y_m": 0.6, "z_m": 0.3, "yaw_rad": 0.0},
@@ -209,7 +217,7 @@ def test_a_degenerate_ippe_alternative_is_rebuilt(renderer, detector, monkeypatc
     monkeypatch.setattr(SixDofSolver, "mirror_start", lambda self, *a: None)
     (e,) = CubePoseEstimator(S, planar=False).estimate([(MODELS["front"], dets)])
     assert e.ambiguity == 0 and nees(e) > 30
-    # the planar fit weighs the mirrored pose on its own (agents.planar.mirror)
+    # the planar fit weighs the mirrored pose on its own (tagswarm.agents.planar.mirror)
     (p,) = CubePoseEstimator(S).estimate([(MODELS["front"], dets)])
     assert p.ambiguity > 0.2 and nees(p) < 12
 

@@ -23,12 +23,12 @@ import numpy as np
 import pytest
 from numpy.typing import NDArray
 
-from agents.cubepose import CameraModel, CubePoseEstimator
-from agents.detect import AprilTagDetector
-from protocol import tags
-from protocol.geometry import se2_matrix, wrap_angle, yaw_quat
-from protocol.scenario import load_scenario
-from world.render import Renderer, image_message
+from tagswarm.agents.cubepose import CameraModel, CubePoseEstimator
+from tagswarm.agents.detect import AprilTagDetector
+from tagswarm.protocol import tags
+from tagswarm.protocol.geometry import se2_matrix, wrap_angle, yaw_quat
+from tagswarm.protocol.scenario import load_scenario
+from tagswarm.world.render import Renderer, image_message
 
 S = load_scenario("paper")
 CAM = S.robot.cameras[0]

@@ -19,14 +19,14 @@ import numpy as np
 import pytest
 from numpy.typing import NDArray
 
-from agents.detect import AprilTagDetector, ArucoDetector, TagDetection, TagMap, make_detector
-from protocol import tags
-from protocol.geometry import se2_matrix, yaw_quat
-from protocol.scenario import Scenario, convert, validate
+from tagswarm.agents.detect import AprilTagDetector, ArucoDetector, TagDetection, TagMap, make_detector
+from tagswarm.protocol import tags
+from tagswarm.protocol.geometry import se2_matrix, yaw_quat
+from tagswarm.protocol.scenario import Scenario, convert, validate
+from tagswarm.world import camera
+from tagswarm.world.assets import CELL_PX, tag_image
+from tagswarm.world.render import Renderer
 from tests.geometry_check import project, world_corners
-from world import camera
-from world.assets import CELL_PX, tag_image
-from world.render import Renderer
 
 Backend = Literal["apriltag", "aruco"]
 BACKENDS: list[Backend] = ["apriltag", "aruco"]
@@ -173,9 +173,9 @@ def test_closing_a_tag16h5_detector_does_not_corrupt_the_heap() -> None:
     pybullet that aborts with a corrupted heap.  AprilTagDetector frees them in order."""
     code = (
         "import gc, numpy as np\n"
-        "from agents.detect import AprilTagDetector\n"
-        "from protocol.scenario import Scenario\n"
-        "from world.render import Renderer\n"
+        "from tagswarm.agents.detect import AprilTagDetector\n"
+        "from tagswarm.protocol.scenario import Scenario\n"
+        "from tagswarm.world.render import Renderer\n"
         "r = Renderer(Scenario())\n"
         "for _ in range(3):\n"
         "    d = AprilTagDetector('tag16h5')\n"

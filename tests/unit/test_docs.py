@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import json
 
-from protocol import codec
-from protocol import messages as m
 from tagswarm import docs
+from tagswarm.protocol import codec
+from tagswarm.protocol import messages as m
 
 
 def test_generated_docs_are_up_to_date() -> None:

@@ -6,9 +6,9 @@ import math
 
 import numpy as np
 
-from protocol.geometry import se2_between, se2_compose
-from server.fusion import Fusion, FusionParams
-from server.stitch import Edge, stitch
+from tagswarm.protocol.geometry import se2_between, se2_compose
+from tagswarm.server.fusion import Fusion, FusionParams
+from tagswarm.server.stitch import Edge, stitch
 from tests.synthetic import SyntheticSwarm
 
 COV = np.diag([1e-4, 1e-4, 1e-4])

@@ -9,8 +9,8 @@ import random
 
 import numpy as np
 
-from protocol.geometry import se2_between
-from server.fusion import Fusion, FusionParams
+from tagswarm.protocol.geometry import se2_between
+from tagswarm.server.fusion import Fusion, FusionParams
 from tests.synthetic import SyntheticSwarm
 
 

@@ -9,8 +9,8 @@ from collections.abc import Callable
 
 import numpy as np
 
-from protocol.geometry import Pose2, se2_between, se2_compose
-from server.fusion import Fusion, FusionParams
+from tagswarm.protocol.geometry import Pose2, se2_between, se2_compose
+from tagswarm.server.fusion import Fusion, FusionParams
 
 DT_NS = 100_000_000  # 10 Hz
 COV = np.diag([0.01**2, 0.01**2, 0.01**2])
@@ -161,7 +161,7 @@ def test_a_spoofed_stream_from_one_observer_never_moves_the_map() -> None:
 
 
 def test_slip_evidence_widens_the_odometry_increment() -> None:
-    from server.noise import odom_increment_cov
+    from tagswarm.server.noise import odom_increment_cov
 
     p = FusionParams()
     clean = odom_increment_cov((0.5, 0.0, 0.0), p)

@@ -10,9 +10,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from server import journal as jr
-from server.config import build_config
-from server.fusion import Fusion, FusionParams
+from tagswarm.server import journal as jr
+from tagswarm.server.config import build_config
+from tagswarm.server.fusion import Fusion, FusionParams
 from tests.synthetic import SyntheticSwarm
 
 COV9 = (1e-4, 0.0, 0.0, 0.0, 1e-4, 0.0, 0.0, 0.0, 1e-4)
@@ -262,7 +262,7 @@ def test_replay_rebuilds_exactly_the_live_graph(tmp_path: Path) -> None:
 
 
 def test_journal_flags_are_validated(tmp_path: Path) -> None:
-    from protocol.config import ConfigError
+    from tagswarm.protocol.config import ConfigError
 
     cfg = build_config(["--journal", str(tmp_path / "s.journal"), "--journal-sync-every", "8"], {})
     assert cfg.journal == str(tmp_path / "s.journal") and cfg.journal_sync_every == 8

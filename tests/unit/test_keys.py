@@ -1,4 +1,4 @@
-"""protocol.keys: the key layout, parsing keys back and validation."""
+"""tagswarm.protocol.keys: the key layout, parsing keys back and validation."""
 
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from protocol import keys
-from protocol.keys import Keys
+from tagswarm.protocol import keys
+from tagswarm.protocol.keys import Keys
 
 RUN = "run-1"
 P = f"tagswarm/{RUN}"

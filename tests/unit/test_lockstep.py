@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from world.lockstep import AckTracker
+from tagswarm.world.lockstep import AckTracker
 
 
 def test_dead_participants_are_not_waited_for_and_undeclared_ones_are_ignored() -> None:

@@ -13,13 +13,13 @@ from typing import Any
 import numpy as np
 import pytest
 
-from protocol import codec
-from protocol import messages as m
-from protocol.bus import Inbox
-from protocol.keys import Keys
-from protocol.scenario import load_scenario
 from tagswarm.covframe import position_cov_in_map
 from tagswarm.metrics import RunFolderError, compute_metrics, load_run
+from tagswarm.protocol import codec
+from tagswarm.protocol import messages as m
+from tagswarm.protocol.bus import Inbox
+from tagswarm.protocol.keys import Keys
+from tagswarm.protocol.scenario import load_scenario
 from tagswarm.recorder import Recorder
 from tagswarm.runformat import FUSED_COV_HEADER, RELOC_HEADER, WORLD_COMMANDS_HEADER
 from tests.unit.test_metrics import Poses, circle, make_run, static

@@ -9,9 +9,9 @@ from collections.abc import Callable
 import numpy as np
 import pytest
 
-from agents.odometry import DiffDriveOdometry, DiffDriveParams, SlipMonitor
-from protocol.scenario import load_scenario
-from world.sim import Sim
+from tagswarm.agents.odometry import DiffDriveOdometry, DiffDriveParams, SlipMonitor
+from tagswarm.protocol.scenario import load_scenario
+from tagswarm.world.sim import Sim
 
 Command = Callable[[int, int], tuple[float, float]]  # (robot, tick) -> (left, right) rad/s
 

@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
-from server.noise import FusionParams
-from server.placement import Candidate, choose
+from tagswarm.server.noise import FusionParams
+from tagswarm.server.placement import Candidate, choose
 
 P = FusionParams()
 

@@ -14,9 +14,6 @@ import msgspec
 import numpy as np
 import pytest
 
-from protocol import codec
-from protocol import messages as m
-from protocol.scenario import load_scenario
 from tagswarm.mcapio import (
     RecordingError,
     is_world_stream,
@@ -26,6 +23,9 @@ from tagswarm.mcapio import (
     remap_run,
     verify,
 )
+from tagswarm.protocol import codec
+from tagswarm.protocol import messages as m
+from tagswarm.protocol.scenario import load_scenario
 from tagswarm.record import McapRecording, RecordOptions, scale_image, with_recorder, without_recorders
 from tagswarm.replay import recorded_participants, recorded_scenario, scenario_for_replay
 
@@ -236,7 +236,7 @@ def test_recorded_scenario_and_participants_drive_a_replay(recording: tuple[Path
                               robots=None, duration=None)
 
     def resolve(a: argparse.Namespace, env: dict[str, str]) -> object:
-        from protocol.config import scenario_from
+        from tagswarm.protocol.config import scenario_from
 
         return scenario_from(a, env)
 
@@ -283,7 +283,7 @@ def test_key_shapes_and_run_remap() -> None:
 
 
 def test_recording_metadata_holds_a_loadable_scenario(recording: tuple[Path, dict[str, int]]) -> None:
-    from protocol.scenario import Scenario
+    from tagswarm.protocol.scenario import Scenario
 
     table = recorded_scenario(recording[0])
     s = msgspec.convert(table, Scenario)

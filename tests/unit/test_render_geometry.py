@@ -13,14 +13,14 @@ import numpy as np
 import pybullet as pb
 import pytest
 
-from protocol import tags
-from protocol.geometry import se2_matrix
-from protocol.layout import start_poses
-from protocol.scenario import load_scenario
+from tagswarm.protocol import tags
+from tagswarm.protocol.geometry import se2_matrix
+from tagswarm.protocol.layout import start_poses
+from tagswarm.protocol.scenario import load_scenario
+from tagswarm.world import camera
+from tagswarm.world.assets import face_image
+from tagswarm.world.render import Renderer
 from tests.geometry_check import detector, facing, project, tag_owner, world_corners
-from world import camera
-from world.assets import face_image
-from world.render import Renderer
 
 
 def test_painted_tag_corner_order_matches_contract() -> None:

@@ -10,10 +10,10 @@ import msgspec
 import numpy as np
 import pytest
 
-from protocol.layout import start_poses
-from protocol.scenario import load_scenario
 from tagswarm import report
 from tagswarm.metrics import RunFolderError, compute_metrics
+from tagswarm.protocol.layout import start_poses
+from tagswarm.protocol.scenario import load_scenario
 from tests.unit.test_metrics import three_circles
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"

@@ -1,4 +1,4 @@
-"""protocol.scenario: the built-in scenario, overrides, validation and start poses."""
+"""tagswarm.protocol.scenario: the built-in scenario, overrides, validation and start poses."""
 
 from __future__ import annotations
 
@@ -10,9 +10,9 @@ from typing import Any
 import msgspec
 import pytest
 
-from protocol import layout
-from protocol import scenario as sc
-from protocol.scenario import ScenarioError, load_scenario
+from tagswarm.protocol import layout
+from tagswarm.protocol import scenario as sc
+from tagswarm.protocol.scenario import ScenarioError, load_scenario
 
 EXPLICIT_2 = ['robots.placement="explicit"', "robots.count=2"]
 

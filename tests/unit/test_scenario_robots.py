@@ -12,11 +12,11 @@ from pathlib import Path
 import msgspec
 import pytest
 
-from protocol import layout, robotfill, tags
-from protocol import scenario as sc
-from protocol.freespace import obstacle_clearance, segment_distance, wall_clearance
-from protocol.scenario import ScenarioError, load_scenario
-from world.config import build_config
+from tagswarm.protocol import layout, robotfill, tags
+from tagswarm.protocol import scenario as sc
+from tagswarm.protocol.freespace import obstacle_clearance, segment_distance, wall_clearance
+from tagswarm.protocol.scenario import ScenarioError, load_scenario
+from tagswarm.world.config import build_config
 
 COUNTS = (1, 2, 5, 8, 16, 32, 64)
 
@@ -87,7 +87,7 @@ def test_placed_robots_face_a_robot_and_patrol_clear_lanes(name: str) -> None:
 
 
 def test_paper_with_eight_robots_logs_one_line(caplog: pytest.LogCaptureFixture) -> None:
-    with caplog.at_level(logging.INFO, logger="protocol.scenario"):
+    with caplog.at_level(logging.INFO, logger="tagswarm.protocol.scenario"):
         s = load_scenario("paper", ["robots.count=8"])
     lines = [rec.getMessage() for rec in caplog.records]
     assert len(lines) == 1
@@ -102,7 +102,7 @@ def test_paper_with_eight_robots_logs_one_line(caplog: pytest.LogCaptureFixture)
 
 
 def test_nothing_logged_when_the_scenario_places_every_robot(caplog: pytest.LogCaptureFixture) -> None:
-    with caplog.at_level(logging.INFO, logger="protocol.scenario"):
+    with caplog.at_level(logging.INFO, logger="tagswarm.protocol.scenario"):
         load_scenario("paper")
         load_scenario("paper", ["robots.count=2"])
     assert caplog.records == []
@@ -127,7 +127,7 @@ def test_same_scenario_same_poses_and_a_resolved_copy_loads_unchanged(tmp_path: 
     assert a == b
     path = tmp_path / "scenario.json"
     path.write_bytes(msgspec.json.encode(a))
-    with caplog.at_level(logging.INFO, logger="protocol.scenario"):
+    with caplog.at_level(logging.INFO, logger="tagswarm.protocol.scenario"):
         assert load_scenario(str(path)) == a
     assert caplog.records == []  # the resolved copy every child process loads is complete
 
@@ -171,7 +171,7 @@ def test_two_hundred_robots_do_not_fit_the_paper_arena() -> None:
 
 
 def test_crowded_hall_puts_robots_in_lanes_only_when_it_must(caplog: pytest.LogCaptureFixture) -> None:
-    with caplog.at_level(logging.INFO, logger="protocol.scenario"):
+    with caplog.at_level(logging.INFO, logger="tagswarm.protocol.scenario"):
         load_scenario("hall", ["robots.count=40"])
         load_scenario("hall", ["robots.count=64"])
     first, second = (rec.getMessage() for rec in caplog.records if "no start pose" in rec.getMessage())
@@ -186,7 +186,7 @@ def test_paper_ids_last_to_59_robots_then_compact(caplog: pytest.LogCaptureFixtu
     s59 = load_scenario("paper", ["robots.count=59"])
     assert (s59.tags.id_base, s59.tags.id_stride) == (1, 10)
     assert s59.tag_ids(58)[-1] == 586  # the family's last ID
-    with caplog.at_level(logging.INFO, logger="protocol.scenario"):
+    with caplog.at_level(logging.INFO, logger="tagswarm.protocol.scenario"):
         s60 = load_scenario("paper", ["robots.count=60"])
     assert (s60.tags.id_base, s60.tags.id_stride) == (1, 6)
     assert s60.tag_ids(0) == (1, 2, 3, 4, 5, 6) and s60.tag_ids(59) == tuple(range(355, 361))

@@ -10,11 +10,11 @@ import math
 
 import pytest
 
-from protocol import layout
-from protocol import scenario as sc
-from protocol.freespace import obstacle_clearance, segment_distance, sight_blocked, wall_clearance
-from protocol.robotfill import mission_path
-from protocol.scenario import Scenario, load_scenario
+from tagswarm.protocol import layout
+from tagswarm.protocol import scenario as sc
+from tagswarm.protocol.freespace import obstacle_clearance, segment_distance, sight_blocked, wall_clearance
+from tagswarm.protocol.robotfill import mission_path
+from tagswarm.protocol.scenario import Scenario, load_scenario
 
 NEW = ("hall", "crowd", "corridor")
 # room a driving robot keeps from walls and obstacles beyond its footprint (it steers

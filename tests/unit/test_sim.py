@@ -7,10 +7,10 @@ import math
 import numpy as np
 import pytest
 
-from agents.odometry import DiffDriveOdometry, DiffDriveParams
-from protocol.scenario import load_scenario
-from world.node import due
-from world.sim import Sim
+from tagswarm.agents.odometry import DiffDriveOdometry, DiffDriveParams
+from tagswarm.protocol.scenario import load_scenario
+from tagswarm.world.node import due
+from tagswarm.world.sim import Sim
 
 ONE_ROBOT = ["robots.count=1", 'robots.placement="explicit"', "robots.start=[{x_m=0.0, y_m=-1.0, yaw_rad=0.3}]",
              "clock.command_timeout_s=1000"]

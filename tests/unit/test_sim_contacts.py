@@ -6,9 +6,9 @@ import math
 
 import pytest
 
-from protocol.scenario import load_scenario
-from world.contacts import ContactCounter
-from world.sim import PlacementError, Sim
+from tagswarm.protocol.scenario import load_scenario
+from tagswarm.world.contacts import ContactCounter
+from tagswarm.world.sim import PlacementError, Sim
 
 TWO = ["robots.count=2", 'robots.placement="explicit"', "clock.command_timeout_s=1000",
        "robots.start=[{x_m=-1.0, y_m=0.0, yaw_rad=0.0}, {x_m=1.0, y_m=0.0, yaw_rad=3.14159}]"]

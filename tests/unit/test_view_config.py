@@ -6,9 +6,9 @@ import json
 
 import pytest
 
-from protocol.config import ConfigError
-from protocol.keys import KeyError_
 from tagswarm import view, viewserver
+from tagswarm.protocol.config import ConfigError
+from tagswarm.protocol.keys import KeyError_
 
 
 def test_defaults_and_precedence() -> None:

@@ -11,12 +11,12 @@ import numpy as np
 import pybullet as pb
 import pytest
 
-from protocol import messages as m
-from protocol.geometry import matrix_to_pose3, se2_matrix
-from protocol.scenario import load_scenario
+from tagswarm.protocol import messages as m
+from tagswarm.protocol.geometry import matrix_to_pose3, se2_matrix
+from tagswarm.protocol.scenario import load_scenario
 from tagswarm.viewcam import camera_message, downscale, overlays
+from tagswarm.world.render import Renderer, image_message
 from tests.geometry_check import detector
-from world.render import Renderer, image_message
 
 
 @pytest.fixture(scope="module")

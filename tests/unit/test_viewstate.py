@@ -7,12 +7,12 @@ import math
 
 import pytest
 
-from protocol import codec
-from protocol import messages as m
-from protocol.geometry import se2_compose
-from protocol.keys import Keys
-from protocol.layout import arena_to_map, start_poses
-from protocol.scenario import load_scenario
+from tagswarm.protocol import codec
+from tagswarm.protocol import messages as m
+from tagswarm.protocol.geometry import se2_compose
+from tagswarm.protocol.keys import Keys
+from tagswarm.protocol.layout import arena_to_map, start_poses
+from tagswarm.protocol.scenario import load_scenario
 from tagswarm.viewstate import EDGE_TTL_NS, ELLIPSE_SCALE_95, MAX_ROBOTS, ViewState, covariance_ellipse
 
 KEYS = Keys("vt")
@@ -177,7 +177,7 @@ def test_robot_count_is_bounded(state: ViewState) -> None:
 
 
 def test_malformed_payloads_are_counted_and_the_state_keeps_working(state: ViewState) -> None:
-    from protocol.bus import Received
+    from tagswarm.protocol.bus import Received
 
     good = codec.encode(gmap(10, (1, 0.3, 0.4)))
     nan = codec.encode(gmap(20, (1, float("nan"), 0.4)))

@@ -12,15 +12,15 @@ from typing import Any, cast
 import msgspec
 import pytest
 
-from protocol import codec
-from protocol import messages as m
-from protocol.bus import Bus, BusConfig, Inbox
-from protocol.keys import Keys
-from protocol.scenario import Scenario, ScenarioError, load_scenario, validate
 from tagswarm import kidnap
-from world.config import WorldConfig
-from world.interventions import MAX_PENDING, Schedule
-from world.node import WorldNode
+from tagswarm.protocol import codec
+from tagswarm.protocol import messages as m
+from tagswarm.protocol.bus import Bus, BusConfig, Inbox
+from tagswarm.protocol.keys import Keys
+from tagswarm.protocol.scenario import Scenario, ScenarioError, load_scenario, validate
+from tagswarm.world.config import WorldConfig
+from tagswarm.world.interventions import MAX_PENDING, Schedule
+from tagswarm.world.node import WorldNode
 
 DT = 33_333_333  # ns, 30 Hz
 BASE = ["robots.count=2", 'robots.placement="explicit"', "clock.command_timeout_s=1000",
@@ -68,7 +68,7 @@ def test_schedule_refuses_beyond_its_capacity() -> None:
 
 
 class FakeBus:
-    """The part of :class:`protocol.bus.Bus` the world node uses, in memory."""
+    """The part of :class:`tagswarm.protocol.bus.Bus` the world node uses, in memory."""
 
     def __init__(self) -> None:
         self._wake = threading.Condition()

@@ -26,8 +26,8 @@ sys.path.insert(0, str(ROOT))
 from rich.console import Console  # noqa: E402
 from rich.table import Table  # noqa: E402
 
-from tagswarm.mcapio import iter_raw, verify  # noqa: E402
-from tagswarm.record import McapRecording, RecordOptions  # noqa: E402
+from tagswarm.recording.mcapio import iter_raw, verify  # noqa: E402
+from tagswarm.recording.record import McapRecording, RecordOptions  # noqa: E402
 
 TAGSWARM = str(Path(sys.executable).parent / "tagswarm")
 

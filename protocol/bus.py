@@ -73,7 +73,7 @@ class BusConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields
     so it never shows in a config dump or ``ps``) are presented to the router;
     a router given ``users_file`` (Zenoh's ``user:password`` dictionary) admits
     only sessions that present one of its entries, and ``access_control`` (the JSON
-    of a Zenoh ``access_control`` block, see tagswarm/acl.py) limits what each user
+    of a Zenoh ``access_control`` block, see tagswarm/deploy/acl.py) limits what each user
     may publish, subscribe, query and declare.
 
     Fault injection (receive side, see :mod:`tagswarm.protocol.netfaults`): samples that

@@ -30,7 +30,7 @@ from tagswarm.protocol.bus import (
     check_key_expr,
     open_bus,
 )
-from tagswarm.protocol.keys import KeyError_
+from tagswarm.protocol.keys import KeyNameError
 from tagswarm.protocol.scenario import Scenario, ScenarioError, convert, load_scenario
 
 ENV_PREFIX = "TAGSWARM_"
@@ -227,7 +227,7 @@ def run_main(prog: str, body: Callable[[], int]) -> int:
     one-line message, Ctrl-C -> 130, anything else -> 1 with the traceback logged."""
     try:
         return body()
-    except (ConfigError, ScenarioError, KeyError_, BusError) as exc:
+    except (ConfigError, ScenarioError, KeyNameError, BusError) as exc:
         sys.stderr.write(f"{prog}: error: {exc}\n")
         return 2
     except KeyboardInterrupt:

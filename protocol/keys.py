@@ -34,14 +34,14 @@ _ID_RE: Final = re.compile(r"0|[1-9][0-9]{0,5}")
 ROOT: Final = "tagswarm"
 
 
-class KeyError_(ValueError):
+class KeyNameError(ValueError):
     """A run id, role or camera name that cannot be part of a key."""
 
 
 def check_name(value: str, what: str) -> str:
-    """Return ``value`` if it is a safe single key chunk, else raise :class:`KeyError_`."""
+    """Return ``value`` if it is a safe single key chunk, else raise :class:`KeyNameError`."""
     if not _NAME_RE.fullmatch(value):
-        raise KeyError_(f"{what} {value!r} must be 1-64 characters of letters, digits, '_', '.', '-'")
+        raise KeyNameError(f"{what} {value!r} must be 1-64 characters of letters, digits, '_', '.', '-'")
     return value
 
 
@@ -53,7 +53,7 @@ class Keys:
 
     def __post_init__(self) -> None:
         if not _RUN_RE.fullmatch(self.run):
-            raise KeyError_(f"run id {self.run!r} must be 1-64 characters of letters, digits, '_', '.', '-'")
+            raise KeyNameError(f"run id {self.run!r} must be 1-64 characters of letters, digits, '_', '.', '-'")
 
     @property
     def prefix(self) -> str:
@@ -170,5 +170,5 @@ def split_participant(participant: str) -> tuple[str, str]:
     """Split ``"role/id"`` into its two chunks, validating both."""
     parts = participant.split("/")
     if len(parts) != 2:
-        raise KeyError_(f"participant {participant!r} must look like 'role/id', e.g. 'agent/0'")
+        raise KeyNameError(f"participant {participant!r} must look like 'role/id', e.g. 'agent/0'")
     return check_name(parts[0], "role"), check_name(parts[1], "participant id")

@@ -23,7 +23,7 @@ import msgspec
 
 from tagswarm.protocol import tags
 from tagswarm.protocol.freespace import segment_box_distance
-from tagswarm.protocol.keys import KeyError_, check_name, split_participant
+from tagswarm.protocol.keys import KeyNameError, check_name, split_participant
 from tagswarm.protocol.scenario_schema import (
     Agent,
     Arena,
@@ -213,7 +213,7 @@ def validate(s: Scenario) -> None:
     for i, c in enumerate(s.robot.cameras):
         try:
             check_name(c.name, f"robot.cameras[{i}].name")
-        except KeyError_ as exc:
+        except KeyNameError as exc:
             raise ScenarioError(str(exc)) from None
         if c.far_m <= c.near_m:
             raise ScenarioError(f"robot.cameras[{i}]: far_m must exceed near_m")
@@ -226,7 +226,7 @@ def validate(s: Scenario) -> None:
     for p in s.clock.participants:
         try:
             split_participant(p)
-        except KeyError_ as exc:
+        except KeyNameError as exc:
             raise ScenarioError(f"clock.participants: {exc}") from None
     if s.robots.placement == "explicit" and len(s.robots.start) != s.robots.count:
         raise ScenarioError(

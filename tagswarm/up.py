@@ -38,7 +38,7 @@ from tagswarm.protocol.config import (
 )
 from tagswarm.protocol.keys import Keys
 from tagswarm.protocol.scenario import Scenario
-from tagswarm.recorder import Recorder
+from tagswarm.recording.runrecorder import RunRecorder
 
 BIN = Path(sys.executable).parent
 
@@ -111,7 +111,7 @@ def resolve(args: Any, env: dict[str, str]) -> Scenario:
     return scenario
 
 
-def _table(rec: Recorder, scenario: Scenario, wall_s: float, out: Path, endpoint: str) -> Table:
+def _table(rec: RunRecorder, scenario: Scenario, wall_s: float, out: Path, endpoint: str) -> Table:
     sim = rec.sim_ns / 1e9
     t = Table(title=f"tagswarm up — {scenario.name}  t={sim:6.1f}/{scenario.duration_s:g} s  "
                     f"RTF {sim / max(wall_s, 1e-9):4.2f}  {endpoint}", caption=f"run folder: {out}")
@@ -153,10 +153,10 @@ def run_up(scenario: Scenario, out: Path, endpoint: str, run: str, *, live: bool
             children.append(Child(f"agent/{rid}", [*_script("tagswarm-agent"), *common, "--connect", endpoint,
                                                    "--robot-id", str(rid)], logs / f"agent{rid}.log"))
         # a replay plays the world; it also waits for this process's token (up/0) so the run folder misses nothing
-        world_cmd = [sys.executable, "-m", "tagswarm.replay", str(replay), "--lockstep", "--wait-for", "up/0"] \
-            if replay else _script("tagswarm-world")
+        world_cmd = [sys.executable, "-m", "tagswarm.recording.replay", str(replay), "--lockstep",
+                     "--wait-for", "up/0"] if replay else _script("tagswarm-world")
         if view is not None:  # a read-only tool: never impaired by child_args, it sees what the run publishes
-            view_child = Child("view", [sys.executable, "-m", "tagswarm.view", "--scenario", str(scen_file),
+            view_child = Child("view", [sys.executable, "-m", "tagswarm.view.view", "--scenario", str(scen_file),
                                         "--run", run, "--connect", endpoint, "--port", str(view)], logs / "view.log")
             children.append(view_child)
             console.print(f"live view: [cyan]http://127.0.0.1:{view}/[/]")
@@ -165,12 +165,12 @@ def run_up(scenario: Scenario, out: Path, endpoint: str, run: str, *, live: bool
         console.print(f"[bold]tagswarm up[/]: {len(scenario.robot_ids)} robots, {scenario.clock.mode} clock, "
                       f"Zenoh endpoint [cyan]{endpoint}[/] (join with --connect {endpoint}), run id {run!r}")
         with open_bus(BusConfig(connect=(endpoint,))) as bus:
-            rec = Recorder(bus, Keys(run), scenario)
+            rec = RunRecorder(bus, Keys(run), scenario)
             if record is not None:
-                from tagswarm.record import start_recording
+                from tagswarm.recording.record import start_recording
 
                 recording = start_recording(bus, Keys(run), record, scenario)
-            from tagswarm.record import declare_when_meshed
+            from tagswarm.recording.record import declare_when_meshed
 
             # once linked to every process (a lockstep replay waits for this token: the run folder misses nothing)
             declare_when_meshed(bus, Keys(run), "up/0", (*scenario.clock.participants, "world/0"),
@@ -222,7 +222,7 @@ def run_up(scenario: Scenario, out: Path, endpoint: str, run: str, *, live: bool
     rec.write(out, {"wall_time_s": wall, "exit_code": code, "failure": failure, "endpoint": endpoint,
                     "exit_codes": {c.name: c.proc.returncode for c in children}})
     if report:
-        from tagswarm.report import write_report
+        from tagswarm.evaluation.report import write_report
 
         metrics = write_report(out)
         console.print(f"metrics: {out / 'metrics.json'}  plots: {out / 'plots'}")
@@ -293,13 +293,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         # the scenario loader says at INFO what it filled in (robots beyond the scenario's list, tag scheme)
         setup_logging(pick(args, env, "log_level"), "up")
         if args.replay is not None:
-            from tagswarm.replay import scenario_for_replay
+            from tagswarm.recording.replay import scenario_for_replay
 
             scenario = scenario_for_replay(args.replay, args, env, resolve)
         else:
             scenario = resolve(args, env)
         if args.record is not None:
-            from tagswarm.record import with_recorder
+            from tagswarm.recording.record import with_recorder
 
             scenario = with_recorder(scenario)  # lockstep: the world waits for the recorder (nothing missed)
         run = pick(args, env, "run", f"up{int(time.time()) % 100000}")

@@ -2,7 +2,7 @@
 determinism tests.
 
 The test process is the hub: it listens on a private loopback endpoint, every
-process connects to it, and its :class:`~tagswarm.recorder.Recorder` is
+process connects to it, and its :class:`~tagswarm.recording.runrecorder.RunRecorder` is
 subscribed before anything starts, so no message of a run is missed (``tagswarm
 up`` connects its recorder after the world is up and may miss the first ticks).
 Processes can be killed and started again one by one.
@@ -26,7 +26,7 @@ import numpy as np
 from tagswarm.protocol.bus import Bus, BusConfig, open_bus
 from tagswarm.protocol.keys import Keys
 from tagswarm.protocol.scenario import Scenario, load_scenario
-from tagswarm.recorder import Recorder
+from tagswarm.recording.runrecorder import RunRecorder
 from tests.harness import endpoint, script
 
 
@@ -56,7 +56,7 @@ class Swarm:
         self._logs: list[IO[bytes]] = []
         self._stack = ExitStack()
         self.bus: Bus = self._stack.enter_context(open_bus(BusConfig(listen=(self.ep,))))
-        self.rec = Recorder(self.bus, self.keys, scen)
+        self.rec = RunRecorder(self.bus, self.keys, scen)
 
     def __enter__(self) -> Swarm:
         return self

@@ -274,7 +274,7 @@ def test_alive_and_router_reject_bad_usage_with_one_line(argv: list[str], capsys
 
 
 def test_alive_heartbeat_file(tmp_path: Path) -> None:
-    from tagswarm import alive
+    from tagswarm.deploy import alive
 
     hb = tmp_path / "hb"
     assert alive.main(["--heartbeat", str(hb)]) == 1
@@ -287,7 +287,7 @@ def test_alive_heartbeat_file(tmp_path: Path) -> None:
 
 
 def test_router_always_runs_in_router_mode() -> None:
-    from tagswarm import router
+    from tagswarm.deploy import router
 
     env = {"TAGSWARM_ZENOH_MODE": "client", "TAGSWARM_CONNECT": "tcp/10.0.0.1:7447"}  # a compose-wide env
     cfg = router.router_config(router.parser().parse_args([]), env)

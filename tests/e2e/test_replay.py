@@ -20,7 +20,6 @@ import msgspec
 import pytest
 from mcap.reader import make_reader
 
-from tagswarm.mcapio import iter_raw, keyexpr_matches, remap_run, verify
 from tagswarm.protocol import codec
 from tagswarm.protocol import messages as m
 from tagswarm.protocol.bus import Bus
@@ -28,7 +27,8 @@ from tagswarm.protocol.geometry import se2_compose
 from tagswarm.protocol.keys import Keys
 from tagswarm.protocol.layout import arena_to_map
 from tagswarm.protocol.scenario import load_scenario
-from tagswarm.replay import recorded_scenario
+from tagswarm.recording.mcapio import iter_raw, keyexpr_matches, remap_run, verify
+from tagswarm.recording.replay import recorded_scenario
 from tests.harness import client, endpoint, free_port, process, script, wait_alive
 
 RUN_ARGS = ["--clock", "lockstep", "--seed", "3", "--duration", "20", "--robots", "3", "--no-live", "--no-report"]

@@ -20,11 +20,11 @@ from pathlib import Path
 import msgspec
 import pytest
 
-from tagswarm import spy
 from tagswarm.protocol import codec
 from tagswarm.protocol import messages as m
 from tagswarm.protocol.bus import Inbox
 from tagswarm.protocol.keys import Keys
+from tagswarm.spy import spy
 from tests.harness import client, endpoint, script, wait_alive
 
 ROBOTS = (0, 1)
@@ -198,7 +198,7 @@ def test_bad_arguments_exit_2_with_one_line(argv: list[str], capsys: pytest.Capt
 
 
 def test_goto_accepts_negative_coordinates() -> None:
-    from tagswarm import goto
+    from tagswarm.operator import goto
 
     args = goto.parser().parse_args(["2", "-1.5", "-0.25", "--tolerance", "0.3"])
     g = goto.make_goal(args.robot, args.x, args.y, args.tolerance, 7)

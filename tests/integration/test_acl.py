@@ -1,4 +1,4 @@
-"""The router's authentication and ACL (tagswarm/acl.py) with real Zenoh sessions on loopback.
+"""The router's authentication and ACL (tagswarm/deploy/acl.py) with real Zenoh sessions on loopback.
 
 A router configured exactly as ``tagswarm router --users FILE --acl`` does it runs in
 this process; each role logs in as a Zenoh client with its own password file.  A
@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 
-from tagswarm import acl, router
+from tagswarm.deploy import acl, router
 from tagswarm.protocol.bus import Bus, BusConfig, BusError, Inbox, open_bus
 from tagswarm.protocol.keys import Keys
 from tests.harness import endpoint

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from tagswarm import acl, router
+from tagswarm.deploy import acl, router
 from tagswarm.protocol.bus import BusConfig, BusError, open_bus
 from tagswarm.protocol.keys import Keys
 from tests.harness import free_port

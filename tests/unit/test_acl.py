@@ -1,4 +1,4 @@
-"""The ACL generator (tagswarm/acl.py), the router's security flags and the shipped
+"""The ACL generator (tagswarm/deploy/acl.py), the router's security flags and the shipped
 deploy/ files.  No session is opened; tests/integration/test_acl.py runs the rules."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 import zenoh
 
-from tagswarm import acl, router
+from tagswarm.deploy import acl, router
 from tagswarm.protocol.bus import key_matches
 from tagswarm.protocol.keys import Keys
 

@@ -11,7 +11,7 @@ import time
 
 import pytest
 
-from tagswarm import router
+from tagswarm.deploy import router
 from tagswarm.protocol.bus import BusConfig, BusError, default_fault_keys, key_matches, net_faults
 from tagswarm.protocol.config import ConfigError
 from tagswarm.protocol.keys import Keys

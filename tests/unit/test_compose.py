@@ -229,7 +229,7 @@ def test_interpolation_defaults_and_host_values() -> None:
 
 
 def test_each_process_logs_in_as_its_role_with_its_own_secret() -> None:
-    from tagswarm import acl
+    from tagswarm.deploy import acl
 
     data = load_compose()
     services, secrets = data["services"], data["secrets"]

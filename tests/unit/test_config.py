@@ -11,7 +11,7 @@ import pytest
 
 from tagswarm.protocol.bus import DEFAULT_LEASE_MS, zenoh_config
 from tagswarm.protocol.config import ConfigError, env_of
-from tagswarm.protocol.keys import KeyError_
+from tagswarm.protocol.keys import KeyNameError
 from tagswarm.protocol.scenario import ScenarioError, load_scenario
 from tagswarm.world import node
 from tagswarm.world.config import WorldConfig, build_config
@@ -240,7 +240,7 @@ def test_cli_fixes_a_bad_env_value() -> None:
 
 @pytest.mark.parametrize(("argv", "environ"), [(["--run", "a/b"], {}), ([], {"TAGSWARM_RUN": "has space"})])
 def test_bad_run_id(argv: list[str], environ: dict[str, str]) -> None:
-    with pytest.raises(KeyError_) as exc:
+    with pytest.raises(KeyNameError) as exc:
         build_config(argv, environ)
     assert "run id" in str(exc.value)
     assert "\n" not in str(exc.value)

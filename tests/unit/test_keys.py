@@ -193,7 +193,7 @@ def test_participant_of_wildcards_built_by_keys(k: Keys) -> None:
 
 @pytest.mark.parametrize("run", ["", "a/b", "a b", "*", "**", "$*", "run#1", "x" * 65, "ünïcode", "a\tb", "a?b"])
 def test_invalid_run_ids(run: str) -> None:
-    with pytest.raises(keys.KeyError_) as exc:
+    with pytest.raises(keys.KeyNameError) as exc:
         Keys(run)
     assert "run id" in str(exc.value)
     assert isinstance(exc.value, ValueError)
@@ -206,7 +206,7 @@ def test_valid_run_ids(run: str) -> None:
 
 @pytest.mark.parametrize("camera", ["", "front/left", "*", "**", "a b", "cam$", "x" * 65, "caméra"])
 def test_invalid_camera_names(k: Keys, camera: str) -> None:
-    with pytest.raises(keys.KeyError_) as exc:
+    with pytest.raises(keys.KeyNameError) as exc:
         k.image(0, camera)
     assert "camera name" in str(exc.value)
 
@@ -216,11 +216,11 @@ def test_invalid_camera_names(k: Keys, camera: str) -> None:
     ["", "agent", "agent/0/1", "agent/", "/0", "ag ent/0", "agent/*", "*/0", "**", "agent/" + "9" * 65],
 )
 def test_invalid_participants(k: Keys, participant: str) -> None:
-    with pytest.raises(keys.KeyError_):
+    with pytest.raises(keys.KeyNameError):
         k.ack(participant)
-    with pytest.raises(keys.KeyError_):
+    with pytest.raises(keys.KeyNameError):
         k.alive(participant)
-    with pytest.raises(keys.KeyError_):
+    with pytest.raises(keys.KeyNameError):
         keys.split_participant(participant)
 
 
@@ -231,16 +231,16 @@ def test_split_participant() -> None:
 
 def test_check_name_returns_value_and_names_what() -> None:
     assert keys.check_name("front", "camera name") == "front"
-    with pytest.raises(keys.KeyError_) as exc:
+    with pytest.raises(keys.KeyNameError) as exc:
         keys.check_name("a/b", "widget")
     assert str(exc.value).startswith("widget 'a/b'")
 
 
 @pytest.mark.parametrize("bad", ["r1\n", "front\n"])
 def test_trailing_newline_is_rejected(bad: str) -> None:
-    with pytest.raises(keys.KeyError_):
+    with pytest.raises(keys.KeyNameError):
         Keys(bad)
-    with pytest.raises(keys.KeyError_):
+    with pytest.raises(keys.KeyNameError):
         keys.check_name(bad, "camera name")
 
 

@@ -1,4 +1,4 @@
-"""tagswarm.metrics on synthetic run folders whose errors are known by construction.
+"""tagswarm.evaluation.metrics on synthetic run folders whose errors are known by construction.
 
 Trajectories are written as TUM files in the map frame (x_m, y_m, yaw_rad per pose),
 so every expected number below is computed by hand from the construction, not by
@@ -17,8 +17,8 @@ import numpy as np
 import pytest
 from numpy.typing import NDArray
 
-from tagswarm import metrics
-from tagswarm.metrics import RunFolderError, compute_metrics, fit_se2
+from tagswarm.evaluation import metrics
+from tagswarm.evaluation.metrics import RunFolderError, compute_metrics, fit_se2
 
 Poses = NDArray[np.float64]  # (N, 3): x_m, y_m, yaw_rad
 Track = tuple[NDArray[np.float64], Poses]  # (stamps_s, poses)

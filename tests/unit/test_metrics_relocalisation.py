@@ -1,4 +1,4 @@
-"""Evaluation of re-localisation (tagswarm.recovery via tagswarm.metrics) on synthetic run
+"""Evaluation of re-localisation (tagswarm.evaluation.recovery via tagswarm.evaluation.metrics) on synthetic run
 folders whose answers are known by construction: time localised, kidnaps and the time
 to recover from them, re-localisation events, contacts and NEES; and the recorder's
 new files read back by the run-folder reader."""
@@ -13,15 +13,15 @@ from typing import Any
 import numpy as np
 import pytest
 
-from tagswarm.covframe import position_cov_in_map
-from tagswarm.metrics import RunFolderError, compute_metrics, load_run
+from tagswarm.evaluation.covframe import position_cov_in_map
+from tagswarm.evaluation.metrics import RunFolderError, compute_metrics, load_run
+from tagswarm.evaluation.runformat import FUSED_COV_HEADER, RELOC_HEADER, WORLD_COMMANDS_HEADER
 from tagswarm.protocol import codec
 from tagswarm.protocol import messages as m
 from tagswarm.protocol.bus import Inbox
 from tagswarm.protocol.keys import Keys
 from tagswarm.protocol.scenario import load_scenario
-from tagswarm.recorder import Recorder
-from tagswarm.runformat import FUSED_COV_HEADER, RELOC_HEADER, WORLD_COMMANDS_HEADER
+from tagswarm.recording.runrecorder import RunRecorder
 from tests.unit.test_metrics import Poses, circle, make_run, static
 
 T10 = np.arange(101) / 10.0  # 0 .. 10 s at 10 Hz, both ends included: a 10 s truth span
@@ -256,7 +256,7 @@ def test_position_cov_in_map_rotates_the_robot_axes() -> None:
 
 
 class FakeBus:
-    """What Recorder needs of a Bus: subscriptions whose inboxes a test fills by hand."""
+    """What RunRecorder needs of a Bus: subscriptions whose inboxes a test fills by hand."""
 
     def __init__(self) -> None:
         self.inboxes: dict[str, Inbox[bytes]] = {}
@@ -269,7 +269,7 @@ class FakeBus:
 def test_recorder_writes_what_the_reader_reads(tmp_path: Path) -> None:
     scenario = load_scenario("paper")
     keys, bus = Keys("rt"), FakeBus()
-    rec = Recorder(bus, keys, scenario)  # type: ignore[arg-type]
+    rec = RunRecorder(bus, keys, scenario)  # type: ignore[arg-type]
     cov = (0.0004, 0.0001, 0.0, 0.0001, 0.0009, 0.0, 0.0, 0.0, 0.0025)
     for i in range(3):
         bus.inboxes[keys.correction()].put(keys.correction(1), codec.encode(m.Correction(

@@ -14,7 +14,10 @@ import msgspec
 import numpy as np
 import pytest
 
-from tagswarm.mcapio import (
+from tagswarm.protocol import codec
+from tagswarm.protocol import messages as m
+from tagswarm.protocol.scenario import load_scenario
+from tagswarm.recording.mcapio import (
     RecordingError,
     is_world_stream,
     iter_raw,
@@ -23,11 +26,8 @@ from tagswarm.mcapio import (
     remap_run,
     verify,
 )
-from tagswarm.protocol import codec
-from tagswarm.protocol import messages as m
-from tagswarm.protocol.scenario import load_scenario
-from tagswarm.record import McapRecording, RecordOptions, scale_image, with_recorder, without_recorders
-from tagswarm.replay import recorded_participants, recorded_scenario, scenario_for_replay
+from tagswarm.recording.record import McapRecording, RecordOptions, scale_image, with_recorder, without_recorders
+from tagswarm.recording.replay import recorded_participants, recorded_scenario, scenario_for_replay
 
 RUN = "r1"
 STEPS = 12

@@ -1,4 +1,4 @@
-"""tagswarm.report: metrics.json + four PNG plots from a synthetic run folder, and the
+"""tagswarm.evaluation.report: metrics.json + four PNG plots from a synthetic run folder, and the
 ``tagswarm report`` entry point (summary table, one-line errors with exit code 2)."""
 
 from __future__ import annotations
@@ -10,8 +10,8 @@ import msgspec
 import numpy as np
 import pytest
 
-from tagswarm import report
-from tagswarm.metrics import RunFolderError, compute_metrics
+from tagswarm.evaluation import report
+from tagswarm.evaluation.metrics import RunFolderError, compute_metrics
 from tagswarm.protocol.layout import start_poses
 from tagswarm.protocol.scenario import load_scenario
 from tests.unit.test_metrics import three_circles
@@ -45,7 +45,7 @@ def test_write_report_writes_metrics_json_and_four_pngs(tmp_path: Path) -> None:
     on_disk = json.loads((run / "metrics.json").read_text())
     assert on_disk == metrics
     assert on_disk == compute_metrics(run)
-    assert on_disk["schema"] == "tagswarm.metrics/1"
+    assert on_disk["schema"] == "tagswarm.evaluation.metrics/1"
     assert on_disk["swarm"]["time_lost_s"] == pytest.approx(1.0)
     assert on_disk["error_vs_distance"]["samples"] > 0
     assert on_disk["cost"]["real_time_factor"] == pytest.approx(2.0)
@@ -119,7 +119,7 @@ def test_recovery_in_the_summary_and_marked_on_the_error_plot(tmp_path: Path,
                                                               capsys: pytest.CaptureFixture[str]) -> None:
     from matplotlib.figure import Figure
 
-    from tagswarm.metrics import evaluate, load_run
+    from tagswarm.evaluation.metrics import evaluate, load_run
     from tests.unit.test_metrics_relocalisation import kidnap_run, write_commands, write_relocs
 
     counters = {"world": {"contacts_robot_robot": 2, "contacts_robot_1": 2, "contacts_robot_2": 2}}

@@ -1,4 +1,4 @@
-"""tagswarm.view: configuration, the page's select messages and the hub (no network)."""
+"""tagswarm.view.view: configuration, the page's select messages and the hub (no network)."""
 
 from __future__ import annotations
 
@@ -6,9 +6,9 @@ import json
 
 import pytest
 
-from tagswarm import view, viewserver
 from tagswarm.protocol.config import ConfigError
-from tagswarm.protocol.keys import KeyError_
+from tagswarm.protocol.keys import KeyNameError
+from tagswarm.view import view, webserver
 
 
 def test_defaults_and_precedence() -> None:
@@ -28,7 +28,7 @@ def test_defaults_and_precedence() -> None:
     (["--rate", "0"], {}, ConfigError),
     (["--camera-rate", "100"], {}, ConfigError),
     (["--thumb-width", "8"], {}, ConfigError),
-    (["--run", "a/b"], {}, KeyError_),
+    (["--run", "a/b"], {}, KeyNameError),
 ])
 def test_bad_configuration_is_one_clear_error(argv: list[str], env: dict[str, str], error: type) -> None:
     with pytest.raises(error):
@@ -53,11 +53,11 @@ def test_bad_flags_exit_2(capsys: pytest.CaptureFixture[str]) -> None:
     (b"\xff\xfe", False),
 ])
 def test_select_messages_from_the_page(text: str | bytes, expect: object) -> None:
-    assert repr(viewserver._select_message(text)) == repr(expect)  # False (ignored) must not pass for robot 0
+    assert repr(webserver._select_message(text)) == repr(expect)  # False (ignored) must not pass for robot 0
 
 
 def test_hub_tracks_selections_and_versions() -> None:
-    hub = viewserver.Hub(json.dumps({"type": "scene"}))
+    hub = webserver.Hub(json.dumps({"type": "scene"}))
     a, b = hub.join(), hub.join()
     hub.select(a, 2)
     hub.select(b, None)

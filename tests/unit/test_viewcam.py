@@ -1,4 +1,4 @@
-"""tagswarm.viewcam: the camera thumbnail's overlay lands on the tags the renderer drew
+"""tagswarm.view.thumbnails: the camera thumbnail's overlay lands on the tags the renderer drew
 (the scenario's own mast camera, pupil-apriltags as the judge; no network)."""
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ import pytest
 from tagswarm.protocol import messages as m
 from tagswarm.protocol.geometry import matrix_to_pose3, se2_matrix
 from tagswarm.protocol.scenario import load_scenario
-from tagswarm.viewcam import camera_message, downscale, overlays
+from tagswarm.view.thumbnails import camera_message, downscale, overlays
 from tagswarm.world.render import Renderer, image_message
 from tests.geometry_check import detector
 

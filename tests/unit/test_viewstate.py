@@ -1,4 +1,4 @@
-"""tagswarm.viewstate: messages -> what the live view draws, resets, malformed input (no network)."""
+"""tagswarm.view.state: messages -> what the live view draws, resets, malformed input (no network)."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ from tagswarm.protocol.geometry import se2_compose
 from tagswarm.protocol.keys import Keys
 from tagswarm.protocol.layout import arena_to_map, start_poses
 from tagswarm.protocol.scenario import load_scenario
-from tagswarm.viewstate import EDGE_TTL_NS, ELLIPSE_SCALE_95, MAX_ROBOTS, ViewState, covariance_ellipse
+from tagswarm.view.state import EDGE_TTL_NS, ELLIPSE_SCALE_95, MAX_ROBOTS, ViewState, covariance_ellipse
 
 KEYS = Keys("vt")
 COV = (0.0004, 0.0, 0.0, 0.0, 0.0001, 0.0, 0.0, 0.0, 0.0009)

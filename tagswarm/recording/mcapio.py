@@ -8,7 +8,7 @@ Layout of a tagswarm recording:
   message type the key carries (``tagswarm.EncoderTicks``...); the channel metadata says
   ``tagswarm_type`` and ``zenoh_key``.
 - Foxglove channels (protobuf, well-known ``foxglove.*`` schemas) for viewing, topics starting
-  with ``/`` (see :mod:`tagswarm.foxglove_views`).
+  with ``/`` (see :mod:`tagswarm.recording.foxglove_views`).
 - log time = the message's simulation time ``stamp_ns``; publish time = the recorder's wall
   clock at reception (ns since the Unix epoch).
 - a ``tagswarm`` metadata record (run, key expression, options, the resolved scenario as JSON

@@ -1,10 +1,10 @@
-"""Per-trajectory errors for :mod:`tagswarm.metrics`: association, ATE and RPE via evo,
+"""Per-trajectory errors for :mod:`tagswarm.evaluation.metrics`: association, ATE and RPE via evo,
 and the ONE SE(2) alignment shared by every robot of a swarm.
 
 Pure code.  Every pose is in the MAP frame; positions and errors are metres, angles
 radians, timestamps simulation seconds.  ATE and RPE are evo's (``APE`` / ``RPE``,
 translation part, on ``PoseTrajectory3D``); ``S`` below is the error-statistics
-dict ``{"rmse", "mean", "median", "max", "count"}`` documented in :mod:`tagswarm.metrics`.
+dict ``{"rmse", "mean", "median", "max", "count"}`` documented in :mod:`tagswarm.evaluation.metrics`.
 """
 
 from __future__ import annotations
@@ -22,8 +22,8 @@ from evo.core.sync_method import SyncMethod
 from evo.core.trajectory import PosePath3D, PoseTrajectory3D
 from evo.core.units import Unit
 
+from tagswarm.evaluation.runfolder import F64, RunData
 from tagswarm.protocol.geometry import se2_matrix
-from tagswarm.runfolder import F64, RunData
 
 ASSOC_MAX_DIFF_S = 0.05
 """Largest time difference (s) for associating an estimate with the truth."""

@@ -6,9 +6,9 @@ arena frame when landmarks are used): ``truth`` is converted with the scenario's
 ``arena_to_map``; ``odom`` is each agent's dead reckoning started from the
 robot's true initial pose (pure drift); ``fused`` is the server's corrected
 pose, and ``fused_cov`` its covariance as published (row-major 3x3 of (x, y,
-yaw), in the robot's own axes: see :mod:`tagswarm.covframe`).  Relocalisation
+yaw), in the robot's own axes: see :mod:`tagswarm.evaluation.covframe`).  Relocalisation
 events (map-frame poses) and world commands (kidnaps, arena frame) are stored as
-received; file formats in :mod:`tagswarm.runformat`.
+received; file formats in :mod:`tagswarm.evaluation.runformat`.
 """
 
 from __future__ import annotations
@@ -22,6 +22,7 @@ from typing import Any
 
 import msgspec
 
+from tagswarm.evaluation.runformat import FUSED_COV_HEADER, RELOC_HEADER, WORLD_COMMANDS_HEADER
 from tagswarm.protocol import codec
 from tagswarm.protocol import messages as m
 from tagswarm.protocol.bus import Bus
@@ -29,7 +30,6 @@ from tagswarm.protocol.geometry import Pose2, se2_compose
 from tagswarm.protocol.keys import Keys
 from tagswarm.protocol.layout import arena_to_map
 from tagswarm.protocol.scenario import Scenario
-from tagswarm.runformat import FUSED_COV_HEADER, RELOC_HEADER, WORLD_COMMANDS_HEADER
 
 
 def _tum_line(stamp_ns: int, p: Pose2) -> str:
@@ -37,7 +37,7 @@ def _tum_line(stamp_ns: int, p: Pose2) -> str:
             f"{math.sin(p[2] / 2):.9f} {math.cos(p[2] / 2):.9f}\n")
 
 
-class Recorder:
+class RunRecorder:
     """Subscribes to truth, odometry, corrections, observations, statuses and ticks."""
 
     def __init__(self, bus: Bus, keys: Keys, scenario: Scenario) -> None:

@@ -14,10 +14,10 @@ writes as ``odom_<k>.tum``: pure drift).  The scene's walls, obstacles and
 landmarks stay in the arena frame, and ``map_in_arena`` (T_arena_map) places the
 map frame in it.  Metres, radians, nanoseconds of simulation time.
 
-Covariances arrive in each robot's own axes (see :mod:`tagswarm.covframe`); the
+Covariances arrive in each robot's own axes (see :mod:`tagswarm.evaluation.covframe`); the
 drawn ellipse is rotated into the map frame by the fused yaw.  Re-localisation
-events and kidnaps (world commands) go to an :class:`~tagswarm.viewevents.EventLog`;
-each robot's share of time localised (see :mod:`tagswarm.localised`) is counted
+events and kidnaps (world commands) go to an :class:`~tagswarm.view.events.EventLog`;
+each robot's share of time localised (see :mod:`tagswarm.evaluation.localised`) is counted
 from the truth samples the view received.
 
 Run changes: a :class:`~tagswarm.protocol.messages.Tick` with a new ``run_id`` (every
@@ -33,15 +33,15 @@ from collections import deque
 from dataclasses import dataclass, field
 from typing import Any, Final
 
-from tagswarm.covframe import ELLIPSE_SCALE_95, covariance_ellipse
-from tagswarm.localised import LOCALISED_HOLD_S, LOCALISED_M, LocalisedClock
+from tagswarm.evaluation.covframe import ELLIPSE_SCALE_95, covariance_ellipse
+from tagswarm.evaluation.localised import LOCALISED_HOLD_S, LOCALISED_M, LocalisedClock
 from tagswarm.protocol import codec
 from tagswarm.protocol import messages as m
 from tagswarm.protocol.geometry import Pose2, se2_compose, se2_inverse
 from tagswarm.protocol.keys import Keys
 from tagswarm.protocol.layout import arena_to_map, footprint_radius, start_poses, wall_boxes
 from tagswarm.protocol.scenario import Scenario
-from tagswarm.viewevents import MARKER_TTL_S, EventLog
+from tagswarm.view.events import MARKER_TTL_S, EventLog
 
 __all__ = ["EDGE_TTL_NS", "ELLIPSE_SCALE_95", "MAX_ROBOTS", "RobotView", "ViewState", "covariance_ellipse"]
 
@@ -221,7 +221,7 @@ class ViewState:
     @staticmethod
     def _fused_error(view: RobotView, stamp_ns: int) -> float | None:
         """Position error (m) of the fused estimate standing at ``stamp_ns`` against the truth
-        at its own stamp; None without one at most :data:`~tagswarm.localised.LOCALISED_HOLD_S` old."""
+        at its own stamp; None without one at most :data:`~tagswarm.evaluation.localised.LOCALISED_HOLD_S` old."""
         if view.fused is None or abs(stamp_ns - view.fused_stamp_ns) > LOCALISED_HOLD_S * 1e9:
             return None
         truth = view.truth_at(view.fused_stamp_ns)
@@ -379,7 +379,7 @@ class ViewState:
         }
 
     def snapshot(self) -> dict[str, Any]:
-        """Everything that moves, JSON-ready (see docs in tagswarm/view.py for the page protocol)."""
+        """Everything that moves, JSON-ready (see docs in tagswarm/view/view.py for the page protocol)."""
         rtf = self.rtf
         return {
             "type": "state",

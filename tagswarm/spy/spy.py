@@ -51,11 +51,11 @@ from tagswarm.protocol.config import (
     setup_logging,
 )
 from tagswarm.protocol.keys import Keys
+from tagswarm.spy.describe import decode, echo_line, image_summary, message_json, summarise, type_name
 
-# (not in the docstring: it is the --help text) message views live in tagswarm.spyview,
-# statistics and snapshots in tagswarm.spytraffic; their public names are re-exported here
-from tagswarm.spytraffic import LAST_WIDTH, KeyStats, Row, Traffic, human_rate, plain_snapshot, rich_snapshot
-from tagswarm.spyview import decode, echo_line, image_summary, message_json, summarise, type_name
+# (not in the docstring: it is the --help text) message views live in tagswarm.spy.describe,
+# statistics and snapshots in tagswarm.spy.traffic; their public names are re-exported here
+from tagswarm.spy.traffic import LAST_WIDTH, KeyStats, Row, Traffic, human_rate, plain_snapshot, rich_snapshot
 
 __all__ = [
     "INBOX_CAPACITY", "LAST_WIDTH", "PROG", "KeyStats", "Row", "Spy", "Traffic", "decode", "echo_line",

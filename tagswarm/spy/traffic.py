@@ -2,7 +2,7 @@
 a rich table).
 
 Pure code: :class:`Traffic` is fed payloads and a clock (seconds, monotonic) by
-:class:`tagswarm.spy.Spy` or a test; rates are messages per second and bandwidth
+:class:`tagswarm.spy.spy.Spy` or a test; rates are messages per second and bandwidth
 bytes per second over the last ``window_s`` seconds.
 """
 
@@ -16,7 +16,7 @@ from rich.text import Text
 
 from tagswarm.protocol import codec
 from tagswarm.protocol import messages as m
-from tagswarm.spyview import decode, summarise, type_name
+from tagswarm.spy.describe import decode, summarise, type_name
 
 LAST_WIDTH = 90
 """Characters of the newest-message view shown in a snapshot."""

@@ -44,19 +44,6 @@ from typing import Any
 
 import msgspec
 
-from tagswarm.mcapio import (
-    META_RUN,
-    RecordingError,
-    is_ack,
-    is_tick,
-    is_world_stream,
-    iter_raw,
-    keyexpr_matches,
-    raw_topics,
-    read_metadata,
-    remap_run,
-    run_of,
-)
 from tagswarm.protocol import codec
 from tagswarm.protocol import messages as m
 from tagswarm.protocol.bus import Bus, open_bus
@@ -74,6 +61,19 @@ from tagswarm.protocol.config import (
 )
 from tagswarm.protocol.keys import Keys, split_participant
 from tagswarm.protocol.scenario import Clock, Scenario
+from tagswarm.recording.mcapio import (
+    META_RUN,
+    RecordingError,
+    is_ack,
+    is_tick,
+    is_world_stream,
+    iter_raw,
+    keyexpr_matches,
+    raw_topics,
+    read_metadata,
+    remap_run,
+    run_of,
+)
 from tagswarm.world.lockstep import AckTracker
 
 PROG = "tagswarm replay"

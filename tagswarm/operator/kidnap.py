@@ -32,7 +32,7 @@ import math
 import sys
 from collections.abc import Sequence
 
-from tagswarm.goto import MAX_ROBOT_ID, wait_alive
+from tagswarm.operator.goto import MAX_ROBOT_ID, wait_alive
 from tagswarm.protocol import codec
 from tagswarm.protocol import messages as m
 from tagswarm.protocol.bus import Bus, open_bus

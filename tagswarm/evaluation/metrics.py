@@ -9,11 +9,11 @@ nearest robot involved in an observation.
 This module assembles ``metrics.json`` and re-exports the public names of the
 modules that compute it (import them from here):
 
-- :mod:`tagswarm.runfolder`: reading the run folder (:func:`load_run`).
-- :mod:`tagswarm.trajerror`: association, ATE/RPE via evo, the shared SE(2) alignment.
-- :mod:`tagswarm.formation`: pairwise (formation) error, error against distance.
-- :mod:`tagswarm.runsummary`: behaviour (counters, time per mode) and cost.
-- :mod:`tagswarm.recovery`: time localised, kidnaps and recovery, re-localisation
+- :mod:`tagswarm.evaluation.runfolder`: reading the run folder (:func:`load_run`).
+- :mod:`tagswarm.evaluation.trajerror`: association, ATE/RPE via evo, the shared SE(2) alignment.
+- :mod:`tagswarm.evaluation.pairwise`: pairwise (formation) error, error against distance.
+- :mod:`tagswarm.evaluation.runsummary`: behaviour (counters, time per mode) and cost.
+- :mod:`tagswarm.evaluation.recovery`: time localised, kidnaps and recovery, re-localisation
   events, contacts, NEES.
 
 Frames and units
@@ -30,7 +30,7 @@ Inputs (the run folder contract)
 ``run.json``, ``trajectories/{truth,odom,fused}_<k>.tum``, ``observations.csv``,
 ``modes.csv``; see :func:`load_run`.  A missing or empty ``fused_<k>.tum`` means
 robot k was never localised: its fused metrics are ``null``.  Optional (older run
-folders lack them; formats in :mod:`tagswarm.runformat`):
+folders lack them; formats in :mod:`tagswarm.evaluation.runformat`):
 ``trajectories/fused_cov_<k>.csv`` (the published fused covariance),
 ``relocalisations.csv`` (the server's re-localisation events) and
 ``world_commands.csv`` (kidnaps sent on the network).
@@ -49,7 +49,7 @@ nothing to evaluate.  ``E`` is a per-estimate block, given for ``"fused"`` (the
 server's fused estimate) and for ``"odom"`` (dead reckoning only, started from
 the true initial pose, so its error is pure drift).
 
-- ``schema``: ``"tagswarm.metrics/1"``.
+- ``schema``: ``"tagswarm.evaluation.metrics/1"``.
 - ``run``: ``clock`` ("lockstep"/"realtime"), ``sim_time_s``, ``wall_time_s``,
   ``exit_code``, ``failure`` (the orchestrator's failure message or ``null``),
   ``origin_id``, ``robots`` (ids), copied from ``run.json``.
@@ -90,7 +90,7 @@ the true initial pose, so its error is pure drift).
     per fused sample, e the map-frame position error and P the 2x2 position block
     of the published covariance at that stamp (within ``assoc_max_diff_s``)
     rotated into the map frame by the estimate's yaw (it is in the robot's own
-    axes, see :mod:`tagswarm.covframe`); 1 for a consistent estimator, above 1 an
+    axes, see :mod:`tagswarm.evaluation.covframe`); 1 for a consistent estimator, above 1 an
     over-confident one.  Samples whose block is not positive definite are
     skipped.  ``null`` when no covariance was recorded.
   - ``relocalisations``: number of re-localisation events (see the top-level list).
@@ -161,7 +161,8 @@ from typing import Any
 
 import numpy as np
 
-from tagswarm.formation import (
+from tagswarm.evaluation.localised import LOCALISED_HOLD_S, LOCALISED_M
+from tagswarm.evaluation.pairwise import (
     DISTANCE_BINS_M,
     NEIGHBOUR_WINDOW_S,
     DistanceSamples,
@@ -169,9 +170,8 @@ from tagswarm.formation import (
     error_vs_distance,
     pairwise_error,
 )
-from tagswarm.localised import LOCALISED_HOLD_S, LOCALISED_M
-from tagswarm.recovery import RECOVERED_STAY_S, recovery_metrics
-from tagswarm.runfolder import (
+from tagswarm.evaluation.recovery import RECOVERED_STAY_S, recovery_metrics
+from tagswarm.evaluation.runfolder import (
     F64,
     MODES_HEADER,
     OBS_HEADER,
@@ -184,8 +184,8 @@ from tagswarm.runfolder import (
     read_observations,
     read_tum,
 )
-from tagswarm.runsummary import cost, mode_durations, robot_behaviour, swarm_behaviour
-from tagswarm.trajerror import (
+from tagswarm.evaluation.runsummary import cost, mode_durations, robot_behaviour, swarm_behaviour
+from tagswarm.evaluation.trajerror import (
     ASSOC_MAX_DIFF_S,
     KINDS,
     RPE_DELTA_M,
@@ -209,7 +209,7 @@ __all__ = [
     "read_modes", "read_observations", "read_tum", "rpe_per_metre",
 ]
 
-SCHEMA = "tagswarm.metrics/1"
+SCHEMA = "tagswarm.evaluation.metrics/1"
 
 
 @dataclass

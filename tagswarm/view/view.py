@@ -14,14 +14,14 @@ from the internet.
 
 Threads: Zenoh callbacks only enqueue (:mod:`tagswarm.protocol.bus`); the node's loop
 (:meth:`ViewNode.step`) drains, decodes (bad payloads are counted per kind and
-dropped), folds messages into :class:`~tagswarm.viewstate.ViewState` and hands a
+dropped), folds messages into :class:`~tagswarm.view.state.ViewState` and hands a
 JSON snapshot to the :class:`Hub` at most ``--rate`` times a second (default
 10); one server thread per browser sends each new snapshot (never more often
 than that) and the selected robot's camera (at most ``--camera-rate``).
 
 Page protocol (JSON text frames on ``/ws``): server to page ``scene`` (static
 arena, once per connection), ``state`` (see :meth:`ViewState.snapshot`) and
-``camera`` (see :func:`tagswarm.viewcam.camera_message`); page to server
+``camera`` (see :func:`tagswarm.view.thumbnails.camera_message`); page to server
 ``{"type": "select", "robot": K}`` chooses the camera shown.  ``GET
 /state.json`` returns the newest snapshot (for scripts).
 """
@@ -54,9 +54,9 @@ from tagswarm.protocol.config import (
 )
 from tagswarm.protocol.keys import Keys
 from tagswarm.protocol.scenario import Scenario
-from tagswarm.viewcam import camera_message
-from tagswarm.viewserver import Hub, WebServer
-from tagswarm.viewstate import ViewState
+from tagswarm.view.state import ViewState
+from tagswarm.view.thumbnails import camera_message
+from tagswarm.view.webserver import Hub, WebServer
 
 PROG = "tagswarm view"
 log = logging.getLogger("tagswarm.view")
@@ -122,7 +122,7 @@ def build_config(argv: Sequence[str] | None, environ: Mapping[str, str] | None =
     if not 32 <= args.thumb_width <= 4096:
         raise ConfigError(f"--thumb-width must be 32..4096 px, got {args.thumb_width}")
     run = pick(args, env, "run", "default")
-    Keys(run)  # validates the run id (KeyError_ -> exit 2)
+    Keys(run)  # validates the run id (KeyNameError -> exit 2)
     return ViewConfig(scenario=scenario_from(args, env), run=run, bus=bus_from(args, env),
                       host=args.host or env.get("TAGSWARM_VIEW_HOST", "127.0.0.1"), port=port,
                       rate_hz=args.rate, camera_rate_hz=args.camera_rate, thumb_width=args.thumb_width,

@@ -28,9 +28,9 @@ from typing import Any
 
 from foxglove import messages as fg
 
-from tagswarm.mcapio import run_of
 from tagswarm.protocol import messages as m
 from tagswarm.protocol.geometry import Pose2
+from tagswarm.recording.mcapio import run_of
 
 View = tuple[str, Any, bytes]  # (topic, foxglove.Schema, encoded protobuf)
 CUBE_EDGE_M = 0.2  # drawn size of a robot in the map view (the scenario's cube edge when known)

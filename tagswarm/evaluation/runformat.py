@@ -1,11 +1,11 @@
 """Column headers of the run folder's newer CSV files, shared by the writer
-(:mod:`tagswarm.recorder`) and the reader (:mod:`tagswarm.runfolder`) without
+(:mod:`tagswarm.recording.runrecorder`) and the reader (:mod:`tagswarm.evaluation.runfolder`) without
 importing either's dependencies (Zenoh on one side, evo on the other).
 
 - ``trajectories/fused_cov_<k>.csv`` (:data:`FUSED_COV_HEADER`): one row per fused
   pose of ``fused_<k>.tum``: ``stamp_ns`` and the row-major 3x3 covariance of
   (x_m, y_m, yaw_rad) as the server published it, in the robot's own axes (see
-  :mod:`tagswarm.covframe`); m², m·rad, rad².
+  :mod:`tagswarm.evaluation.covframe`); m², m·rad, rad².
 - ``relocalisations.csv`` (:data:`RELOC_HEADER`): the server's
   :class:`~tagswarm.protocol.messages.Relocalisation` events; poses in the MAP frame (m,
   rad); ``observers`` space-separated robot ids (``-1`` = a landmark).

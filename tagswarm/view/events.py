@@ -1,5 +1,5 @@
 """The live view's recent events: the server's re-localisations and kidnaps (world
-commands), for :class:`tagswarm.viewstate.ViewState`.  Pure code.
+commands), for :class:`tagswarm.view.state.ViewState`.  Pure code.
 
 Positions are in the MAP frame (metres, radians): a re-localisation carries its
 own map-frame poses; a teleport's target arrives in the ARENA frame and is

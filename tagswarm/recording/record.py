@@ -9,7 +9,7 @@ that Foxglove opens:
   message type's JSON schema), so ``tagswarm replay`` is byte-exact; log time is the
   message's simulation time, publish time the wall clock at reception;
 - Foxglove views beside them (poses, frames, the map, camera images; see
-  :mod:`tagswarm.foxglove_views`), unless ``--no-foxglove``;
+  :mod:`tagswarm.recording.foxglove_views`), unless ``--no-foxglove``;
 - camera images optionally downsampled (``--image-scale 0.5``: area-averaged, intrinsics
   scaled; such raw images are re-encoded, so a replay of them is no longer byte-exact) or
   skipped (``--no-images``).
@@ -39,7 +39,6 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
-from tagswarm.mcapio import is_tick
 from tagswarm.protocol import codec
 from tagswarm.protocol import messages as m
 from tagswarm.protocol.bus import Bus, Received, open_bus
@@ -57,7 +56,8 @@ from tagswarm.protocol.config import (
 )
 from tagswarm.protocol.keys import Keys, split_participant
 from tagswarm.protocol.scenario import Scenario
-from tagswarm.recordmcap import (
+from tagswarm.recording.mcapio import is_tick
+from tagswarm.recording.mcaprecording import (
     RECORD_PARTICIPANT,
     RECORDER_NAME,
     McapRecording,
@@ -68,9 +68,21 @@ from tagswarm.recordmcap import (
 )
 
 __all__ = [
-    "INBOX_CAPACITY", "PROG", "QUIET_AFTER_WORLD_S", "RECORD_PARTICIPANT", "BackgroundRecording", "McapRecording",
-    "RecordOptions", "Recorder", "declare_when_meshed", "main", "parser", "scale_image", "start_recording",
-    "with_recorder", "without_recorders",
+    "INBOX_CAPACITY",
+    "PROG",
+    "QUIET_AFTER_WORLD_S",
+    "RECORD_PARTICIPANT",
+    "BackgroundRecording",
+    "McapRecorder",
+    "McapRecording",
+    "RecordOptions",
+    "declare_when_meshed",
+    "main",
+    "parser",
+    "scale_image",
+    "start_recording",
+    "with_recorder",
+    "without_recorders",
 ]
 
 PROG = RECORDER_NAME
@@ -114,7 +126,7 @@ def declare_when_meshed(bus: Bus, keys: Keys, name: str, peers: Sequence[str], t
     return thread
 
 
-class Recorder:
+class McapRecorder:
     """Feeds a :class:`McapRecording` from the bus: one subscription to ``keyexpr`` plus
     the world's liveliness (to notice that its run ended).  With ``participant``
     (``"record/0"``) it also joins the lockstep of ``keys``' run: a liveliness token once
@@ -185,9 +197,9 @@ class Recorder:
 
 
 class BackgroundRecording:
-    """A :class:`Recorder` on its own thread sharing a process's bus (``tagswarm up --record``)."""
+    """A :class:`McapRecorder` on its own thread sharing a process's bus (``tagswarm up --record``)."""
 
-    def __init__(self, recorder: Recorder, bus: Bus) -> None:
+    def __init__(self, recorder: McapRecorder, bus: Bus) -> None:
         self.recorder = recorder
         self._stop = threading.Event()
         self._bus = bus
@@ -216,8 +228,9 @@ def start_recording(bus: Bus, keys: Keys, path: Path, scenario: Scenario | None 
         RECORD_PARTICIPANT in scenario.clock.participants
     peers = (*scenario.clock.participants, "world/0") if scenario is not None else ()
     timeout = scenario.clock.join_timeout_s if scenario is not None else 30.0
-    return BackgroundRecording(Recorder(bus, keys.all(), rec, None, participant=RECORD_PARTICIPANT if joins else None,
-                                        keys=keys, peers=peers, join_timeout_s=timeout), bus)
+    return BackgroundRecording(McapRecorder(bus, keys.all(), rec, None,
+                                            participant=RECORD_PARTICIPANT if joins else None,
+                                            keys=keys, peers=peers, join_timeout_s=timeout), bus)
 
 
 def parser() -> OneLineParser:
@@ -275,7 +288,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         stats: dict[str, int] = {}
         try:
             with open_bus(bus_cfg) as bus:
-                rec = Recorder(bus, keyexpr, recording, keys.alive("world/0"), participant=args.participant,
+                rec = McapRecorder(bus, keyexpr, recording, keys.alive("world/0"), participant=args.participant,
                                keys=keys, peers=peers)
                 log.info("recording %s to %s", keyexpr, args.out)
                 while not stop.is_set():

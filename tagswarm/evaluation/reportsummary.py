@@ -2,7 +2,7 @@
 recovery, and behaviour per robot plus the swarm, then the formation error,
 shared alignment, re-localisation events, kidnaps, contacts, cost and warnings.
 
-Reads only the ``metrics.json`` dict (fields documented in :mod:`tagswarm.metrics`);
+Reads only the ``metrics.json`` dict (fields documented in :mod:`tagswarm.evaluation.metrics`);
 metres, seconds of simulation time.
 """
 

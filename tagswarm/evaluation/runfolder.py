@@ -1,4 +1,4 @@
-"""Reading a run folder (the contract ``tagswarm up`` writes) for :mod:`tagswarm.metrics`.
+"""Reading a run folder (the contract ``tagswarm up`` writes) for :mod:`tagswarm.evaluation.metrics`.
 
 Pure code: files in, arrays and trajectories out; a missing or malformed folder
 raises :class:`RunFolderError` with a one-line message naming the file.
@@ -11,7 +11,7 @@ raises :class:`RunFolderError` with a one-line message naming the file.
 - ``observations.csv`` (:data:`OBS_HEADER`) and ``modes.csv`` (:data:`MODES_HEADER`):
   ``stamp_ns`` columns become simulation seconds; a missing file is a warning.
 - ``trajectories/fused_cov_<k>.csv``, ``relocalisations.csv`` and
-  ``world_commands.csv`` (formats in :mod:`tagswarm.runformat`): newer than the
+  ``world_commands.csv`` (formats in :mod:`tagswarm.evaluation.runformat`): newer than the
   rest of the contract, so a missing file is silently empty (``None`` for a
   covariance file: NEES is then ``null``).
 """
@@ -31,7 +31,7 @@ from evo.core.trajectory import PoseTrajectory3D
 from evo.tools import file_interface
 from numpy.typing import NDArray
 
-from tagswarm.runformat import FUSED_COV_HEADER, RELOC_HEADER, WORLD_COMMANDS_HEADER
+from tagswarm.evaluation.runformat import FUSED_COV_HEADER, RELOC_HEADER, WORLD_COMMANDS_HEADER
 
 F64 = NDArray[np.float64]
 
@@ -102,7 +102,7 @@ class WorldCommandRow:
 @dataclass(frozen=True)
 class CovTrack:
     """``fused_cov_<k>.csv``: ``stamp_s`` (N,) sim seconds and ``cov`` (N, 3, 3) of (x, y, yaw)
-    in the robot's own axes (see :mod:`tagswarm.covframe`)."""
+    in the robot's own axes (see :mod:`tagswarm.evaluation.covframe`)."""
 
     stamp_s: F64
     cov: F64
@@ -223,7 +223,7 @@ def _optional_rows(path: Path, header: tuple[str, ...]) -> list[dict[str, str]]:
 
 
 def read_relocalisations(path: Path) -> list[RelocEvent]:
-    """``relocalisations.csv`` (header :data:`~tagswarm.runformat.RELOC_HEADER`), sorted by time."""
+    """``relocalisations.csv`` (header :data:`~tagswarm.evaluation.runformat.RELOC_HEADER`), sorted by time."""
     out = []
     for i, r in enumerate(_optional_rows(path, RELOC_HEADER), start=2):
         f = {n: _float(r[n], path, i, n) for n in RELOC_HEADER[2:9]}
@@ -236,7 +236,7 @@ def read_relocalisations(path: Path) -> list[RelocEvent]:
 
 
 def read_world_commands(path: Path) -> list[WorldCommandRow]:
-    """``world_commands.csv`` (header :data:`~tagswarm.runformat.WORLD_COMMANDS_HEADER`), sorted by time."""
+    """``world_commands.csv`` (header :data:`~tagswarm.evaluation.runformat.WORLD_COMMANDS_HEADER`), sorted by time."""
     out = []
     for i, r in enumerate(_optional_rows(path, WORLD_COMMANDS_HEADER), start=2):
         action = (r["action"] or "").strip()
@@ -251,7 +251,7 @@ def read_world_commands(path: Path) -> list[WorldCommandRow]:
 
 
 def read_fused_cov(path: Path) -> CovTrack | None:
-    """``fused_cov_<k>.csv`` (header :data:`~tagswarm.runformat.FUSED_COV_HEADER`), sorted by
+    """``fused_cov_<k>.csv`` (header :data:`~tagswarm.evaluation.runformat.FUSED_COV_HEADER`), sorted by
     time, or ``None`` if the file is missing or has no row."""
     rows = _optional_rows(path, FUSED_COV_HEADER)
     if not rows:

@@ -81,7 +81,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                 return 1
             print(f"heartbeat {args.heartbeat} is {max(age, 0.0):.1f} s old")
             return 0
-        split_participant(args.participant)  # one-line KeyError_ -> exit 2
+        split_participant(args.participant)  # one-line KeyNameError -> exit 2
         run = pick(args, env, "run", "default")
         key = Keys(run).alive(args.participant)
         with open_bus(bus_from(args, env)) as bus:

@@ -1,4 +1,4 @@
-"""Behaviour and cost of a run for :mod:`tagswarm.metrics`: the agents' counters and
+"""Behaviour and cost of a run for :mod:`tagswarm.evaluation.metrics`: the agents' counters and
 the world's rendered frames from ``run.json``, time per behaviour mode from
 ``modes.csv``, and the real-time factor.
 
@@ -13,7 +13,7 @@ import math
 from collections.abc import Sequence
 from typing import Any
 
-from tagswarm.runfolder import ModeSample, RunData
+from tagswarm.evaluation.runfolder import ModeSample, RunData
 
 AGENT_COUNTERS = ("fixes", "searches", "lost_events", "frames_processed", "frames_skipped")
 """Per-robot counters copied from the agent's status (``run.json`` ``counters["agent/<k>"]``)."""

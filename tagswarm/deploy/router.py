@@ -20,7 +20,7 @@ Security (docs/security.md):
 
 ``--users FILE`` (Zenoh's ``user:password`` dictionary) admits only clients that
 log in with one of its entries (``--zenoh-user``, ``--zenoh-password-file``);
-``--acl`` adds the access control of tagswarm/acl.py for the run (``--run``) and
+``--acl`` adds the access control of tagswarm/deploy/acl.py for the run (``--run``) and
 the scenario's robots (``--scenario``, ``--robots``): each role may publish,
 subscribe, query and declare only its own keys.
 """
@@ -38,7 +38,7 @@ from pathlib import Path
 
 import msgspec
 
-from tagswarm import acl
+from tagswarm.deploy import acl
 from tagswarm.protocol.bus import BusConfig, open_bus
 from tagswarm.protocol.config import (
     ConfigError,

@@ -1,7 +1,7 @@
 """The live view's web side: the page's files, ``/state.json`` and the ``/ws`` WebSocket
 on one port (the ``websockets`` library's threaded server), and the :class:`Hub` that
 hands the loop thread's JSON to one sending thread per browser.  See
-:mod:`tagswarm.view` for the page protocol."""
+:mod:`tagswarm.view.view` for the page protocol."""
 
 from __future__ import annotations
 
@@ -159,7 +159,7 @@ class WebServer:
 
     def __init__(self, host: str, port: int, hub: Hub) -> None:
         self.hub = hub
-        web = importlib.resources.files("tagswarm") / "web"
+        web = importlib.resources.files("tagswarm.view") / "web"
         self._files = {path: (web.joinpath(name).read_bytes(), ctype) for path, (name, ctype) in STATIC.items()}
         try:
             self._server: Server = serve(lambda conn: serve_browser(conn, hub), host, port,

@@ -2,8 +2,8 @@
 
 Writes into the run folder:
 
-- ``metrics.json``: :func:`tagswarm.metrics.compute_metrics` (fields documented in
-  :mod:`tagswarm.metrics`).
+- ``metrics.json``: :func:`tagswarm.evaluation.metrics.compute_metrics` (fields documented in
+  :mod:`tagswarm.evaluation.metrics`).
 - ``plots/arena.png``: the arena walls (and obstacles, landmarks) with the true,
   fused and odometry-only path of every robot, start and end markers.
 - ``plots/error_over_time.png``: fused and odometry-only position error per robot
@@ -19,7 +19,7 @@ Writes into the run folder:
 Everything is drawn in the MAP frame (metres); the arena, given in the arena
 frame by the scenario, is moved there with :func:`tagswarm.protocol.layout.arena_to_map`.
 Matplotlib is used through the Agg canvas only (no GUI, no global pyplot state).
-The printed summary is :mod:`tagswarm.reportsummary`.
+The printed summary is :mod:`tagswarm.evaluation.reportsummary`.
 """
 
 from __future__ import annotations
@@ -36,11 +36,11 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 
-from tagswarm.metrics import F64, Evaluation, RunFolderError, evaluate, load_run
+from tagswarm.evaluation.metrics import F64, Evaluation, RunFolderError, evaluate, load_run
+from tagswarm.evaluation.reportsummary import print_summary, summary_tables
 from tagswarm.protocol.config import ConfigError, OneLineParser, parse, run_main
 from tagswarm.protocol.layout import arena_to_map
 from tagswarm.protocol.scenario import Scenario, ScenarioError, convert
-from tagswarm.reportsummary import print_summary, summary_tables
 
 __all__ = ["PLOTS", "main", "plot_error_over_time", "print_summary", "summary_tables", "write_report"]
 

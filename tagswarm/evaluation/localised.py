@@ -1,5 +1,5 @@
 """What "localised" means for evaluation, shared by the offline metrics
-(:mod:`tagswarm.recovery`) and the live view (:mod:`tagswarm.viewstate`), and the live
+(:mod:`tagswarm.evaluation.recovery`) and the live view (:mod:`tagswarm.view.state`), and the live
 view's running share of time localised.  Pure code, no numpy (the view imports it).
 
 A robot is localised at time t while the newest fused estimate at or before t is

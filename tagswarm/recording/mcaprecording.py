@@ -3,7 +3,7 @@
 :class:`McapRecording` keeps the MCAP bookkeeping: one raw channel per key (payload bytes
 exactly as received), Foxglove views beside them, optional image downsampling
 (:func:`scale_image`), counters per message type and per reject kind, and the frames a
-tick promised but that never arrived.  No Zenoh here: :mod:`tagswarm.record` feeds it
+tick promised but that never arrived.  No Zenoh here: :mod:`tagswarm.recording.record` feeds it
 from the bus (and ``bench/record.py`` and the tests feed it directly).
 :func:`with_recorder` / :func:`without_recorders` add or strip the recorder as a
 lockstep participant of a scenario.
@@ -22,13 +22,13 @@ import cv2
 import msgspec
 import numpy as np
 
-from tagswarm.foxglove_views import FoxgloveViews
-from tagswarm.mcapio import META_RUN, META_STATS, McapSink
 from tagswarm.protocol import codec
 from tagswarm.protocol import messages as m
 from tagswarm.protocol.config import ConfigError
 from tagswarm.protocol.layout import arena_to_map
 from tagswarm.protocol.scenario import Scenario
+from tagswarm.recording.foxglove_views import FoxgloveViews
+from tagswarm.recording.mcapio import META_RUN, META_STATS, McapSink
 
 RECORDER_NAME: Final = "tagswarm record"  # the tool named in a recording's metadata
 RECORD_PARTICIPANT: Final = "record/0"

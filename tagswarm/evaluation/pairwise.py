@@ -1,9 +1,9 @@
-"""Multi-robot errors for :mod:`tagswarm.metrics` that evo lacks: the pairwise
+"""Multi-robot errors for :mod:`tagswarm.evaluation.metrics` that evo lacks: the pairwise
 (formation) error, and the error against the distance to the nearest robot involved
 in an observation (the paper's claim that the error shrinks as robots get closer).
 
 Pure code.  Positions and errors are metres in the MAP frame, timestamps simulation
-seconds; the inputs are :class:`~tagswarm.trajerror.Track` objects (estimates
+seconds; the inputs are :class:`~tagswarm.evaluation.trajerror.Track` objects (estimates
 already associated with their truth).
 """
 
@@ -17,8 +17,8 @@ import numpy as np
 from evo.core import sync as evo_sync
 from numpy.typing import NDArray
 
-from tagswarm.runfolder import F64, Observations, RunData
-from tagswarm.trajerror import ASSOC_MAX_DIFF_S, Track
+from tagswarm.evaluation.runfolder import F64, Observations, RunData
+from tagswarm.evaluation.trajerror import ASSOC_MAX_DIFF_S, Track
 
 NEIGHBOUR_WINDOW_S = 0.5
 """± window (s) around a fused sample in which an observation makes a robot a neighbour."""

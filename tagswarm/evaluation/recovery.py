@@ -1,11 +1,11 @@
-"""Evaluation of localisation recovery for :mod:`tagswarm.metrics`: how much of the
+"""Evaluation of localisation recovery for :mod:`tagswarm.evaluation.metrics`: how much of the
 time each robot is localised, kidnaps and how long the swarm takes to recover
 from them, the server's re-localisation events, collisions and the consistency
 of the fused covariance (NEES).  The ``metrics.json`` fields are documented in
-:mod:`tagswarm.metrics`.
+:mod:`tagswarm.evaluation.metrics`.
 
 Pure code.  Positions and errors are metres in the MAP frame, timestamps
-simulation seconds.  "Localised" is defined in :mod:`tagswarm.localised`; it is
+simulation seconds.  "Localised" is defined in :mod:`tagswarm.evaluation.localised`; it is
 sampled on the robot's truth stamps, each sample holding until the next one
 (time-weighted), so time before the first fused estimate and gaps in the
 corrections count as not localised.
@@ -22,10 +22,10 @@ import numpy as np
 from evo.core.trajectory import PoseTrajectory3D
 from numpy.typing import NDArray
 
-from tagswarm.covframe import position_cov_in_map
-from tagswarm.localised import LOCALISED_HOLD_S, LOCALISED_M
-from tagswarm.runfolder import F64, CovTrack, RelocEvent, RunData
-from tagswarm.trajerror import ASSOC_MAX_DIFF_S, Track
+from tagswarm.evaluation.covframe import position_cov_in_map
+from tagswarm.evaluation.localised import LOCALISED_HOLD_S, LOCALISED_M
+from tagswarm.evaluation.runfolder import F64, CovTrack, RelocEvent, RunData
+from tagswarm.evaluation.trajerror import ASSOC_MAX_DIFF_S, Track
 
 RECOVERED_STAY_S = 1.0
 """After a kidnap a robot has recovered once it stays localised this long (s)."""

@@ -1,0 +1,2 @@
+"""Evaluation of a run folder (trajectory and formation error, recovery, behaviour, cost) and
+``tagswarm report``."""

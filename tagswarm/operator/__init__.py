@@ -1,0 +1,1 @@
+"""What an operator sends to a running system: ``tagswarm goto``, ``tagswarm kidnap``."""

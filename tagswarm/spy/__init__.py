@@ -1,0 +1,1 @@
+"""``tagswarm spy``: a live table of the keys, types, rates and bandwidth of a running system."""

@@ -1,0 +1,1 @@
+"""``tagswarm view`` (the live web page; its files in ``web/``) and ``tagswarm snapshot``."""

@@ -46,10 +46,12 @@ from tagswarm.agents.odometry import DiffDriveOdometry, DiffDriveParams, SlipMon
 from tagswarm.protocol import codec
 from tagswarm.protocol import messages as m
 from tagswarm.protocol.bus import Bus, Inbox
-from tagswarm.protocol.config import serve_node
 from tagswarm.protocol.geometry import Pose2, se2_compose
 from tagswarm.protocol.keys import Keys
 from tagswarm.protocol.layout import arena_to_map, footprint_radius
+from tagswarm.runtime import streams
+from tagswarm.runtime.lockstep import Participant
+from tagswarm.runtime.process import serve_node
 
 log = logging.getLogger("tagswarm.agent")
 PRIOR_MAX_AGE_NS = 500_000_000  # robots move ~15 cm in 0.5 s: older relative poses mislead more than help
@@ -74,10 +76,11 @@ class AgentNode:
         self.tagmap = TagMap.from_scenario(s)
         self.estimator = CubePoseEstimator(s, pixel_sigma_px=a.pixel_sigma_px, max_rms_px=a.max_reprojection_px)
         self.frame_delay_s = config.inject_frame_delay_s
-        self.rejects = codec.RejectCounter(log)
-        self.gaps = codec.GapCounter()  # messages lost on the way, per sender (lossy networks)
+        self.rejects = streams.RejectCounter(log)
+        self.gaps = streams.GapCounter()  # messages lost on the way, per sender (lossy networks)
         self.counters: Counter[str] = Counter()
-        self.seq = codec.Sequencer()
+        self.seq = streams.Sequencer()
+        self.participant = Participant(bus, self.keys, config.participant, self.seq)  # lockstep acks
         self.lockstep = s.clock.mode == "lockstep"
         # realtime: newest-only, a slow detector skips frames.  Lockstep: the world waits for us, so nothing
         # queues, but a newest-only inbox would let one bad payload landing after a frame displace it (the
@@ -95,7 +98,7 @@ class AgentNode:
         self.server_alive_in = bus.watch_liveliness(self.keys.alive_role("server"))
         self.world_alive_in = bus.watch_liveliness(self.keys.alive_role("world"))
         self.server_alive = False
-        self.runs = codec.RunFollower()  # the world instance whose ticks we follow
+        self.runs = streams.RunFollower()  # the world instance whose ticks we follow
         self.wait_for_server = any(p.startswith("server/") for p in s.clock.participants)
         self._reset_run()
         if config.fetch_map_timeout_s > 0:
@@ -402,55 +405,65 @@ class AgentNode:
 
     def _step_lockstep(self) -> bool:
         ticks = self.tick_in.drain()
-        for _, tick in self.rejects.decoded(ticks, m.Tick):
-            if not self._accept_tick(tick):
-                continue
-            if self._last_step is not None and tick.step <= self._last_step:
-                self.counters["stale_ticks"] += 1  # a repeat: acting twice on one tick would break lockstep
-                continue
-            self.time_ns = max(self.time_ns, tick.stamp_ns)
-            mine = {pair.split("/", 1)[1] for pair in tick.cameras_rendered if pair.split("/", 1)[0] == str(self.rid)}
-
-            def frames_in(tick: m.Tick = tick, mine: set[str] = mine) -> bool:
-                self._take_frames()
-                self._drain_presence()
-                pending = self.pending_frames
-                return self.runs.world_left or all(n in pending and pending[n].step >= tick.step for n in mine)
-
-            if mine and not self.bus.wait_for(frames_in, self.s.agent.frame_wait_s):
-                self.counters["frames_missing"] += 1
-            if self.runs.world_left:
-                # the world died mid-step: its run is over, nothing of this tick is wanted any more
-                self.counters["ticks_abandoned"] += 1
-                continue
-            if self.wait_for_server and self._last_step is None:
-                # first tick: the world started, so the server is up; wait for its token so that
-                # the first corrections are waited for like every later one (determinism)
-                def server_known() -> bool:
-                    self._drain_presence()
-                    return self.server_alive
-
-                self.bus.wait_for(server_known, self.s.agent.frame_wait_s)
-            elif self.wait_for_server and self._last_step == tick.step - 1:
-                # the server corrected tick k-1 before acking it; wait for that correction so that the
-                # run does not depend on which network path is faster (lockstep determinism).  Not after
-                # a gap (we joined late or restarted): that correction may have gone out before we listened.
-                def corrected(prev: int = tick.stamp_ns - tick.dt_ns) -> bool:
-                    self._drain_presence()
-                    self._handle_corrections()
-                    return not self.server_alive or self.runs.world_left or self.correction_stamp_ns >= prev
-
-                if not self.bus.wait_for(corrected, self.s.agent.frame_wait_s):
-                    self.counters["corrections_missing"] += 1
-            self._handle_corrections()
-            self._handle_encoders()
-            self._process_frames()
-            self._control()
-            self._last_step = tick.step
-            key = self.keys.ack(self.cfg.participant)
-            self._publish(key, m.TickAck(seq=self.seq.next(key), stamp_ns=tick.stamp_ns,
-                                         participant=self.cfg.participant, step=tick.step))
+        accepted = (tick for _, tick in self.rejects.decoded(ticks, m.Tick) if self._new_step(tick))
+        self.participant.serve(accepted, self._lockstep_tick)
         return bool(ticks)
+
+    def _new_step(self, tick: m.Tick) -> bool:
+        """Whether ``tick`` is of the run we follow and a step not acted on yet."""
+        if not self._accept_tick(tick):
+            return False
+        if self._last_step is not None and tick.step <= self._last_step:
+            self.counters["stale_ticks"] += 1  # a repeat: acting twice on one tick would break lockstep
+            return False
+        return True
+
+    def _lockstep_tick(self, tick: m.Tick) -> bool:
+        """One lockstep step: wait (bounded) for this robot's frames of ``tick`` and the server's
+        correction of the step before, then odometry, frames, behaviour and the wheel command;
+        False abandons the step."""
+        self.time_ns = max(self.time_ns, tick.stamp_ns)
+        mine = {pair.split("/", 1)[1] for pair in tick.cameras_rendered if pair.split("/", 1)[0] == str(self.rid)}
+
+        def frames_in() -> bool:
+            self._take_frames()
+            self._drain_presence()
+            pending = self.pending_frames
+            return self.runs.world_left or all(n in pending and pending[n].step >= tick.step for n in mine)
+
+        if mine and not self.bus.wait_for(frames_in, self.s.agent.frame_wait_s):
+            self.counters["frames_missing"] += 1
+        if self.runs.world_left:
+            # the world died mid-step: its run is over, nothing of this tick is wanted any more
+            self.counters["ticks_abandoned"] += 1
+            return False
+        if self.wait_for_server and self._last_step is None:
+            # first tick: the world started, so the server is up; wait for its token so that
+            # the first corrections are waited for like every later one (determinism)
+            def server_known() -> bool:
+                self._drain_presence()
+                return self.server_alive
+
+            self.bus.wait_for(server_known, self.s.agent.frame_wait_s)
+        elif self.wait_for_server and self._last_step == tick.step - 1:
+            # the server corrected tick k-1 before acking it; wait for that correction so that the
+            # run does not depend on which network path is faster (lockstep determinism).  Not after
+            # a gap (we joined late or restarted): that correction may have gone out before we listened.
+            prev = tick.stamp_ns - tick.dt_ns
+
+            def corrected() -> bool:
+                self._drain_presence()
+                self._handle_corrections()
+                return not self.server_alive or self.runs.world_left or self.correction_stamp_ns >= prev
+
+            if not self.bus.wait_for(corrected, self.s.agent.frame_wait_s):
+                self.counters["corrections_missing"] += 1
+        self._handle_corrections()
+        self._handle_encoders()
+        self._process_frames()
+        self._control()
+        self._last_step = tick.step
+        return True
 
     def run(self, stop_event: threading.Event) -> int:
         end_ns = int(self.s.duration_s * 1e9)

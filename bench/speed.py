@@ -55,9 +55,9 @@ from render import raw_rate  # noqa: E402
 from rich.console import Console  # noqa: E402
 from rich.table import Table  # noqa: E402
 
-from tagswarm.protocol import codec  # noqa: E402
 from tagswarm.protocol import messages as m  # noqa: E402
 from tagswarm.protocol.keys import Keys  # noqa: E402
+from tagswarm.runtime import streams  # noqa: E402
 from tests.harness import client, endpoint  # noqa: E402
 
 TAGSWARM = str(Path(sys.executable).parent / "tagswarm")
@@ -123,7 +123,7 @@ def measure(robots: int, res: str, workers: int, seconds: float, warmup: float, 
             t_first = time.monotonic()
             while time.monotonic() < deadline and (len(seen) < robots or time.monotonic() - t_first < warmup):
                 bus.wait(0.2)
-                for _, st in codec.RejectCounter().decoded(status.drain(), m.AgentStatus):
+                for _, st in streams.RejectCounter().decoded(status.drain(), m.AgentStatus):
                     seen.add(st.robot_id)
             for box in (ticks, images, corr, status):
                 box.drain()
@@ -138,7 +138,7 @@ def measure(robots: int, res: str, workers: int, seconds: float, warmup: float, 
             frames: dict[int, list[tuple[float, int]]] = defaultdict(list)
             sim: list[int] = []
             n_images = 0
-            rc = codec.RejectCounter()
+            rc = streams.RejectCounter()
             while (now := time.monotonic()) - t0 < seconds:
                 bus.wait(0.05)
                 now = time.monotonic()

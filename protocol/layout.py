@@ -1,5 +1,6 @@
 """Where things are: start poses, footprints, walls and the map frame of a
-scenario (pure geometry on top of :mod:`tagswarm.protocol.scenario`)."""
+scenario (pure geometry on the types of :mod:`tagswarm.protocol.scenario_schema`;
+:mod:`tagswarm.protocol.scenario` validates start poses with it)."""
 
 from __future__ import annotations
 
@@ -8,7 +9,7 @@ import math
 import numpy as np
 
 from tagswarm.protocol.geometry import se2_inverse
-from tagswarm.protocol.scenario import Arena, Robot, Scenario
+from tagswarm.protocol.scenario_schema import Arena, Robot, Scenario
 
 
 def footprint_radius(robot: Robot) -> float:

@@ -53,7 +53,7 @@ import msgspec
 from tagswarm.protocol import tags
 from tagswarm.protocol.freespace import XY, obstacle_clearance, segment_distance, sight_blocked, wall_clearance
 from tagswarm.protocol.layout import footprint_radius
-from tagswarm.protocol.scenario import Mission, Scenario, ScenarioError, StartPose
+from tagswarm.protocol.scenario_schema import Mission, Scenario, ScenarioError, StartPose
 
 MARGIN_M = 0.1
 MAX_SPACING_M = 1.0

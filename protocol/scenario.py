@@ -6,8 +6,9 @@ dotted overrides such as ``clock.mode=lockstep`` (see :func:`apply_override`).
 Types and ranges are checked by msgspec; cross-field rules by :func:`validate`.
 Every problem is reported as a :class:`ScenarioError` with a one-line message
 naming the field.  The section structs (:class:`Scenario`, :class:`Arena`,
-:class:`Robot`, :class:`Camera`, ...) are defined in :mod:`tagswarm.protocol.scenario_schema`
-and re-exported here; this module loads, overrides and validates them.
+:class:`Robot`, :class:`Camera`, ...) and :class:`ScenarioError` are defined in
+:mod:`tagswarm.protocol.scenario_schema` and re-exported here; this module loads,
+overrides and validates them (with the geometry of :mod:`tagswarm.protocol.layout`).
 """
 
 from __future__ import annotations
@@ -24,6 +25,8 @@ import msgspec
 from tagswarm.protocol import tags
 from tagswarm.protocol.freespace import segment_box_distance
 from tagswarm.protocol.keys import KeyNameError, check_name, split_participant
+from tagswarm.protocol.layout import footprint_radius, start_poses
+from tagswarm.protocol.robotfill import complete
 from tagswarm.protocol.scenario_schema import (
     Agent,
     Arena,
@@ -41,6 +44,7 @@ from tagswarm.protocol.scenario_schema import (
     Robot,
     Robots,
     Scenario,
+    ScenarioError,
     Spec,
     StartPose,
     TagScheme,
@@ -55,10 +59,6 @@ __all__ = [
 
 
 log = logging.getLogger(__name__)
-
-
-class ScenarioError(ValueError):
-    """The scenario (or an override of it) is invalid; the message names the field."""
 
 
 # --------------------------------------------------------------------------- loading
@@ -166,8 +166,6 @@ def load_scenario(name_or_path: str = "paper", overrides: tuple[str, ...] | list
     """Load, override and validate a scenario.  Robots beyond an explicit start list
     get free start poses and missions, and the tag-ID scheme is compacted if it has
     no room for them (:mod:`tagswarm.protocol.robotfill`); each such step is logged at INFO."""
-    from tagswarm.protocol.robotfill import complete  # it builds on this module's types
-
     table = read_scenario_dict(name_or_path)
     robots = table.get("robots")
     toml_count = robots.get("count") if isinstance(robots, dict) else None
@@ -244,8 +242,6 @@ def validate(s: Scenario) -> None:
     if s.map.origin_id not in s.robot_ids:
         raise ScenarioError(f"map.origin_id={s.map.origin_id} is not a robot of this scenario")
     _validate_events(s)
-    from tagswarm.protocol.layout import footprint_radius, start_poses  # layout builds on these types
-
     poses = start_poses(s)
     half_x = s.arena.size_x_m / 2 - s.arena.wall_thickness_m / 2
     half_y = s.arena.size_y_m / 2 - s.arena.wall_thickness_m / 2
@@ -268,8 +264,6 @@ def _validate_events(s: Scenario) -> None:
     footprint and overlaps when it applies the event)."""
     half_x = s.arena.size_x_m / 2 - s.arena.wall_thickness_m / 2
     half_y = s.arena.size_y_m / 2 - s.arena.wall_thickness_m / 2
-    from tagswarm.protocol.layout import footprint_radius  # layout builds on these types
-
     r = footprint_radius(s.robot)
     for i, ev in enumerate(s.events):
         if ev.robot not in s.robot_ids:

@@ -16,6 +16,11 @@ import msgspec
 
 from tagswarm.protocol import tags
 
+
+class ScenarioError(ValueError):
+    """The scenario (or an override of it) is invalid; the message names the field."""
+
+
 Pos = Annotated[float, msgspec.Meta(gt=0)]
 NonNeg = Annotated[float, msgspec.Meta(ge=0)]
 

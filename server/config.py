@@ -9,7 +9,9 @@ from pathlib import Path
 import msgspec
 
 from tagswarm.protocol.bus import BusConfig
-from tagswarm.protocol.config import (
+from tagswarm.protocol.keys import Keys
+from tagswarm.protocol.scenario import Scenario
+from tagswarm.runtime.config import (
     ConfigError,
     OneLineParser,
     add_common_args,
@@ -19,8 +21,6 @@ from tagswarm.protocol.config import (
     pick,
     scenario_from,
 )
-from tagswarm.protocol.keys import Keys
-from tagswarm.protocol.scenario import Scenario
 
 
 class ServerConfig(msgspec.Struct, frozen=True, kw_only=True):

@@ -26,8 +26,11 @@ from collections.abc import Mapping, Sequence
 from tagswarm.protocol import codec
 from tagswarm.protocol import messages as m
 from tagswarm.protocol.bus import Bus
-from tagswarm.protocol.config import ConfigError, serve_node
 from tagswarm.protocol.keys import Keys
+from tagswarm.runtime import streams
+from tagswarm.runtime.config import ConfigError
+from tagswarm.runtime.lockstep import Participant
+from tagswarm.runtime.process import serve_node
 from tagswarm.server import journal as jr
 from tagswarm.server.config import ServerConfig, build_config
 from tagswarm.server.fusion import Fusion, FusionParams
@@ -69,12 +72,13 @@ class ServerNode:
         self.keys = Keys(config.run)
         self.roster = set(s.robot_ids)
         self.fusion = make_fusion(config)
-        self.rejects = codec.RejectCounter(log)
-        self.gaps = codec.GapCounter()  # messages lost on the way, per sender (lossy networks)
+        self.rejects = streams.RejectCounter(log)
+        self.gaps = streams.GapCounter()  # messages lost on the way, per sender (lossy networks)
         self.counters: Counter[str] = Counter()
         self._status_sig: tuple[int, int] = (-1, -1)  # (inputs counted, rejects) at the last status
         self._status_wall = 0.0  # when it went out (monotonic s)
-        self.seq = codec.Sequencer()
+        self.seq = streams.Sequencer()
+        self.participant = Participant(bus, self.keys, config.participant, self.seq)  # lockstep acks
         self.alive: set[int] = set()
         self.latest_rx: dict[int, int] = {}
         self.time_ns = 0
@@ -97,7 +101,7 @@ class ServerNode:
         self.odometry_grace_s = ODOMETRY_GRACE_S + config.bus.delay_ms / 1e3
         self.alive_in = bus.watch_liveliness(self.keys.alive_role("agent"))
         self.world_alive_in = bus.watch_liveliness(self.keys.alive_role("world"))
-        self.runs = codec.RunFollower()  # the world instance whose ticks we follow
+        self.runs = streams.RunFollower()  # the world instance whose ticks we follow
         self.query_in = bus.queryable(self.keys.map())
         # subscribed before the replay, so what arrives meanwhile waits in the inboxes; alive only after
         # it, so a lockstep world does not wait for acks from a server still rebuilding its graph
@@ -467,22 +471,25 @@ class ServerNode:
                 self.counters["odometry_lost"] += 1
 
     def _step_lockstep(self, ticks: list[m.Tick]) -> bool:
-        for tick in ticks:
-            self._await_odometry(tick)
-            if self._world_left():
-                # the world died after this tick reached us but before every agent answered it: its run is
-                # over, so neither fuse, correct nor acknowledge it (that would only feed stale poses to
-                # whoever listens while the next world starts)
-                self.counters["ticks_abandoned"] += 1
-                continue
-            self.time_ns = max(self.time_ns, tick.stamp_ns)
-            self._advance(tick.stamp_ns)
-            self._publish_corrections(all_robots=True)
-            self._maybe_publish_map()
-            key = self.keys.ack(self.cfg.participant)
-            self._publish(key, m.TickAck(seq=self.seq.next(key), stamp_ns=tick.stamp_ns,
-                                         participant=self.cfg.participant, step=tick.step))
+        self.participant.serve(ticks, self._lockstep_tick)
         return bool(ticks)
+
+    def _lockstep_tick(self, tick: m.Tick) -> bool:
+        """One lockstep step: every live robot's odometry of ``tick`` in (or known lost), one
+        fusion update at its stamp, every robot's correction and (when due) the map; False
+        abandons the step."""
+        self._await_odometry(tick)
+        if self._world_left():
+            # the world died after this tick reached us but before every agent answered it: its run is
+            # over, so neither fuse, correct nor acknowledge it (that would only feed stale poses to
+            # whoever listens while the next world starts)
+            self.counters["ticks_abandoned"] += 1
+            return False
+        self.time_ns = max(self.time_ns, tick.stamp_ns)
+        self._advance(tick.stamp_ns)
+        self._publish_corrections(all_robots=True)
+        self._maybe_publish_map()
+        return True
 
     def run(self, stop_event: threading.Event) -> int:
         end_ns = int(self.s.duration_s * 1e9)

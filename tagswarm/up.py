@@ -26,19 +26,11 @@ from rich.live import Live
 from rich.table import Table
 
 from tagswarm.protocol.bus import BusConfig, open_bus
-from tagswarm.protocol.config import (
-    ConfigError,
-    OneLineParser,
-    add_common_args,
-    env_of,
-    pick,
-    run_main,
-    scenario_from,
-    setup_logging,
-)
 from tagswarm.protocol.keys import Keys
 from tagswarm.protocol.scenario import Scenario
 from tagswarm.recording.runrecorder import RunRecorder
+from tagswarm.runtime.config import ConfigError, OneLineParser, add_common_args, env_of, pick, scenario_from
+from tagswarm.runtime.process import run_main, setup_logging
 
 BIN = Path(sys.executable).parent
 

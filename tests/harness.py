@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import os
 import signal
 import socket
@@ -15,6 +16,7 @@ from tagswarm.protocol import codec
 from tagswarm.protocol import messages as m
 from tagswarm.protocol.bus import Bus, BusConfig, open_bus
 from tagswarm.protocol.keys import Keys
+from tagswarm.runtime import lockstep
 
 BIN = Path(sys.executable).parent
 
@@ -71,31 +73,29 @@ def client(ep: str) -> Iterator[Bus]:
 
 class Participant:
     """A lockstep participant run inside the test: acks every tick after calling
-    ``on_tick(tick)`` (which may publish commands)."""
+    ``on_tick(tick)`` (which may publish commands), with the runtime's participant."""
 
     def __init__(self, bus: Bus, keys: Keys, name: str) -> None:
         self.bus, self.keys, self.name = bus, keys, name
         self.ticks = bus.subscribe(keys.tick())
-        self.seq = 0
+        self.lockstep = lockstep.Participant(bus, keys, name)
         bus.declare_token(keys.alive(name))
 
     def ack(self, tick: m.Tick) -> None:
-        self.bus.put(self.keys.ack(self.name), codec.encode(
-            m.TickAck(seq=self.seq, stamp_ns=tick.stamp_ns, participant=self.name, step=tick.step)))
-        self.seq += 1
+        self.lockstep.ack(tick)
 
     def serve(self, on_tick: Callable[[m.Tick], bool], timeout_s: float = 120.0) -> None:
-        """Handle ticks until ``on_tick`` returns False."""
+        """Handle ticks until ``on_tick`` returns False (that tick is not acked, nor any after it)."""
         done = False
 
-        def step() -> bool:
+        def work(tick: m.Tick) -> bool:
             nonlocal done
-            for item in self.ticks.drain():
-                tick = codec.decode(m.Tick, item.value)
-                if not on_tick(tick):
-                    done = True
-                    return True
-                self.ack(tick)
+            done = not on_tick(tick)
+            return not done
+
+        def step() -> bool:
+            ticks = (codec.decode(m.Tick, item.value) for item in self.ticks.drain())
+            self.lockstep.serve(itertools.takewhile(lambda _: not done, ticks), work)
             return done
 
         assert self.bus.wait_for(step, timeout_s), "world stopped ticking"

@@ -9,8 +9,9 @@ import threading
 from tagswarm.protocol import codec
 from tagswarm.protocol import messages as m
 from tagswarm.protocol.bus import BusConfig, open_bus
-from tagswarm.protocol.config import install_stop_signals
 from tagswarm.protocol.keys import Keys
+from tagswarm.runtime.lockstep import Participant
+from tagswarm.runtime.process import install_stop_signals
 
 
 def main() -> int:
@@ -26,15 +27,10 @@ def main() -> int:
     with open_bus(BusConfig(connect=(a.connect,))) as bus:
         ticks = bus.subscribe(keys.tick())
         bus.declare_token(keys.alive(a.name))
-        seq = 0
+        me = Participant(bus, keys, a.name)
         while not stop.is_set():
             bus.wait(0.1)
-            for item in ticks.drain():
-                tick = codec.decode(m.Tick, item.value)
-                if not a.hang:
-                    bus.put(keys.ack(a.name), codec.encode(m.TickAck(seq=seq, stamp_ns=tick.stamp_ns,
-                                                                     participant=a.name, step=tick.step)))
-                    seq += 1
+            me.serve((codec.decode(m.Tick, item.value) for item in ticks.drain()), lambda _: not a.hang)
     return 0
 
 

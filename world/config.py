@@ -8,7 +8,9 @@ from collections.abc import Mapping, Sequence
 import msgspec
 
 from tagswarm.protocol.bus import BusConfig
-from tagswarm.protocol.config import (
+from tagswarm.protocol.keys import Keys
+from tagswarm.protocol.scenario import Scenario
+from tagswarm.runtime.config import (
     ConfigError,
     OneLineParser,
     add_common_args,
@@ -18,8 +20,6 @@ from tagswarm.protocol.config import (
     pick,
     scenario_from,
 )
-from tagswarm.protocol.keys import Keys
-from tagswarm.protocol.scenario import Scenario
 
 
 class WorldConfig(msgspec.Struct, frozen=True, kw_only=True):

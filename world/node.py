@@ -36,9 +36,10 @@ import msgspec
 from tagswarm.protocol import codec
 from tagswarm.protocol import messages as m
 from tagswarm.protocol.bus import Bus, open_bus
-from tagswarm.protocol.config import install_stop_signals, run_main, setup_logging
 from tagswarm.protocol.keys import Keys
 from tagswarm.protocol.scenario import Camera
+from tagswarm.runtime import streams
+from tagswarm.runtime.process import install_stop_signals, run_main, setup_logging
 from tagswarm.world.config import WorldConfig, build_config
 from tagswarm.world.interventions import Schedule
 from tagswarm.world.lockstep import AckTracker
@@ -74,9 +75,9 @@ class WorldNode:
         self.participants = AckTracker(s.clock.participants)
         self.workers = AckTracker(f"render/{i}" for i in range(s.render.workers))
         self.observers_alive: set[str] = set()
-        self.rejects = codec.RejectCounter(log)
+        self.rejects = streams.RejectCounter(log)
         self.counters: Counter[str] = Counter()
-        self.seq = codec.Sequencer()
+        self.seq = streams.Sequencer()
         self.interventions = Schedule(s.events, tick_hz=s.clock.tick_hz, dt_ns=self.sim.dt_ns)
         self._started = False
         self._published_step = -1  # newest step whose tick is out

@@ -24,7 +24,10 @@ import msgspec
 from tagswarm.protocol import codec
 from tagswarm.protocol import messages as m
 from tagswarm.protocol.bus import Bus, BusConfig
-from tagswarm.protocol.config import (
+from tagswarm.protocol.keys import Keys
+from tagswarm.protocol.scenario import Scenario
+from tagswarm.runtime import streams
+from tagswarm.runtime.config import (
     ConfigError,
     OneLineParser,
     add_common_args,
@@ -33,10 +36,9 @@ from tagswarm.protocol.config import (
     parse,
     pick,
     scenario_from,
-    serve_node,
 )
-from tagswarm.protocol.keys import Keys
-from tagswarm.protocol.scenario import Scenario
+from tagswarm.runtime.lockstep import Participant
+from tagswarm.runtime.process import serve_node
 from tagswarm.world.render import Renderer, image_message, pose_matrix
 
 log = logging.getLogger("tagswarm.render")
@@ -80,9 +82,10 @@ class RenderWorkerNode:
         self.name = f"render/{config.worker_index}"
         self.renderer = Renderer(self.s)
         self.cams = {c.name: c for c in self.s.robot.cameras}
-        self.rejects = codec.RejectCounter(log)
+        self.rejects = streams.RejectCounter(log)
         self.counters: Counter[str] = Counter()
-        self.seq = codec.Sequencer()
+        self.seq = streams.Sequencer()
+        self.participant = Participant(bus, self.keys, self.name, self.seq)  # acks every request, lockstep or not
         self.time_ns = 0
         self._next_status_ns = 0
         lockstep = self.s.clock.mode == "lockstep"
@@ -91,17 +94,18 @@ class RenderWorkerNode:
 
     def step(self) -> int:
         """Render every pending request; returns the number of frames published."""
-        frames = 0
-        for _, req in self.rejects.decoded(self.req_in.drain(), m.RenderPoses):
-            frames += self._render(req)
-            key = self.keys.ack(self.name)
-            self.bus.put(key, codec.encode(m.TickAck(seq=self.seq.next(key), stamp_ns=req.stamp_ns,
-                                                     participant=self.name, step=req.step)))
-            self.time_ns = max(self.time_ns, req.stamp_ns)
-            if self.time_ns >= self._next_status_ns:
-                self.publish_status()
-                self._next_status_ns = self.time_ns + STATUS_PERIOD_NS
-        return frames
+        before = self.counters["frames_rendered"]
+        requests = (req for _, req in self.rejects.decoded(self.req_in.drain(), m.RenderPoses))
+        self.participant.serve(requests, self._render, acked=self._after_step)
+        return self.counters["frames_rendered"] - before
+
+    def _after_step(self, req: m.RenderPoses) -> None:
+        """The status, at most every STATUS_PERIOD_NS of simulation time (after the ack: the
+        world need not wait for it)."""
+        self.time_ns = max(self.time_ns, req.stamp_ns)
+        if self.time_ns >= self._next_status_ns:
+            self.publish_status()
+            self._next_status_ns = self.time_ns + STATUS_PERIOD_NS
 
     def publish_status(self) -> None:
         """Counters and rejects, on the world's status key (the worker is part of the world)."""
@@ -110,7 +114,9 @@ class RenderWorkerNode:
         self.bus.put(key, codec.encode(m.AgentStatus(seq=self.seq.next(key), stamp_ns=self.time_ns, role=self.name,
                                                      mode=self.s.clock.mode, counters=counters)))
 
-    def _render(self, req: m.RenderPoses) -> int:
+    def _render(self, req: m.RenderPoses) -> bool:
+        """Render and publish the cameras ``req`` asks for (counted in ``frames_rendered``); a
+        request is always answered, so the world is never held up by a bad camera name."""
         bases = {}
         for rid, p in zip(req.robot_ids, req.poses, strict=False):
             if rid in self.renderer.bodies:
@@ -132,7 +138,7 @@ class RenderWorkerNode:
                          drop=self.s.clock.mode != "lockstep")  # lockstep: BLOCK (see world/node.py)
             n += 1
         self.counters["frames_rendered"] += n
-        return n
+        return True
 
     def run(self, stop_event: threading.Event) -> int:
         while not stop_event.is_set():

@@ -21,17 +21,9 @@ import time
 from collections.abc import Sequence
 
 from tagswarm.protocol.bus import open_bus
-from tagswarm.protocol.config import (
-    ConfigError,
-    OneLineParser,
-    add_common_args,
-    bus_from,
-    env_of,
-    pick,
-    run_main,
-    setup_logging,
-)
 from tagswarm.protocol.keys import Keys, split_participant
+from tagswarm.runtime.config import ConfigError, OneLineParser, add_common_args, bus_from, env_of, pick
+from tagswarm.runtime.process import run_main, setup_logging
 
 PROG = "tagswarm alive"
 

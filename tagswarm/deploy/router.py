@@ -40,19 +40,9 @@ import msgspec
 
 from tagswarm.deploy import acl
 from tagswarm.protocol.bus import BusConfig, open_bus
-from tagswarm.protocol.config import (
-    ConfigError,
-    OneLineParser,
-    add_common_args,
-    bus_from,
-    env_of,
-    install_stop_signals,
-    pick,
-    run_main,
-    scenario_from,
-    setup_logging,
-)
 from tagswarm.protocol.keys import Keys
+from tagswarm.runtime.config import ConfigError, OneLineParser, add_common_args, bus_from, env_of, pick, scenario_from
+from tagswarm.runtime.process import install_stop_signals, run_main, setup_logging
 
 PROG = "tagswarm router"
 DEFAULT_LISTEN = "tcp/0.0.0.0:7447"

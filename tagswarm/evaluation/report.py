@@ -38,9 +38,10 @@ from matplotlib.lines import Line2D
 
 from tagswarm.evaluation.metrics import F64, Evaluation, RunFolderError, evaluate, load_run
 from tagswarm.evaluation.reportsummary import print_summary, summary_tables
-from tagswarm.protocol.config import ConfigError, OneLineParser, parse, run_main
 from tagswarm.protocol.layout import arena_to_map
 from tagswarm.protocol.scenario import Scenario, ScenarioError, convert
+from tagswarm.runtime.config import ConfigError, OneLineParser, parse
+from tagswarm.runtime.process import run_main
 
 __all__ = ["PLOTS", "main", "plot_error_over_time", "print_summary", "summary_tables", "write_report"]
 

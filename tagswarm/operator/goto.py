@@ -20,17 +20,9 @@ from collections.abc import Sequence
 from tagswarm.protocol import codec
 from tagswarm.protocol import messages as m
 from tagswarm.protocol.bus import Bus, open_bus
-from tagswarm.protocol.config import (
-    ConfigError,
-    OneLineParser,
-    add_common_args,
-    bus_from,
-    env_of,
-    pick,
-    run_main,
-    setup_logging,
-)
 from tagswarm.protocol.keys import Keys
+from tagswarm.runtime.config import ConfigError, OneLineParser, add_common_args, bus_from, env_of, pick
+from tagswarm.runtime.process import run_main, setup_logging
 
 PROG = "tagswarm goto"
 MAX_ROBOT_ID = 100_000  # tagswarm.protocol.messages.RobotId

@@ -36,18 +36,9 @@ from tagswarm.operator.goto import MAX_ROBOT_ID, wait_alive
 from tagswarm.protocol import codec
 from tagswarm.protocol import messages as m
 from tagswarm.protocol.bus import Bus, open_bus
-from tagswarm.protocol.config import (
-    ConfigError,
-    OneLineParser,
-    add_common_args,
-    bus_from,
-    env_of,
-    pick,
-    run_main,
-    scenario_from,
-    setup_logging,
-)
 from tagswarm.protocol.keys import Keys
+from tagswarm.runtime.config import ConfigError, OneLineParser, add_common_args, bus_from, env_of, pick, scenario_from
+from tagswarm.runtime.process import run_main, setup_logging
 
 PROG = "tagswarm kidnap"
 TICK_WAIT_S = 0.5

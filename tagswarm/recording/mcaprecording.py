@@ -24,11 +24,12 @@ import numpy as np
 
 from tagswarm.protocol import codec
 from tagswarm.protocol import messages as m
-from tagswarm.protocol.config import ConfigError
 from tagswarm.protocol.layout import arena_to_map
 from tagswarm.protocol.scenario import Scenario
 from tagswarm.recording.foxglove_views import FoxgloveViews
 from tagswarm.recording.mcapio import META_RUN, META_STATS, McapSink
+from tagswarm.runtime import streams
+from tagswarm.runtime.config import ConfigError
 
 RECORDER_NAME: Final = "tagswarm record"  # the tool named in a recording's metadata
 RECORD_PARTICIPANT: Final = "record/0"
@@ -91,7 +92,7 @@ class McapRecording:
             a2m = arena_to_map(scenario) if scenario is not None else None
             views = FoxgloveViews(a2m, scenario.robot.cube_edge_m if scenario is not None else 0.2)
         self.views = views
-        self.rejects = codec.RejectCounter(log)
+        self.rejects = streams.RejectCounter(log)
         self.kinds: Counter[str] = Counter()  # messages written per tagswarm type
         self.skipped_images = 0
         # (robot_id/camera, step) promised by ticks vs received: a lossy recording says so in its stats

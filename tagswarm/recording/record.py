@@ -42,18 +42,6 @@ from pathlib import Path
 from tagswarm.protocol import codec
 from tagswarm.protocol import messages as m
 from tagswarm.protocol.bus import Bus, Received, open_bus
-from tagswarm.protocol.config import (
-    ConfigError,
-    OneLineParser,
-    add_common_args,
-    bus_from,
-    env_of,
-    install_stop_signals,
-    pick,
-    run_main,
-    scenario_from,
-    setup_logging,
-)
 from tagswarm.protocol.keys import Keys, split_participant
 from tagswarm.protocol.scenario import Scenario
 from tagswarm.recording.mcapio import is_tick
@@ -66,6 +54,9 @@ from tagswarm.recording.mcaprecording import (
     with_recorder,
     without_recorders,
 )
+from tagswarm.runtime.config import ConfigError, OneLineParser, add_common_args, bus_from, env_of, pick, scenario_from
+from tagswarm.runtime.lockstep import Participant
+from tagswarm.runtime.process import install_stop_signals, run_main, setup_logging
 
 __all__ = [
     "INBOX_CAPACITY",
@@ -146,12 +137,11 @@ class McapRecorder:
         self.world_seen = False
         self.world_gone = False
         self.last_rx = time.monotonic()
-        self.participant = participant
-        self.keys = keys
-        self._ack_seq = 0
+        self.participant: Participant | None = None
         if participant is not None:
             if keys is None:
                 raise ValueError("a lockstep participant needs the run's keys")
+            self.participant = Participant(bus, keys, participant)
             # after subscribing, once linked to every peer: the world may start as soon as it sees this token
             declare_when_meshed(bus, keys, participant, peers, join_timeout_s)
 
@@ -165,17 +155,17 @@ class McapRecorder:
         now_ns = time.time_ns()  # reception ~ now: the inbox is drained every few ms
         if items:
             self.last_rx = time.monotonic()
-        if self.participant is not None and self.keys is not None:
-            self._ack(items)
+        if self.participant is not None:
+            self._ack(self.participant, items)
         for item in items:
             self.recording.add(item.key, item.value, now_ns)
         return len(items)
 
-    def _ack(self, items: list[Received[bytes]]) -> None:
+    @staticmethod
+    def _ack(participant: Participant, items: list[Received[bytes]]) -> None:
         """Acknowledge the newest tick among ``items`` before writing them: everything the
         world sent before that tick is in hand (in order, in memory), so the world may go
         on while we write; one ack covers older steps (the world keeps the newest)."""
-        assert self.keys is not None and self.participant is not None
         newest: m.Tick | None = None
         for item in items:
             if is_tick(item.key):
@@ -186,10 +176,7 @@ class McapRecorder:
                 if newest is None or tick.step > newest.step:
                     newest = tick
         if newest is not None:
-            key = self.keys.ack(self.participant)
-            self.bus.put(key, codec.encode(m.TickAck(seq=self._ack_seq, stamp_ns=newest.stamp_ns,
-                                                     participant=self.participant, step=newest.step)))
-            self._ack_seq += 1
+            participant.ack(newest)
 
     def close(self) -> dict[str, int]:
         self.poll()

@@ -47,18 +47,6 @@ import msgspec
 from tagswarm.protocol import codec
 from tagswarm.protocol import messages as m
 from tagswarm.protocol.bus import Bus, open_bus
-from tagswarm.protocol.config import (
-    ConfigError,
-    OneLineParser,
-    add_common_args,
-    bus_from,
-    env_of,
-    install_stop_signals,
-    pick,
-    run_main,
-    scenario_from,
-    setup_logging,
-)
 from tagswarm.protocol.keys import Keys, split_participant
 from tagswarm.protocol.scenario import Clock, Scenario
 from tagswarm.recording.mcapio import (
@@ -74,6 +62,9 @@ from tagswarm.recording.mcapio import (
     remap_run,
     run_of,
 )
+from tagswarm.runtime import streams
+from tagswarm.runtime.config import ConfigError, OneLineParser, add_common_args, bus_from, env_of, pick, scenario_from
+from tagswarm.runtime.process import install_stop_signals, run_main, setup_logging
 from tagswarm.world.lockstep import AckTracker
 
 PROG = "tagswarm replay"
@@ -148,7 +139,7 @@ class Replayer:
             raise ConfigError(f"{path} holds {len(runs)} runs ({', '.join(sorted(runs))}): pick one with --run")
         self.topics = topics
         self.counts: Counter[str] = Counter()
-        self.rejects = codec.RejectCounter(log)
+        self.rejects = streams.RejectCounter(log)
         self.ack_timeouts = 0
         self.tracker = AckTracker(participants)
         self.joiners = AckTracker(wait_for)  # only their liveliness counts (before the first tick)

@@ -39,18 +39,9 @@ from rich.live import Live
 from rich.table import Table
 
 from tagswarm.protocol.bus import Bus, open_bus
-from tagswarm.protocol.config import (
-    ConfigError,
-    OneLineParser,
-    add_common_args,
-    bus_from,
-    env_of,
-    install_stop_signals,
-    pick,
-    run_main,
-    setup_logging,
-)
 from tagswarm.protocol.keys import Keys
+from tagswarm.runtime.config import ConfigError, OneLineParser, add_common_args, bus_from, env_of, pick
+from tagswarm.runtime.process import install_stop_signals, run_main, setup_logging
 from tagswarm.spy.describe import decode, echo_line, image_summary, message_json, summarise, type_name
 
 # (not in the docstring: it is the --help text) message views live in tagswarm.spy.describe,

@@ -21,8 +21,9 @@ from rich.table import Table
 from tagswarm.protocol import codec, tags
 from tagswarm.protocol import messages as m
 from tagswarm.protocol.bus import BusConfig, open_bus
-from tagswarm.protocol.config import ConfigError, OneLineParser, add_common_args, env_of, pick, run_main, scenario_from
 from tagswarm.protocol.keys import Keys
+from tagswarm.runtime.config import ConfigError, OneLineParser, add_common_args, env_of, pick, scenario_from
+from tagswarm.runtime.process import run_main
 
 
 def _free_endpoint() -> str:

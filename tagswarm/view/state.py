@@ -35,12 +35,12 @@ from typing import Any, Final
 
 from tagswarm.evaluation.covframe import ELLIPSE_SCALE_95, covariance_ellipse
 from tagswarm.evaluation.localised import LOCALISED_HOLD_S, LOCALISED_M, LocalisedClock
-from tagswarm.protocol import codec
 from tagswarm.protocol import messages as m
 from tagswarm.protocol.geometry import Pose2, se2_compose, se2_inverse
 from tagswarm.protocol.keys import Keys
 from tagswarm.protocol.layout import arena_to_map, footprint_radius, start_poses, wall_boxes
 from tagswarm.protocol.scenario import Scenario
+from tagswarm.runtime import streams
 from tagswarm.view.events import MARKER_TTL_S, EventLog
 
 __all__ = ["EDGE_TTL_NS", "ELLIPSE_SCALE_95", "MAX_ROBOTS", "RobotView", "ViewState", "covariance_ellipse"]
@@ -109,10 +109,10 @@ class ViewState:
     is counted in :attr:`rejects` (shared with the node's decode step).
     """
 
-    def __init__(self, scenario: Scenario, keys: Keys, rejects: codec.RejectCounter | None = None) -> None:
+    def __init__(self, scenario: Scenario, keys: Keys, rejects: streams.RejectCounter | None = None) -> None:
         self.s = scenario
         self.keys = keys
-        self.rejects = rejects or codec.RejectCounter()
+        self.rejects = rejects or streams.RejectCounter()
         self.a2m: Pose2 = arena_to_map(scenario)
         starts = start_poses(scenario)
         #: Start pose of each scenario robot in the map frame: where its odom frame begins.

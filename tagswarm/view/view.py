@@ -41,7 +41,10 @@ from typing import Final
 from tagswarm.protocol import codec
 from tagswarm.protocol import messages as m
 from tagswarm.protocol.bus import Bus, BusConfig, Inbox
-from tagswarm.protocol.config import (
+from tagswarm.protocol.keys import Keys
+from tagswarm.protocol.scenario import Scenario
+from tagswarm.runtime import streams
+from tagswarm.runtime.config import (
     ConfigError,
     OneLineParser,
     add_common_args,
@@ -50,10 +53,8 @@ from tagswarm.protocol.config import (
     parse,
     pick,
     scenario_from,
-    serve_node,
 )
-from tagswarm.protocol.keys import Keys
-from tagswarm.protocol.scenario import Scenario
+from tagswarm.runtime.process import serve_node
 from tagswarm.view.state import ViewState
 from tagswarm.view.thumbnails import camera_message
 from tagswarm.view.webserver import Hub, WebServer
@@ -139,7 +140,7 @@ class ViewNode:
         self.cfg = config
         self.bus = bus
         self.keys = k = Keys(config.run)
-        self.rejects = codec.RejectCounter(log)
+        self.rejects = streams.RejectCounter(log)
         self.state = ViewState(config.scenario, k, self.rejects)
         self.hub = Hub(json.dumps(self.state.scene()))
         # (inbox, message type): the tick is newest-only (only the latest clock matters)

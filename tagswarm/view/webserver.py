@@ -18,7 +18,7 @@ from websockets.exceptions import ConnectionClosed
 from websockets.http11 import Request, Response
 from websockets.sync.server import Server, ServerConnection, serve
 
-from tagswarm.protocol.config import ConfigError
+from tagswarm.runtime.config import ConfigError
 
 # every plain HTTP request (the page's files) ends the websockets handshake with a non-101
 # answer, which that library logs at INFO: keep only its warnings

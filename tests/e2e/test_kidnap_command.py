@@ -14,6 +14,7 @@ from tagswarm.protocol import codec
 from tagswarm.protocol import messages as m
 from tagswarm.protocol.bus import Received
 from tagswarm.protocol.keys import Keys
+from tagswarm.runtime.lockstep import Participant
 from tests.harness import client, endpoint, process, script, world_argv
 
 SCENE = ['clock.mode="lockstep"', 'clock.participants=["agent/0"]', "clock.ack_timeout_s=60",
@@ -41,6 +42,7 @@ def test_kidnap_pushes_a_robot_at_the_commanded_step_and_its_encoders_do_not_see
         truth_in, enc_in = bus.subscribe(keys.truth()), bus.subscribe(keys.encoders())
         status_in, tick_in = bus.subscribe(keys.world_status()), bus.subscribe(keys.tick())
         bus.declare_token(keys.alive("agent/0"))
+        me = Participant(bus, keys, "agent/0")
         pending: list[Received[bytes]] = []
 
         def got() -> bool:  # runs under the inbox lock: only drain
@@ -65,8 +67,7 @@ def test_kidnap_pushes_a_robot_at_the_commanded_step_and_its_encoders_do_not_see
                         assert "in the arena frame sent on tagswarm/kidnap/world/command" in out, out
                 bus.put(keys.cmd(0), codec.encode(m.WheelCommand(seq=seq, stamp_ns=tick.stamp_ns, robot_id=0,
                                                                  left_rad_s=3.0, right_rad_s=3.5)))
-                bus.put(keys.ack("agent/0"), codec.encode(m.TickAck(seq=seq, stamp_ns=tick.stamp_ns,
-                                                                    participant="agent/0", step=tick.step)))
+                me.ack(tick)
                 seq += 1
         for it in truth_in.drain():
             t = codec.decode(m.GroundTruthPose, it.value)

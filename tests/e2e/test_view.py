@@ -49,6 +49,7 @@ from tagswarm.protocol.geometry import Pose2, se2_compose
 from tagswarm.protocol.keys import Keys
 from tagswarm.protocol.layout import arena_to_map
 from tagswarm.protocol.scenario import load_scenario
+from tagswarm.runtime import lockstep
 from tests.harness import client, endpoint, free_port, script
 
 #: Debian's chromium (scripts/setup.sh installs it); VIEW_TEST_CHROMIUM points elsewhere (tests of the gate)
@@ -222,7 +223,6 @@ class Participant(threading.Thread):
         self._quit = threading.Event()
         self.held_map: m.GlobalMap | None = None
         self.error: BaseException | None = None
-        self.acks = 0
 
     def run(self) -> None:
         try:
@@ -237,6 +237,7 @@ class Participant(threading.Thread):
         maps = bus.subscribe(self.keys.map())
         server_acks = bus.subscribe(self.keys.ack("server/0"))
         bus.declare_token(self.keys.alive(TEST_PARTICIPANT))
+        me = lockstep.Participant(bus, self.keys, TEST_PARTICIPANT)
         self.ready.set()
         by_stamp: dict[int, m.GlobalMap] = {}
         server_steps: set[int] = set()
@@ -275,9 +276,7 @@ class Participant(threading.Thread):
                         self._held.clear()
                         by_stamp.clear()
                         server_steps.clear()
-                bus.put(self.keys.ack(TEST_PARTICIPANT), codec.encode(m.TickAck(
-                    seq=self.acks, stamp_ns=tick.stamp_ns, participant=TEST_PARTICIPANT, step=tick.step)))
-                self.acks += 1
+                me.ack(tick)
 
     @contextmanager
     def held_at_map(self, timeout_s: float = 30.0) -> Iterator[m.GlobalMap]:

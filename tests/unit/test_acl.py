@@ -134,7 +134,7 @@ def test_client_credentials_from_flags_and_environment(tmp_path: Path) -> None:
     assert "s3cret" not in repr(c)  # the config holds the file, never the password
     c = build_config([], {"TAGSWARM_ZENOH_USER": "agent0", "TAGSWARM_ZENOH_PASSWORD_FILE": str(pw)})
     assert (c.bus.user, c.bus.password_file) == ("agent0", str(pw))
-    from tagswarm.protocol.config import ConfigError
+    from tagswarm.runtime.config import ConfigError
     with pytest.raises(ConfigError, match="cannot read"):
         build_config(["--zenoh-user", "world", "--zenoh-password-file", str(tmp_path / "missing")], {})
     with pytest.raises(ConfigError, match="no ':'"):

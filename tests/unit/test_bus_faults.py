@@ -13,9 +13,9 @@ import pytest
 
 from tagswarm.deploy import router
 from tagswarm.protocol.bus import BusConfig, BusError, default_fault_keys, key_matches, net_faults
-from tagswarm.protocol.config import ConfigError
 from tagswarm.protocol.keys import Keys
 from tagswarm.protocol.netfaults import NetFaults
+from tagswarm.runtime.config import ConfigError
 from tagswarm.world.config import build_config
 
 N = 4000

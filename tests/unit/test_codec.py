@@ -15,6 +15,7 @@ from hypothesis import strategies as st
 
 from tagswarm.protocol import codec
 from tagswarm.protocol import messages as m
+from tagswarm.runtime import streams
 
 KINDS = {"oversized", "malformed", "non_finite", "inconsistent"}
 FUZZ = settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.too_slow])
@@ -456,7 +457,7 @@ def test_fuzz_struct_shaped_dicts(msg: m.Msg, data: st.DataObject) -> None:
 
 def test_reject_counter_counts_per_kind_and_logs_once_per_kind(caplog: pytest.LogCaptureFixture) -> None:
     logger = logging.getLogger("tests.unit.codec.rejects")
-    counter = codec.RejectCounter(logger)
+    counter = streams.RejectCounter(logger)
     with caplog.at_level(logging.WARNING, logger=logger.name):
         for i in range(3):
             counter.reject("malformed", f"garbage #{i}")
@@ -477,20 +478,20 @@ def test_reject_counter_counts_per_kind_and_logs_once_per_kind(caplog: pytest.Lo
     assert list(counter.as_counters("bad.")) == ["bad.malformed", "bad.non_finite", "bad.spoofed"]
 
 
-def test_reject_counter_defaults_to_codec_logger(caplog: pytest.LogCaptureFixture) -> None:
-    counter = codec.RejectCounter()
+def test_reject_counter_defaults_to_its_module_logger(caplog: pytest.LogCaptureFixture) -> None:
+    counter = streams.RejectCounter()
     assert counter.total() == 0
     assert counter.as_counters() == {}
-    with caplog.at_level(logging.WARNING, logger="tagswarm.protocol.codec"):
+    with caplog.at_level(logging.WARNING, logger="tagswarm.runtime.streams"):
         counter.reject("oversized", "9 MB")
         counter.reject("oversized", "10 MB")
-    records = [r for r in caplog.records if r.name == "tagswarm.protocol.codec"]
+    records = [r for r in caplog.records if r.name == "tagswarm.runtime.streams"]
     assert [r.getMessage().count("oversized") for r in records] == [1]
     assert counter.counts["oversized"] == 2
 
 
 def test_reject_counter_with_real_decode_errors() -> None:
-    counter = codec.RejectCounter(logging.getLogger("tests.unit.codec.real"))
+    counter = streams.RejectCounter(logging.getLogger("tests.unit.codec.real"))
     payloads = [b"\xc1", codec.encode(msgspec.structs.replace(BY_TYPE[m.WheelCommand], left_rad_s=math.nan)),
                 codec.encode(BY_TYPE[m.WheelCommand]), b"\x00" * (codec.MAX_BYTES[m.WheelCommand] + 1)]
     ok = 0
@@ -509,14 +510,14 @@ def test_reject_counter_decoded_yields_good_and_counts_bad() -> None:
 
     good = BY_TYPE[m.TickAck]
     items = [Received("k/1", codec.encode(good)), Received("k/2", b"\xff\x00"), Received("k/3", b"\xc1")]
-    rc = codec.RejectCounter()
+    rc = streams.RejectCounter()
     out = list(rc.decoded(items, m.TickAck))
     assert [(it.key, msg) for it, msg in out] == [("k/1", good)]
     assert rc.total() == 2 and rc.counts["malformed"] == 2
 
 
 def test_gap_counter_counts_lost_messages_per_label_and_survives_restarts() -> None:
-    g = codec.GapCounter()
+    g = streams.GapCounter()
     assert [g.seen("k/1", s, "robot1") for s in (0, 1, 2, 5, 6, 9)] == [0, 0, 0, 2, 0, 2]
     assert g.seen("k/2", 7, "robot2") == 0  # the first number seen is no gap
     assert g.seen("k/2", 9, "robot2") == 1
@@ -526,7 +527,7 @@ def test_gap_counter_counts_lost_messages_per_label_and_survives_restarts() -> N
 
 
 def test_run_follower_follows_one_world_and_accepts_a_new_one_only_after_it_left() -> None:
-    f = codec.RunFollower()
+    f = streams.RunFollower()
     assert f.accept("a") == "first" and f.accept("a") == "same"
     assert f.accept("b") == "foreign" and f.run_id == "a"  # the world is still alive: a forged tick
     f.world_presence(True)

@@ -31,6 +31,7 @@ from hypothesis import strategies as st
 from tagswarm.protocol import codec
 from tagswarm.protocol import messages as m
 from tagswarm.protocol.bus import Received
+from tagswarm.runtime import streams
 
 TYPES: list[type[m.Msg]] = list(codec.MAX_BYTES)
 KINDS = codec.DECODE_KINDS
@@ -688,7 +689,7 @@ def test_decode_any_rejects_beyond_the_largest_limit() -> None:
 @given(st.lists(st.binary(max_size=64) | st.sampled_from([codec.encode(EXAMPLES[c]) for c in TYPES]), max_size=8))
 def test_reject_counter_decoded_counts_every_bad_payload(payloads: list[bytes]) -> None:
     for cls in (m.Tick, m.RelativeObservation, m.CameraImage):
-        rc = codec.RejectCounter()
+        rc = streams.RejectCounter()
         items = [Received(f"k/{i}", p) for i, p in enumerate(payloads)]
         good = [(it.key, msg) for it, msg in rc.decoded(items, cls)]
         assert all(type(msg) is cls for _, msg in good)

@@ -32,7 +32,7 @@ COMPOSE = ROOT / "compose.yaml"
 SCHEMA = ROOT / "tests" / "data" / "compose-spec.json"
 DOCKERFILE = ROOT / "Dockerfile"
 ROUTER_ENDPOINT = "tcp/router:7447"
-#: Every variable the processes understand (protocol/config.py, agents/config.py, protocol/bus.py).
+#: Every variable the processes understand (tagswarm/runtime/config.py, agents/config.py, protocol/bus.py).
 ENV_NAMES = ("TAGSWARM_SCENARIO", "TAGSWARM_SET", "TAGSWARM_SEED", "TAGSWARM_ROBOTS", "TAGSWARM_CLOCK",
              "TAGSWARM_DURATION", "TAGSWARM_RUN", "TAGSWARM_ZENOH_MODE", "TAGSWARM_LISTEN", "TAGSWARM_CONNECT",
              "TAGSWARM_LOG_LEVEL", "TAGSWARM_ROBOT_ID", "TAGSWARM_MULTICAST_SCOUTING", "ZENOH_CONFIG",

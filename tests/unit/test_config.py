@@ -10,9 +10,9 @@ from pathlib import Path
 import pytest
 
 from tagswarm.protocol.bus import DEFAULT_LEASE_MS, zenoh_config
-from tagswarm.protocol.config import ConfigError, env_of
 from tagswarm.protocol.keys import KeyNameError
 from tagswarm.protocol.scenario import ScenarioError, load_scenario
+from tagswarm.runtime.config import ConfigError, env_of
 from tagswarm.world import node
 from tagswarm.world.config import WorldConfig, build_config
 

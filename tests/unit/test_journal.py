@@ -262,7 +262,7 @@ def test_replay_rebuilds_exactly_the_live_graph(tmp_path: Path) -> None:
 
 
 def test_journal_flags_are_validated(tmp_path: Path) -> None:
-    from tagswarm.protocol.config import ConfigError
+    from tagswarm.runtime.config import ConfigError
 
     cfg = build_config(["--journal", str(tmp_path / "s.journal"), "--journal-sync-every", "8"], {})
     assert cfg.journal == str(tmp_path / "s.journal") and cfg.journal_sync_every == 8

@@ -236,7 +236,7 @@ def test_recorded_scenario_and_participants_drive_a_replay(recording: tuple[Path
                               robots=None, duration=None)
 
     def resolve(a: argparse.Namespace, env: dict[str, str]) -> object:
-        from tagswarm.protocol.config import scenario_from
+        from tagswarm.runtime.config import scenario_from
 
         return scenario_from(a, env)
 

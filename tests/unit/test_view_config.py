@@ -6,8 +6,8 @@ import json
 
 import pytest
 
-from tagswarm.protocol.config import ConfigError
 from tagswarm.protocol.keys import KeyNameError
+from tagswarm.runtime.config import ConfigError
 from tagswarm.view import view, webserver
 
 

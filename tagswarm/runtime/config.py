@@ -1,36 +1,30 @@
-"""Config helpers shared by every process's ``main``.
+"""A process's configuration from its command line and environment, shared by every ``main``.
 
 Precedence, lowest first: the scenario TOML, ``TAGSWARM_*`` environment
 variables, command-line flags.  Everything funnels into dotted scenario
 overrides (``clock.mode=lockstep``) plus a :class:`~tagswarm.protocol.bus.BusConfig`, so
 each process builds one frozen config object up front.  Errors become
-:class:`ConfigError` (one line, naming the field); :func:`run_main` turns them
-into exit code 2.
+:class:`ConfigError` (one line, naming the field);
+:func:`tagswarm.runtime.process.run_main` turns them into exit code 2.
 """
 
 from __future__ import annotations
 
 import argparse
-import logging
 import os
-import signal
 import sys
-import threading
-from collections.abc import Callable, Mapping, Sequence
-from typing import Any, NoReturn, Protocol, TypeVar
+from collections.abc import Mapping, Sequence
+from typing import Any, NoReturn
 
 from tagswarm.protocol.bus import (
     DEFAULT_LEASE_MS,
     MAX_DELAY_MS,
     MAX_LEASE_MS,
     MIN_LEASE_MS,
-    Bus,
     BusConfig,
     BusError,
     check_key_expr,
-    open_bus,
 )
-from tagswarm.protocol.keys import KeyNameError
 from tagswarm.protocol.scenario import Scenario, ScenarioError, convert, load_scenario
 
 ENV_PREFIX = "TAGSWARM_"
@@ -213,27 +207,6 @@ def _integer(raw: Any, flag: str, low: int, high: int, what: str) -> int:
     return value
 
 
-def setup_logging(level: str | None, role: str) -> None:
-    """Log to stderr as ``time role level message``."""
-    name = (level or "INFO").upper()
-    if name not in logging.getLevelNamesMapping():
-        raise ConfigError(f"--log-level: unknown level {level!r}")
-    logging.basicConfig(level=name, stream=sys.stderr,
-                        format=f"%(asctime)s {role} %(levelname)s %(name)s: %(message)s", force=True)
-
-
-def run_main(prog: str, body: Callable[[], int]) -> int:
-    """The one boundary that turns errors into exit codes: config errors -> 2 with a
-    one-line message, Ctrl-C -> 130, anything else -> 1 with the traceback logged."""
-    try:
-        return body()
-    except (ConfigError, ScenarioError, KeyNameError, BusError) as exc:
-        sys.stderr.write(f"{prog}: error: {exc}\n")
-        return 2
-    except KeyboardInterrupt:
-        return 130
-
-
 def env_of(environ: Mapping[str, str] | None = None) -> dict[str, str]:
     """The ``TAGSWARM_*`` part of the environment."""
     src = os.environ if environ is None else environ
@@ -243,50 +216,3 @@ def env_of(environ: Mapping[str, str] | None = None) -> dict[str, str]:
 def parse(parser: argparse.ArgumentParser, argv: Sequence[str] | None) -> argparse.Namespace:
     """Parse ``argv`` (``None`` means ``sys.argv[1:]``)."""
     return parser.parse_args(list(argv) if argv is not None else None)
-
-
-def install_stop_signals(stop: threading.Event) -> None:
-    """SIGTERM and SIGINT set ``stop`` so a node's loop ends and its Zenoh session
-    closes cleanly (a no-op outside the main thread, e.g. nodes run in tests)."""
-    if threading.current_thread() is not threading.main_thread():
-        return
-    for sig in (signal.SIGTERM, signal.SIGINT):
-        signal.signal(sig, lambda *_: stop.set())
-
-
-class _Node(Protocol):
-    def run(self, stop_event: threading.Event) -> int: ...
-
-
-class _NodeConfig(Protocol):
-    @property
-    def bus(self) -> BusConfig: ...
-
-    @property
-    def log_level(self) -> str: ...
-
-
-C = TypeVar("C", bound=_NodeConfig)
-
-
-def serve_node(prog: str, build: Callable[[], C], role: Callable[[C], str],
-               make_node: Callable[[C, Bus], _Node]) -> int:
-    """The common ``main`` of a node process: build the config (errors -> exit 2),
-    log as ``role``, open the bus, run the node until done or SIGTERM/SIGINT, then
-    call its ``close()`` if it has one and close the session."""
-
-    def body() -> int:
-        config = build()
-        setup_logging(config.log_level, role(config))
-        stop = threading.Event()
-        with open_bus(config.bus) as bus:
-            node = make_node(config, bus)
-            try:
-                install_stop_signals(stop)
-                return node.run(stop)
-            finally:
-                close = getattr(node, "close", None)
-                if close is not None:
-                    close()
-
-    return run_main(prog, body)

@@ -22,6 +22,7 @@ from numpy.typing import NDArray
 
 from tagswarm.agents.detect import TargetKind
 from tagswarm.protocol import tags
+from tagswarm.protocol.errors import TagswarmError
 from tagswarm.protocol.geometry import Mat, matrix_to_pose3, pose3_to_matrix
 from tagswarm.protocol.messages import CameraImage, RelativeObservation
 
@@ -34,7 +35,7 @@ EYE4: Final = np.eye(4)
 Arr = NDArray[Any]  # float64 arrays that come out of OpenCV (its stubs do not say so)
 
 
-class Rejected(Exception):
+class Rejected(TagswarmError):
     """A target the estimator drops; ``str(exc)`` is the reason counted in
     :attr:`tagswarm.agents.cubepose.CubePoseEstimator.rejects`."""
 

@@ -30,6 +30,7 @@ from typing import Annotated, Any, Generic, Literal, TypeVar
 import msgspec
 import zenoh
 
+from tagswarm.protocol.errors import UsageError
 from tagswarm.protocol.keys import ROOT, Keys
 from tagswarm.protocol.netfaults import NetFaults
 
@@ -56,7 +57,7 @@ MAX_LEASE_MS = 600_000
 KEEP_ALIVE = 4  # keep-alives per lease (Zenoh's default and recommendation: the lease is 4 missed ones)
 
 
-class BusError(Exception):
+class BusError(UsageError):
     """The Zenoh session could not be configured or opened."""
 
 

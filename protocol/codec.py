@@ -24,6 +24,7 @@ import msgspec
 import numpy as np
 
 from tagswarm.protocol import messages as m
+from tagswarm.protocol.errors import TagswarmError
 
 T = TypeVar("T", bound=m.Msg)
 
@@ -55,7 +56,7 @@ _ANY_DECODER: Final = msgspec.msgpack.Decoder(m.AnyMessage)  # type: ignore[arg-
 _MAX_ANY: Final = max(MAX_BYTES.values())
 
 
-class DecodeError(Exception):
+class DecodeError(TagswarmError):
     """A payload was rejected; ``kind`` is one of the reject kinds above."""
 
     def __init__(self, kind: str, detail: str) -> None:

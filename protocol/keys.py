@@ -28,13 +28,15 @@ import re
 from dataclasses import dataclass
 from typing import Final
 
+from tagswarm.protocol.errors import UsageError
+
 _RUN_RE: Final = re.compile(r"[A-Za-z0-9_.-]{1,64}")
 _NAME_RE: Final = re.compile(r"[A-Za-z0-9_.-]{1,64}")
 _ID_RE: Final = re.compile(r"0|[1-9][0-9]{0,5}")
 ROOT: Final = "tagswarm"
 
 
-class KeyNameError(ValueError):
+class KeyNameError(UsageError, ValueError):
     """A run id, role or camera name that cannot be part of a key."""
 
 

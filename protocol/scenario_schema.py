@@ -15,9 +15,10 @@ from typing import Annotated, Literal
 import msgspec
 
 from tagswarm.protocol import tags
+from tagswarm.protocol.errors import UsageError
 
 
-class ScenarioError(ValueError):
+class ScenarioError(UsageError, ValueError):
     """The scenario (or an override of it) is invalid; the message names the field."""
 
 

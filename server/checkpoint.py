@@ -42,6 +42,7 @@ import gtsam
 import msgspec
 import numpy as np
 
+from tagswarm.protocol.errors import TagswarmError
 from tagswarm.protocol.geometry import Pose2
 from tagswarm.server.fusion import Fusion, _Event, _Robot
 from tagswarm.server.placement import Candidate
@@ -52,7 +53,7 @@ ODOM_MARGIN_S: Final = 1.0
 ZLIB_LEVEL: Final = 1
 
 
-class CheckpointError(ValueError):
+class CheckpointError(TagswarmError, ValueError):
     """A snapshot blob that does not decode (never raised for a journal that passed its CRC
     unless the writer was a different version)."""
 

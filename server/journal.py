@@ -48,6 +48,7 @@ from typing import Any
 
 import numpy as np
 
+from tagswarm.protocol.errors import UsageError
 from tagswarm.server import checkpoint as ckpt
 from tagswarm.server.fusion import Fusion
 from tagswarm.server.journal_format import (
@@ -86,7 +87,7 @@ COUNTED = ("records", "odometry", "observations", "advances", "new_runs", "check
 INDEX_KEEP = 2  # checkpoint offsets kept in the side file: the newest, and one to fall back to
 
 
-class JournalError(ValueError):
+class JournalError(UsageError, ValueError):
     """The journal cannot be used (not a journal, or written for another map); one line."""
 
 

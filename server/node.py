@@ -111,14 +111,13 @@ class ServerNode:
                  s.map.origin_id, s.clock.mode, config.lag_s, config.journal or "off")
 
     def _open_journal(self) -> jr.Journal:
-        """Open (and replay) the journal; a journal of another map is a config error."""
+        """Open (and replay) the journal; a journal of another map is a usage error
+        (:class:`~tagswarm.server.journal.JournalError`, exit 2)."""
         path = str(self.cfg.journal)
         try:
             journal = jr.Journal(path, jr.header_for(self.cfg.run, self.fusion), replay=self._replay,
                                  sync_every=self.cfg.journal_sync_every,
                                  sync_interval_s=self.cfg.journal_sync_ms / 1e3)
-        except jr.JournalError as exc:
-            raise ConfigError(str(exc)) from None
         except OSError as exc:
             raise ConfigError(f"--journal {path}: {exc.strerror or exc}") from None
         c = journal.counters

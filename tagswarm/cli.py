@@ -71,8 +71,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         print("\n".join(f"{n:<10} {d}" for n, d in builtin_descriptions().items()))
         return 0
     if name not in COMMANDS:
-        sys.stderr.write(f"tagswarm: error: unknown command {name!r} (commands: {', '.join(COMMANDS)}, scenarios)\n")
-        return 2
+        from tagswarm.runtime.config import ConfigError  # here: the other paths need not load Zenoh
+        from tagswarm.runtime.process import run_main
+
+        def unknown() -> int:
+            raise ConfigError(f"unknown command {name!r} (commands: {', '.join(COMMANDS)}, scenarios)")
+
+        return run_main("tagswarm", unknown)
     return _entry(name)(rest)
 
 

@@ -28,6 +28,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from tagswarm.protocol.errors import TagswarmError
 from tagswarm.protocol.geometry import wrap_angle
 from tagswarm.protocol.layout import start_poses, wall_boxes
 from tagswarm.protocol.scenario import Scenario
@@ -42,7 +43,7 @@ OVERLAP_TOL_M = 1e-4
 robot set flush against a wall measures about -3e-7 m."""
 
 
-class PlacementError(ValueError):
+class PlacementError(TagswarmError, ValueError):
     """A robot cannot be placed where asked; the message says why."""
 
 

@@ -40,7 +40,7 @@ from tagswarm.evaluation.metrics import F64, Evaluation, RunFolderError, evaluat
 from tagswarm.evaluation.reportsummary import print_summary, summary_tables
 from tagswarm.protocol.layout import arena_to_map
 from tagswarm.protocol.scenario import Scenario, ScenarioError, convert
-from tagswarm.runtime.config import ConfigError, OneLineParser, parse
+from tagswarm.runtime.config import OneLineParser, parse
 from tagswarm.runtime.process import run_main
 
 __all__ = ["PLOTS", "main", "plot_error_over_time", "print_summary", "summary_tables", "write_report"]
@@ -321,11 +321,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parse(parser, argv)
 
     def body() -> int:
-        try:
-            metrics = write_report(args.run_dir)
-        except RunFolderError as exc:
-            # one line, whatever a parser put in its message
-            raise ConfigError(" ".join(str(exc).split())) from None
+        metrics = write_report(args.run_dir)  # a RunFolderError is a usage error: exit 2 (run_main)
         print_summary(metrics, args.run_dir)
         return 0
 

@@ -32,6 +32,7 @@ from evo.tools import file_interface
 from numpy.typing import NDArray
 
 from tagswarm.evaluation.runformat import FUSED_COV_HEADER, RELOC_HEADER, WORLD_COMMANDS_HEADER
+from tagswarm.protocol.errors import UsageError
 
 F64 = NDArray[np.float64]
 
@@ -39,7 +40,7 @@ OBS_HEADER = ("stamp_ns", "observer", "target_kind", "target_id", "x_m", "y_m", 
 MODES_HEADER = ("stamp_ns", "robot", "mode")
 
 
-class RunFolderError(ValueError):
+class RunFolderError(UsageError, ValueError):
     """The run folder is missing or malformed; the message is one line naming the file."""
 
 

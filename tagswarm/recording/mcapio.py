@@ -32,6 +32,7 @@ from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
 from tagswarm.protocol import messages as m
+from tagswarm.protocol.errors import UsageError
 from tagswarm.protocol.keys import ROOT
 
 RAW_ENCODING: Final = "msgpack"
@@ -220,7 +221,7 @@ class McapSink:
 # --------------------------------------------------------------------------- reading
 
 
-class RecordingError(Exception):
+class RecordingError(UsageError):
     """A file that is not a readable, complete MCAP recording."""
 
 

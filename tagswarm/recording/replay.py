@@ -314,42 +314,39 @@ def main(argv: Sequence[str] | None = None) -> int:
         for pattern in args.keys:
             if not pattern.strip() or "//" in pattern:
                 raise ConfigError(f"--keys: bad key expression {pattern!r}")
-        try:
-            only = args.only or ("world" if args.lockstep else "all")
-            lockstep = bool(args.lockstep)
-            patterns = list(args.keys)
-            target = run
+        only = args.only or ("world" if args.lockstep else "all")
+        lockstep = bool(args.lockstep)
+        patterns = list(args.keys)
+        target = run
 
-            def accept(topic: str) -> bool:
-                if only == "world" and not is_world_stream(topic):
-                    return False
-                if lockstep and is_ack(topic):
-                    return False
-                moved = remap_run(topic, target) if target else topic
-                return not patterns or any(keyexpr_matches(p, topic) or keyexpr_matches(p, moved)
-                                           for p in patterns)
+        def accept(topic: str) -> bool:
+            if only == "world" and not is_world_stream(topic):
+                return False
+            if lockstep and is_ack(topic):
+                return False
+            moved = remap_run(topic, target) if target else topic
+            return not patterns or any(keyexpr_matches(p, topic) or keyexpr_matches(p, moved)
+                                       for p in patterns)
 
-            participants, clock = _participants(args, env, args.file) if lockstep else ((), Clock())
-            wait_for = tuple(dict.fromkeys((*_names(args.wait_for), *clock.observers)))
-            if lockstep and not participants:
-                raise ConfigError("--lockstep: no participants to wait for; name them with --participants")
-            stop = threading.Event()
-            install_stop_signals(stop)
-            with open_bus(bus_from(args, env)) as bus:
-                replayer = Replayer(bus, args.file, accept=accept, run=run,
-                                    speed=None if lockstep else (args.speed or 1.0), participants=participants,
-                                    clock=clock, end_s=end_s, wait_for=wait_for)
-                if not replayer.topics:
-                    raise ConfigError(f"{args.file}: no recorded channel matches the filter")
-                log.info("replaying %d channel(s) of %s%s%s", len(replayer.topics), args.file,
-                         f" into run {replayer.target_run!r}" if replayer.target_run else "",
-                         f", lockstep with {', '.join(participants)}" if lockstep else f" at x{args.speed or 1.0:g}")
-                if lockstep and not any("/camera/" in t for t in replayer.topics):
-                    log.warning("no camera images in what is replayed, but the recorded ticks announce frames: "
-                                "lockstep agents will wait agent.frame_wait_s for each of them")
-                code = replayer.run(stop)
-        except RecordingError as exc:
-            raise ConfigError(str(exc)) from None
+        participants, clock = _participants(args, env, args.file) if lockstep else ((), Clock())
+        wait_for = tuple(dict.fromkeys((*_names(args.wait_for), *clock.observers)))
+        if lockstep and not participants:
+            raise ConfigError("--lockstep: no participants to wait for; name them with --participants")
+        stop = threading.Event()
+        install_stop_signals(stop)
+        with open_bus(bus_from(args, env)) as bus:
+            replayer = Replayer(bus, args.file, accept=accept, run=run,
+                                speed=None if lockstep else (args.speed or 1.0), participants=participants,
+                                clock=clock, end_s=end_s, wait_for=wait_for)
+            if not replayer.topics:
+                raise ConfigError(f"{args.file}: no recorded channel matches the filter")
+            log.info("replaying %d channel(s) of %s%s%s", len(replayer.topics), args.file,
+                     f" into run {replayer.target_run!r}" if replayer.target_run else "",
+                     f", lockstep with {', '.join(participants)}" if lockstep else f" at x{args.speed or 1.0:g}")
+            if lockstep and not any("/camera/" in t for t in replayer.topics):
+                log.warning("no camera images in what is replayed, but the recorded ticks announce frames: "
+                            "lockstep agents will wait agent.frame_wait_s for each of them")
+            code = replayer.run(stop)
         sys.stderr.write(f"{PROG}: {replayer.counts['messages']} messages, {replayer.counts['ticks']} ticks"
                          + (f", {replayer.ack_timeouts} ack timeout(s)" if lockstep else "") + "\n")
         return code

@@ -25,12 +25,13 @@ from tagswarm.protocol.bus import (
     BusError,
     check_key_expr,
 )
+from tagswarm.protocol.errors import UsageError
 from tagswarm.protocol.scenario import Scenario, ScenarioError, convert, load_scenario
 
 ENV_PREFIX = "TAGSWARM_"
 
 
-class ConfigError(ValueError):
+class ConfigError(UsageError, ValueError):
     """Bad configuration or command line; the message is one line."""
 
 

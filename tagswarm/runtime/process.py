@@ -10,9 +10,8 @@ import threading
 from collections.abc import Callable
 from typing import Protocol, TypeVar
 
-from tagswarm.protocol.bus import Bus, BusConfig, BusError, open_bus
-from tagswarm.protocol.keys import KeyNameError
-from tagswarm.protocol.scenario import ScenarioError
+from tagswarm.protocol.bus import Bus, BusConfig, open_bus
+from tagswarm.protocol.errors import UsageError
 from tagswarm.runtime.config import ConfigError
 
 
@@ -26,12 +25,15 @@ def setup_logging(level: str | None, role: str) -> None:
 
 
 def run_main(prog: str, body: Callable[[], int]) -> int:
-    """The one boundary that turns errors into exit codes: config errors -> 2 with a
-    one-line message, Ctrl-C -> 130, anything else -> 1 with the traceback logged."""
+    """The one boundary that turns errors into exit codes: a
+    :class:`~tagswarm.protocol.errors.UsageError` (bad flags, environment, scenario, or a
+    file the command names) -> 2 with a one-line message, Ctrl-C -> 130, anything else
+    propagates (Python prints the traceback and exits with 1)."""
     try:
         return body()
-    except (ConfigError, ScenarioError, KeyNameError, BusError) as exc:
-        sys.stderr.write(f"{prog}: error: {exc}\n")
+    except UsageError as exc:
+        one_line = " ".join(str(exc).split())  # whatever a parser put in its message
+        sys.stderr.write(f"{prog}: error: {one_line}\n")
         return 2
     except KeyboardInterrupt:
         return 130

@@ -1,6 +1,6 @@
 """Pose of an observed tag cube (or landmark tag) from one camera or a rig (pure code).
 
-This is the seed-003 bundle adjustment (DESIGN.md section 5): every visible corner
+This is the seed-003 bundle adjustment (docs/architecture.md, section 6): every visible corner
 of one target, over every camera that sees it, in one least-squares problem with
 the target's geometry known.
 

@@ -2,7 +2,7 @@
 
 Pixel convention: every corner this module returns is in OpenCV's convention (the
 centre of pixel (u, v) is at integer coordinates (u, v)), i.e. the AprilTag 3
-library's corners minus 0.5 px (DESIGN.md section 4).  Corner order is the
+library's corners minus 0.5 px (docs/architecture.md, section 4).  Corner order is the
 contract of :func:`tagswarm.protocol.tags.square_corners`: top-right, top-left,
 bottom-left, bottom-right of the upright tag (counter-clockwise in the image).
 

@@ -1,7 +1,7 @@
 """Zenoh session setup and the small pub/sub surface the nodes use.
 
-This is the only module that imports ``zenoh``.  Rules it enforces (DESIGN.md
-section 4): callbacks only enqueue into an :class:`Inbox` and wake the owner's
+This is the only module that imports ``zenoh``.  Rules it enforces
+(docs/architecture.md, sections 2 and 5): callbacks only enqueue into an :class:`Inbox` and wake the owner's
 loop (on Zenoh's own receive thread, so arrival order across keys is kept);
 sessions are opened in a ``with`` block (:func:`open_bus`) and always
 closed; large frames go out with DROP congestion control into newest-only

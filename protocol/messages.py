@@ -1,6 +1,6 @@
 """Every payload that crosses a process boundary.
 
-Conventions (see DESIGN.md section 3): SI units with the unit in the field name,
+Conventions (see docs/architecture.md, section 4): SI units with the unit in the field name,
 radians, right-handed frames, REP-103 body axes (x forward, y left, z up) and the
 OpenCV optical frame for cameras (z out of the lens, x right, y down).  Every
 message carries ``seq`` (per-publisher sequence number) and ``stamp_ns``

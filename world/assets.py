@@ -3,7 +3,7 @@
 pybullet textures a mesh only through the OBJ's own ``mtllib``/``map_Kd`` (the
 EGL plugin ignores ``changeVisualShape(textureUniqueId=...)``) and a textured
 ``GEOM_BOX`` does not put one image per face, so each cube is an OBJ with 24
-vertices whose faces map into a 3 x 2 texture atlas (DESIGN.md section 4).
+vertices whose faces map into a 3 x 2 texture atlas (docs/architecture.md, section 5).
 OBJ texture v = 0 is the image's bottom row; pybullet does not flip.
 """
 

@@ -5,7 +5,7 @@ only visual shapes: no physics is ever stepped on it, robots are moved with
 ``resetBasePositionAndOrientation`` (cheap for massless, collision-free bodies).
 The world process holds one when it renders in-process; each render worker
 holds one and renders a subset of the cameras.  Cheap choices are the default
-(DESIGN.md section 4): no floor, no shadows, no segmentation mask, one body per
+(docs/architecture.md, section 5): no floor, no shadows, no segmentation mask, one body per
 robot.
 """
 

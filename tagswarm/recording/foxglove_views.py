@@ -2,7 +2,7 @@
 from tagswarm messages, so a recording opens in Foxglove with poses, frames, the map and the
 cameras.  Pure: message in, encoded views out.
 
-Frames (REP-105, see DESIGN.md section 3)::
+Frames (REP-105, see docs/architecture.md, section 4)::
 
     map ──(static, when the scenario is known)──▶ arena ──▶ (truth poses)
     map ──(Correction: map -> odom_k)──▶ odom_k ──(OdometryEstimate)──▶ base_link_k

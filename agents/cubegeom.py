@@ -27,7 +27,7 @@ from tagswarm.protocol.geometry import Mat, matrix_to_pose3, pose3_to_matrix
 from tagswarm.protocol.messages import CameraImage, RelativeObservation
 
 #: Thickness of a landmark plate; the tag is painted on its +x face, at x = +thickness/2.
-#: Mirrors the default of ``tagswarm.world.assets.landmark_mesh`` (tests/unit/test_cubepose.py pins it).
+#: Mirrors the default of ``tagswarm.world.assets.landmark_mesh`` (tests/unit/agents/test_cubepose.py pins it).
 LANDMARK_PLATE_THICKNESS_M: Final = 0.01
 
 #: The identity: a view's ``T_cam_c0`` when it is the start camera itself (compared by identity).

@@ -53,7 +53,7 @@ Algorithm per target (``c0``: the camera that sees the target's largest tag):
    the range comes from the tag's size alone, so yaw and position stay as the
    6-DOF ones; a camera above (or below) them gets the range from the elevation
    angle and loses the mirror (0.68 m above: position ~5x, p90 yaw ~2x better at
-   2.5-4 m; tests/unit/test_cubepose.py).  Landmarks stay 6-DOF unless
+   2.5-4 m; tests/unit/agents/test_cubepose.py).  Landmarks stay 6-DOF unless
    ``planar_landmarks`` (z fixed at the scenario's height).
 
 Modules: :mod:`tagswarm.agents.cubegeom` (cameras, targets, results, frame Jacobians),
@@ -109,7 +109,7 @@ class CubePoseEstimator:
     Measured on our renders (AprilTag 3, 0.5-5 m, 320x240 and 640x480, 60 deg HFOV):
     corners scatter 0.25-0.33 px RMS per axis about the projected truth, whatever
     the tag's size; with 0.3 px the NEES of (x, y, yaw) averages 2.5-3.4 over
-    several hundred random views (expected: 3; tests/unit/test_cubepose.py asserts
+    several hundred random views (expected: 3; tests/unit/agents/test_cubepose.py asserts
     it).  ``choice_sigma_px`` (>= ``pixel_sigma_px``) scales the residuals when the
     two-fold ambiguity is weighed: render errors are correlated within a tag, so a
     wrong flip can fit a small tag slightly better than the truth, and judging
@@ -124,13 +124,13 @@ class CubePoseEstimator:
     errors are correlated within a tag (a near-vertical edge shifts as a whole,
     corr ~0.9, so its width and horizontal position scatter ~1.4x what independent
     corners imply), which the 6-DOF fit partly absorbs into z/roll/pitch and the
-    planar fit cannot.  Measured on the views of tests/unit/test_cubepose.py: NEES
+    planar fit cannot.  Measured on the views of tests/unit/agents/test_cubepose.py: NEES
     of (x, y, yaw) 2.1-3.5 for a camera at the tag's height, 0.4-0.8 (conservative)
     for one 0.68 m above it, whose corner errors are smaller along the elevation
     that then fixes the range.  The hard case for the yaw, a single face seen almost
     square-on 2-3.5 m away at 320x240 from 0.6 m up (~10-20 px), stays on the safe
     side too: yaw NEES ~0.15, none beyond 3 sigma, the mirrored pose (~20 deg of yaw
-    away) folded in with weight ~0.25 (tests/unit/test_cubepose_frontal.py).
+    away) folded in with weight ~0.25 (tests/unit/agents/test_cubepose_frontal.py).
     """
 
     def __init__(self, scenario: Scenario, pixel_sigma_px: float = 0.3, max_rms_px: float = 2.0,

@@ -213,7 +213,7 @@ class Agent(Spec, frozen=True, kw_only=True, forbid_unknown_fields=True):
     pixel_sigma_px: Pos = 0.3  # measured corner noise 0.25-0.33 px (agents/cubepose.py)
     max_reprojection_px: Pos = 2.0
     max_range_m: Pos = 6.0
-    odom_wheel_sigma: NonNeg = 0.01  # the world's default slip (encoders.slip_sigma): a calibrated robot
+    odom_wheel_sigma: NonNeg = 0.02
     fix_threshold: Annotated[int, msgspec.Meta(ge=1)] = 150
     search_speed_rad_s: Pos = 0.6
     search_max_sweep_rad: Pos = 6.3

@@ -87,7 +87,7 @@ def square_corners(
     For the tags we paint (``cv2.aruco.generateImageMarker`` images, upright),
     AprilTag 3 reports the corners top-right, top-left, bottom-left,
     bottom-right as seen from the front of the tag (counter-clockwise in the
-    image); tests/unit/test_tags.py pins this.
+    image); tests/unit/agents/test_detect.py pins this.
     """
     h = size_m / 2.0
     return np.stack(

@@ -28,7 +28,7 @@ opaque to :mod:`tagswarm.server.journal_format` (a ``bytes`` field of the Checkp
 
 This module reads and writes the fusion's private state on purpose: it is the
 fusion's persistence, kept out of fusion.py only for size.  A field added to
-``Fusion`` or ``_Robot`` must be added here too (tests/unit/test_checkpoint.py
+``Fusion`` or ``_Robot`` must be added here too (tests/unit/server/test_checkpoint.py
 compares a restored fusion with the live one at every update).
 """
 

@@ -11,7 +11,7 @@ from tagswarm.protocol.scenario import Camera
 
 #: Principal-point offsets (px) of pybullet's TinyRenderer relative to (W/2, H/2),
 #: in OpenCV's pixel convention (pixel centres at integer coordinates).
-#: Measured by tests/unit/test_render_geometry.py against rendered tag corners.
+#: Measured by tests/unit/world/test_render_geometry.py against rendered tag corners.
 CX_OFFSET_PX = 0.0
 CY_OFFSET_PX = -1.0
 

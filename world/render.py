@@ -56,7 +56,7 @@ class Renderer:
         """A static box, drawn as pieces of at most ``SEGMENT_M`` a side.  TinyRenderer tests
         every pixel of each triangle's screen bounding box, and a wall's triangles reach far
         past the image: a 7 m wall in view cost 25 ms of a 320x240 frame, 1 m pieces 9 ms,
-        with the same pixels out (tests/unit/test_render_geometry.py)."""
+        with the same pixels out (tests/unit/world/test_render_geometry.py)."""
         counts = [max(1, math.ceil(2 * h / SEGMENT_M - 1e-9)) for h in half]
         piece = [h / n for h, n in zip(half, counts, strict=True)]
         frames = [[-h + (2 * i + 1) * q for h, q, i in zip(half, piece, idx, strict=True)]

@@ -31,7 +31,7 @@ from tagswarm.protocol.keys import Keys
 from tagswarm.protocol.layout import arena_to_map
 from tagswarm.world.config import build_config as world_config
 from tests.harness import BIN, free_port, script
-from tests.unit.test_compose import PASSWORD_FILE, ROUTER_ENDPOINT, load_compose, service_env
+from tests.unit.deploy.test_compose_file import PASSWORD_FILE, ROUTER_ENDPOINT, load_compose, service_env
 
 DURATION_S = 20.0
 MAX_ERROR_M = 0.15

@@ -26,7 +26,7 @@ def _tree() -> tuple[set[str], set[str]]:
                 if path.parent != ROOT / top:
                     folders.add(path.parent.name)
     helpers = {p.name for p in (ROOT / "tests").rglob("*.py") if not p.name.startswith("test_")}
-    return modules | (helpers - {"__init__.py", "conftest.py"}), folders
+    return modules | (helpers - {"__init__.py"}), folders
 
 
 def test_layout_names_every_module_and_folder() -> None:

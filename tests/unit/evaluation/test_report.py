@@ -14,7 +14,7 @@ from tagswarm.evaluation import report
 from tagswarm.evaluation.metrics import RunFolderError, compute_metrics
 from tagswarm.protocol.layout import start_poses
 from tagswarm.protocol.scenario import load_scenario
-from tests.unit.test_metrics import three_circles
+from tests.unit.evaluation.test_metrics import three_circles
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
@@ -120,7 +120,7 @@ def test_recovery_in_the_summary_and_marked_on_the_error_plot(tmp_path: Path,
     from matplotlib.figure import Figure
 
     from tagswarm.evaluation.metrics import evaluate, load_run
-    from tests.unit.test_metrics_relocalisation import kidnap_run, write_commands, write_relocs
+    from tests.unit.evaluation.test_metrics_relocalisation import kidnap_run, write_commands, write_relocs
 
     counters = {"world": {"contacts_robot_robot": 2, "contacts_robot_1": 2, "contacts_robot_2": 2}}
     run = kidnap_run(tmp_path / "run", counters=counters)

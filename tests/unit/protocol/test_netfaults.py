@@ -1,6 +1,6 @@
 """Receive-side fault injection (protocol/netfaults.py) and its configuration (flags,
 environment, validation).  No Zenoh session: the injector is pure logic; the real
-bus path is in tests/integration/test_bus_faults.py."""
+bus path is in tests/integration/test_netfaults_loopback.py."""
 
 from __future__ import annotations
 

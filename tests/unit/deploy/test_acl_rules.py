@@ -1,5 +1,5 @@
 """The ACL generator (tagswarm/deploy/acl.py), the router's security flags and the shipped
-deploy/ files.  No session is opened; tests/integration/test_acl.py runs the rules."""
+deploy/ files.  No session is opened; tests/integration/test_acl_sessions.py runs the rules."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ from tagswarm.deploy import acl, router
 from tagswarm.protocol.bus import key_matches
 from tagswarm.protocol.keys import Keys
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[3]
 DEPLOY = ROOT / "deploy"
 EXAMPLE = DEPLOY / "zenoh-router-acl.json5"
 EXAMPLE_ARGV = ["--users", "/run/secrets/zenoh_users", "--acl", "--run", "compose", "--print-config"]

@@ -22,7 +22,7 @@ from tagswarm.protocol.bus import Inbox
 from tagswarm.protocol.keys import Keys
 from tagswarm.protocol.scenario import load_scenario
 from tagswarm.recording.runrecorder import RunRecorder
-from tests.unit.test_metrics import Poses, circle, make_run, static
+from tests.unit.evaluation.test_metrics import Poses, circle, make_run, static
 
 T10 = np.arange(101) / 10.0  # 0 .. 10 s at 10 Hz, both ends included: a 10 s truth span
 

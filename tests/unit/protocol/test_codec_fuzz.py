@@ -399,6 +399,17 @@ def test_a_field_of_the_wrong_type(cls: type[m.Msg], data: st.DataObject) -> Non
     _everywhere(msgspec.msgpack.encode(_set(fields, path, data.draw(json_like))))
 
 
+@pytest.mark.parametrize("cls", TYPES, ids=_ids)
+@FEW
+@given(data=st.data())
+def test_the_right_tag_and_field_names_with_random_values(cls: type[m.Msg], data: st.DataObject) -> None:
+    """Struct-shaped maps: the type's tag, any subset of its field names, arbitrary values."""
+    names = sorted(cls.__struct_fields__)
+    obj: dict[str, Any] = {"type": cls.__struct_config__.tag}
+    obj.update(data.draw(st.dictionaries(st.sampled_from(names), json_like, max_size=len(names))))
+    _everywhere(msgspec.msgpack.encode(obj))
+
+
 # --------------------------------------------------------------------------- huge declared sizes
 
 HUGE_HEADERS = {

@@ -186,7 +186,7 @@ def test_closing_a_tag16h5_detector_does_not_corrupt_the_heap() -> None:
         "print('clean')\n"
     )
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60,
-                         cwd=Path(__file__).resolve().parents[2])
+                         cwd=Path(__file__).resolve().parents[3])
     assert res.returncode == 0 and "clean" in res.stdout, res.stderr[-2000:]
     d = AprilTagDetector("tag16h5")
     d.close()

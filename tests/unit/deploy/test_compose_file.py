@@ -27,7 +27,7 @@ from tagswarm.protocol.scenario import load_scenario
 from tagswarm.server.config import build_config as server_config
 from tagswarm.world.config import build_config as world_config
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[3]
 COMPOSE = ROOT / "compose.yaml"
 SCHEMA = ROOT / "tests" / "data" / "compose-spec.json"
 DOCKERFILE = ROOT / "Dockerfile"

@@ -1,0 +1,38 @@
+"""The tests mirror the package tree: tests/unit/<package>/ for each package that has unit
+tests, every test file name unique across the tiers, and each tier marked by its folder."""
+
+from __future__ import annotations
+
+from collections import Counter
+from pathlib import Path
+
+import pytest
+
+TESTS = Path(__file__).resolve().parents[1]
+PACKAGE = TESTS.parent / "tagswarm"
+
+
+def test_every_test_file_name_is_unique_across_the_tiers() -> None:
+    names = Counter(p.name for p in TESTS.rglob("test_*.py"))
+    assert len(names) > 60
+    assert [n for n, k in names.items() if k > 1] == []
+
+
+def test_unit_test_folders_are_packages_of_tagswarm() -> None:
+    folders = {p.name for p in (TESTS / "unit").iterdir() if p.is_dir() and p.name != "__pycache__"}
+    packages = {p.name for p in PACKAGE.iterdir() if (p / "__init__.py").is_file()}
+    assert {"protocol", "runtime", "world", "agents", "server"} <= folders <= packages
+    for folder in folders:
+        assert (TESTS / "unit" / folder / "__init__.py").is_file(), folder
+
+
+def test_tiers_are_marked_by_folder(request: pytest.FixtureRequest) -> None:
+    """Every collected test carries its tier's marker (none for unit tests); run with the other
+    tiers collected (e.g. the whole suite) it checks them all."""
+    tiers = set()
+    for item in request.session.items:
+        tier = Path(item.path).resolve().relative_to(TESTS).parts[0]
+        marks = {m.name for m in item.iter_markers()} & {"integration", "e2e"}
+        assert marks == ({tier} if tier in ("integration", "e2e") else set()), item.nodeid
+        tiers.add(tier)
+    assert "unit" in tiers

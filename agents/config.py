@@ -8,18 +8,8 @@ from collections.abc import Mapping, Sequence
 import msgspec
 
 from tagswarm.protocol.bus import BusConfig
-from tagswarm.protocol.keys import Keys
 from tagswarm.protocol.scenario import Scenario
-from tagswarm.runtime.config import (
-    ConfigError,
-    OneLineParser,
-    add_common_args,
-    bus_from,
-    env_of,
-    parse,
-    pick,
-    scenario_from,
-)
+from tagswarm.runtime.config import ConfigError, Invocation, OneLineParser, add_common_args
 
 
 class AgentConfig(msgspec.Struct, frozen=True, kw_only=True):
@@ -55,14 +45,14 @@ def parser(prog: str = "tagswarm-agent") -> argparse.ArgumentParser:
 
 
 def build_config(argv: Sequence[str] | None = None, environ: Mapping[str, str] | None = None) -> AgentConfig:
-    args = parse(parser(), argv)
-    env = env_of(environ)
+    inv = Invocation(parser(), argv, environ)
+    args = inv.args
     if args.inject_frame_delay is not None:
         if not args.inject_frame_delay >= 0:  # also NaN
             raise ConfigError("--inject-frame-delay must be >= 0 seconds")
         args.overrides.append(f"agent.inject_frame_delay_s={args.inject_frame_delay!r}")
-    scenario = scenario_from(args, env)
-    raw = pick(args, env, "robot_id")
+    scenario = inv.scenario()
+    raw = inv.pick("robot_id")
     if raw is None:
         raise ConfigError("--robot-id is required (or TAGSWARM_ROBOT_ID)")
     try:
@@ -72,10 +62,9 @@ def build_config(argv: Sequence[str] | None = None, environ: Mapping[str, str] |
     if robot_id not in scenario.robot_ids:
         raise ConfigError(f"--robot-id {robot_id} is not a robot of scenario {scenario.name!r} "
                           f"(0..{scenario.robots.count - 1})")
-    run = pick(args, env, "run", "default")
-    Keys(run)
+    run = inv.run()
     if args.fetch_map_timeout < 0:
         raise ConfigError("--fetch-map-timeout must be >= 0")
-    return AgentConfig(scenario=scenario, bus=bus_from(args, env), robot_id=robot_id, run=run,
-                       log_level=pick(args, env, "log_level", "INFO"), fetch_map_timeout_s=args.fetch_map_timeout,
+    return AgentConfig(scenario=scenario, bus=inv.bus(), robot_id=robot_id, run=run,
+                       log_level=inv.log_level(), fetch_map_timeout_s=args.fetch_map_timeout,
                        inject_frame_delay_s=scenario.agent.inject_frame_delay_s)

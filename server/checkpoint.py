@@ -28,14 +28,14 @@ opaque to :mod:`tagswarm.server.journal_format` (a ``bytes`` field of the Checkp
 
 This module reads and writes the fusion's private state on purpose: it is the
 fusion's persistence, kept out of fusion.py only for size.  A field added to
-``Fusion`` or ``_Robot`` must be added here too (tests/unit/server/test_checkpoint.py
+``Fusion`` or ``Robot`` (server/keyframes.py) must be added here too (tests/unit/server/test_checkpoint.py
 compares a restored fusion with the live one at every update).
 """
 
 from __future__ import annotations
 
 import zlib
-from collections import Counter, deque
+from collections import deque
 from typing import Final, Literal
 
 import gtsam
@@ -44,11 +44,12 @@ import numpy as np
 
 from tagswarm.protocol.errors import TagswarmError
 from tagswarm.protocol.geometry import Pose2
-from tagswarm.server.fusion import Fusion, _Event, _Robot
+from tagswarm.server.fusion import Fusion, _Event
+from tagswarm.server.keyframes import Robot
 from tagswarm.server.placement import Candidate
 
 P3 = tuple[float, float, float]
-# odometry kept before the watermark beyond the placement window: _odom_at tolerates 0.2 s
+# odometry kept before the watermark beyond the placement window: odom_at tolerates 0.2 s
 ODOM_MARGIN_S: Final = 1.0
 ZLIB_LEVEL: Final = 1
 
@@ -59,7 +60,7 @@ class CheckpointError(TagswarmError, ValueError):
 
 
 class RobotState(msgspec.Struct, frozen=True, array_like=True):
-    """One robot's bookkeeping (see ``tagswarm.server.fusion._Robot``); covariances row-major (9)."""
+    """One robot's bookkeeping (see ``tagswarm.server.keyframes.Robot``); covariances row-major (9)."""
 
     odom: list[tuple[int, float, float, float]]  # (stamp_ns, x_m, y_m, yaw_rad) in the robot's odom frame
     chain: int
@@ -140,7 +141,7 @@ def _mat(values: tuple[float, ...] | list[float]) -> np.ndarray:
     return np.asarray(values, float).reshape(3, 3)
 
 
-def _robot_state(r: _Robot, keep_from_ns: int) -> RobotState:
+def _robot_state(r: Robot, keep_from_ns: int) -> RobotState:
     samples = list(r.odom)
     first = 0
     for i in range(len(samples) - 1, -1, -1):  # newest first: keep one sample older than keep_from_ns
@@ -188,7 +189,7 @@ def _live_factors(smoother: gtsam.IncrementalFixedLagSmoother) -> gtsam.Nonlinea
 def snapshot(fusion: Fusion) -> bytes:
     """The state of ``fusion`` as a compressed blob.  Call it right after
     :meth:`Fusion.advance` (nothing staged for the smoother); raises otherwise."""
-    if fusion._factors.size() or fusion._values.size():
+    if fusion.graph.staged():
         raise RuntimeError("snapshot with factors staged for the smoother: take it right after advance()")
     keep_from = fusion.watermark_ns - int((fusion.p.init_window_s + ODOM_MARGIN_S) * 1e9)
     stamps = [(int(k), float(t)) for k, t in sorted(fusion.smoother.timestamps().items())]
@@ -197,7 +198,7 @@ def snapshot(fusion: Fusion) -> bytes:
         events=[_event_state(ev) for ev in fusion._events],  # heap order as is: a valid heap again
         order=fusion._order, counters=dict(fusion.counters),
         edges=[(a, b, t) for (a, b), t in fusion.edges.items()], watermark_ns=fusion.watermark_ns,
-        updates=fusion.updates, next_cov_ns=fusion._next_cov_ns,
+        updates=fusion.updates, next_cov_ns=fusion.graph.next_cov_ns,
         init={rid: [_candidate_state(c) for c in cands] for rid, cands in fusion._init.items()},
         reloc_robot={rid: [_candidate_state(c) for c in ev] for rid, ev in fusion.recovery.robot_ev.items()},
         reloc_landmark={rid: [_candidate_state(c) for c in ev] for rid, ev in fusion.recovery.landmark_ev.items()},
@@ -216,8 +217,8 @@ def decode(blob: bytes) -> FusionState:
         raise CheckpointError(f"checkpoint does not decode: {exc}") from None
 
 
-def _robot(s: RobotState, maxlen: int) -> _Robot:
-    return _Robot(odom=deque(((t, (x, y, a)) for t, x, y, a in s.odom), maxlen=maxlen), chain=s.chain,
+def _robot(s: RobotState, maxlen: int) -> Robot:
+    return Robot(odom=deque(((t, (x, y, a)) for t, x, y, a in s.odom), maxlen=maxlen), chain=s.chain,
                   kf_index=s.kf_index, kf_key=s.kf_key, kf_stamp=s.kf_stamp, kf_odom=s.kf_odom,
                   estimate=s.estimate, cov=_mat(s.cov), drift_cov=_mat(s.drift_cov),
                   latest_odom=None if s.latest_odom is None else (s.latest_odom[0], s.latest_odom[1:]),
@@ -272,11 +273,11 @@ def restore(fusion: Fusion, blob: bytes | FusionState) -> None:
         new.robots[rid] = _robot(rs, new.p.odom_buffer)
     new._events = [_event(e) for e in state.events]
     new._order = state.order
-    new.counters = Counter(state.counters)
+    new.counters.update(state.counters)  # the same Counter the graph counts keyframes in
     new.edges = {(a, b): t for a, b, t in state.edges}
     new.watermark_ns = state.watermark_ns
-    new.updates = state.updates
-    new._next_cov_ns = state.next_cov_ns
+    new.graph.updates = state.updates
+    new.graph.next_cov_ns = state.next_cov_ns
     new._init = {rid: [_candidate(c) for c in cands] for rid, cands in state.init.items()}
     new.recovery.robot_ev = {rid: [_candidate(c) for c in ev] for rid, ev in state.reloc_robot.items()}
     new.recovery.landmark_ev = {rid: [_candidate(c) for c in ev] for rid, ev in state.reloc_landmark.items()}

@@ -9,18 +9,8 @@ from pathlib import Path
 import msgspec
 
 from tagswarm.protocol.bus import BusConfig
-from tagswarm.protocol.keys import Keys
 from tagswarm.protocol.scenario import Scenario
-from tagswarm.runtime.config import (
-    ConfigError,
-    OneLineParser,
-    add_common_args,
-    bus_from,
-    env_of,
-    parse,
-    pick,
-    scenario_from,
-)
+from tagswarm.runtime.config import ConfigError, Invocation, OneLineParser, add_common_args
 
 
 class ServerConfig(msgspec.Struct, frozen=True, kw_only=True):
@@ -67,8 +57,8 @@ def parser(prog: str = "tagswarm-server") -> argparse.ArgumentParser:
     return p
 
 
-def _journal_path(args: argparse.Namespace, env: Mapping[str, str]) -> str | None:
-    raw = pick(args, env, "journal", None)
+def _journal_path(inv: Invocation) -> str | None:
+    raw = inv.pick("journal", None)
     if not raw:
         return None
     path = Path(raw)
@@ -81,9 +71,9 @@ def _journal_path(args: argparse.Namespace, env: Mapping[str, str]) -> str | Non
 
 
 def build_config(argv: Sequence[str] | None = None, environ: Mapping[str, str] | None = None) -> ServerConfig:
-    args = parse(parser(), argv)
-    env = env_of(environ)
-    scenario = scenario_from(args, env)
+    inv = Invocation(parser(), argv, environ)
+    args = inv.args
+    scenario = inv.scenario()
     for name in ("map_rate", "update_rate", "lag"):
         if getattr(args, name) <= 0:
             raise ConfigError(f"--{name.replace('_', '-')} must be > 0")
@@ -91,17 +81,15 @@ def build_config(argv: Sequence[str] | None = None, environ: Mapping[str, str] |
         raise ConfigError("--journal-sync-every must be >= 1")
     if not args.journal_sync_ms >= 0:
         raise ConfigError("--journal-sync-ms must be >= 0")
-    raw_checkpoint = pick(args, env, "journal_checkpoint", 10.0)
+    raw_checkpoint = inv.pick("journal_checkpoint", 10.0)
     try:
         checkpoint_s = float(raw_checkpoint)
     except ValueError:
         raise ConfigError(f"--journal-checkpoint: {raw_checkpoint!r} is not a number") from None
     if not 0 <= checkpoint_s < float("inf"):
         raise ConfigError("--journal-checkpoint must be >= 0 seconds (0 = no checkpoints)")
-    run = pick(args, env, "run", "default")
-    Keys(run)
-    return ServerConfig(scenario=scenario, bus=bus_from(args, env), run=run,
-                        log_level=pick(args, env, "log_level", "INFO"), map_rate_hz=args.map_rate,
-                        update_rate_hz=args.update_rate, lag_s=args.lag, journal=_journal_path(args, env),
+    run = inv.run()
+    return ServerConfig(scenario=scenario, bus=inv.bus(), run=run, log_level=inv.log_level(), map_rate_hz=args.map_rate,
+                        update_rate_hz=args.update_rate, lag_s=args.lag, journal=_journal_path(inv),
                         journal_sync_every=args.journal_sync_every, journal_sync_ms=args.journal_sync_ms,
                         journal_checkpoint_s=checkpoint_s)

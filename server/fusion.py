@@ -16,7 +16,9 @@ and placed again from that set, on a new chain of keyframes (its odometry
 across the jump is void), and the event is queued in :attr:`Fusion.relocalisations`.
 
 Memory is bounded: an ``IncrementalFixedLagSmoother`` (iSAM2) marginalises
-keyframes older than ``lag_s`` of simulated time.
+keyframes older than ``lag_s`` of simulated time.  The keyframe chains, what is staged
+for the smoother and the smoother itself live in :mod:`tagswarm.server.keyframes`; this
+module decides what goes in.
 
 Data arrive as events stamped with simulation time and are applied strictly in
 time order up to a *watermark* (the time up to which every live robot's
@@ -28,7 +30,7 @@ from __future__ import annotations
 
 import heapq
 import math
-from collections import Counter, deque
+from collections import Counter
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -36,36 +38,13 @@ import gtsam
 import numpy as np
 
 from tagswarm.protocol.geometry import Pose2, se2_between, se2_compose, se2_inverse
+from tagswarm.server.keyframes import KeyframeGraph, Robot
 from tagswarm.server.noise import CHI2_3DOF_999, Cov, FusionParams, inverse_cov, odom_increment_cov, tangent_cov
 from tagswarm.server.placement import Candidate, Placement, choose
 from tagswarm.server.recovery import LANDMARK_WITNESS, Recovery, Verdict
 from tagswarm.server.stitch import Edge, stitch
 
 __all__ = ["CHI2_3DOF_999", "Cov", "Fusion", "FusionParams", "inverse_cov", "odom_increment_cov", "tangent_cov"]
-
-@dataclass
-class _Robot:
-    odom: deque[tuple[int, Pose2]] = field(default_factory=lambda: deque(maxlen=4096))
-    chain: int = 0  # bumped when the robot's odometry restarts
-    kf_index: int = -1
-    kf_key: int | None = None
-    kf_stamp: int = -1
-    kf_odom: Pose2 = (0.0, 0.0, 0.0)
-    estimate: Pose2 | None = None  # of the last keyframe
-    cov: Cov = field(default_factory=lambda: np.diag([1e-4, 1e-4, 1e-4]))
-    drift_cov: Cov = field(default_factory=lambda: np.zeros((3, 3)))  # odometry since the last keyframe
-    latest_odom: tuple[int, Pose2] | None = None
-    last_fix_ns: int = 0
-    accepted: int = 0  # observations involving this robot in the graph
-    last_distance: float = 0.0
-    reset_hint: Pose2 | None = None
-    slip_m: float = 0.0  # the agent's cumulative slip evidence at the latest odometry
-    kf_slip_m: float = 0.0  # ... at the last keyframe
-
-
-def _key(rid: int, chain: int, index: int) -> int:
-    return int(gtsam.symbol("x", (rid << 40) | (chain << 24) | index))
-
 
 @dataclass(frozen=True)
 class RelocEvent:
@@ -104,21 +83,12 @@ class Fusion:
         self.p = params
         self.origin_id = origin_id
         self.landmarks = dict(landmarks or {})
-        self.robots = {rid: _Robot(odom=deque(maxlen=params.odom_buffer)) for rid in robot_ids}
-        isam = gtsam.ISAM2Params()
-        isam.setRelinearizeThreshold(0.01)
-        isam.relinearizeSkip = 5
-        self.smoother = gtsam.IncrementalFixedLagSmoother(params.lag_s, isam)
-        self._factors = gtsam.NonlinearFactorGraph()
-        self._values = gtsam.Values()
-        self._stamps = gtsam.FixedLagSmootherKeyTimestampMap()
+        self.counters: Counter[str] = Counter()
+        self.graph = KeyframeGraph(params, robot_ids, self.counters)
         self._events: list[_Event] = []
         self._order = 0
-        self.counters: Counter[str] = Counter()
         self.edges: dict[tuple[int, int], int] = {}  # (observer, target) -> last stamp
         self.watermark_ns = -1
-        self.updates = 0
-        self._next_cov_ns = 0
         self._init: dict[int, list[Candidate]] = {}
         self.recovery = Recovery(params, origin_id, anchored_origin=not self.landmarks)
         self._pair_factors: dict[tuple[int, int], tuple[int, int]] = {}  # (a, b) -> keys of its newest factor
@@ -127,6 +97,20 @@ class Fusion:
     def reset(self) -> None:
         """Forget everything: the empty fusion of the same map (a restarted world)."""
         self.__init__(self.p, self.origin_id, tuple(self.robots), self.landmarks)  # type: ignore[misc]
+
+    @property
+    def robots(self) -> dict[int, Robot]:
+        """Each robot's keyframe chain and odometry (see :class:`~tagswarm.server.keyframes.Robot`)."""
+        return self.graph.robots
+
+    @property
+    def smoother(self) -> gtsam.IncrementalFixedLagSmoother:
+        return self.graph.smoother
+
+    @property
+    def updates(self) -> int:
+        """Smoother updates so far."""
+        return self.graph.updates
 
     # ------------------------------------------------------------------ input
     def _push(self, stamp_ns: int, kind: Literal["odom", "obs", "landmark"], data: tuple) -> None:  # type: ignore[type-arg]
@@ -177,26 +161,14 @@ class Fusion:
                 self._apply_landmark(ev.stamp_ns, *ev.data)
             n += 1
         self.watermark_ns = max(self.watermark_ns, watermark_ns)
-        self._flush()
+        self.graph.update(self.watermark_ns)
         return n
-
-    def _odom_at(self, rid: int, stamp_ns: int) -> Pose2 | None:
-        """Odometry pose of ``rid`` at ``stamp_ns`` (nearest sample within 0.2 s)."""
-        best = None
-        for t, pose in reversed(self.robots[rid].odom):
-            if best is None or abs(t - stamp_ns) < abs(best[0] - stamp_ns):
-                best = (t, pose)
-            if t < stamp_ns:
-                break
-        if best is None or abs(best[0] - stamp_ns) > 200_000_000:
-            return None
-        return best[1]
 
     def _apply_odom(self, stamp_ns: int, rid: int, pose: Pose2, distance_m: float, slip_m: float = 0.0) -> None:
         r = self.robots[rid]
         if distance_m + 1e-6 < r.last_distance:
             # the agent restarted: its odom frame is new, start a new chain
-            r.reset_hint = self._current(rid)
+            r.reset_hint = self.graph.current(rid)
             r.chain += 1
             r.odom.clear()
             r.kf_key, r.kf_index, r.estimate, r.latest_odom = None, -1, None, None
@@ -208,55 +180,15 @@ class Fusion:
         r.latest_odom = (stamp_ns, pose)
         if r.kf_key is None:
             if rid == self.origin_id and not self.landmarks and r.chain == 0:
-                self._new_keyframe(rid, stamp_ns, pose, initial=(0.0, 0.0, 0.0), prior=self.p.origin_sigma)
+                self.graph.new_keyframe(rid, stamp_ns, pose, initial=(0.0, 0.0, 0.0), prior=self.p.origin_sigma)
             elif r.reset_hint is not None:
-                self._new_keyframe(rid, stamp_ns, pose, initial=r.reset_hint, prior=0.3)
+                self.graph.new_keyframe(rid, stamp_ns, pose, initial=r.reset_hint, prior=0.3)
                 r.reset_hint = None
             return
         delta = se2_between(r.kf_odom, pose)
         moved = math.hypot(delta[0], delta[1]) > self.p.kf_dist_m or abs(delta[2]) > self.p.kf_angle_rad
         if moved or stamp_ns - r.kf_stamp > self.p.kf_max_interval_s * 1e9:
-            self._new_keyframe(rid, stamp_ns, pose)
-
-    def _new_keyframe(self, rid: int, stamp_ns: int, odom_pose: Pose2, initial: Pose2 | None = None,
-                      prior: float | None = None) -> int:
-        """Add a keyframe variable for ``rid`` at ``stamp_ns`` (odometry ``odom_pose``)."""
-        r = self.robots[rid]
-        if r.kf_key is not None and r.kf_stamp == stamp_ns:
-            return r.kf_key
-        r.kf_index += 1
-        key = _key(rid, r.chain, r.kf_index)
-        if r.kf_key is not None and r.estimate is not None:
-            delta = se2_between(r.kf_odom, odom_pose)
-            cov = odom_increment_cov(delta, self.p, r.slip_m - r.kf_slip_m)
-            self._factors.add(gtsam.BetweenFactorPose2(r.kf_key, key, gtsam.Pose2(*delta),
-                                                       gtsam.noiseModel.Gaussian.Covariance(cov)))
-            guess = se2_compose(r.estimate, delta)
-            r.cov = r.cov + cov
-        else:
-            assert initial is not None
-            guess = initial
-        if prior is not None:
-            self._factors.add(gtsam.PriorFactorPose2(key, gtsam.Pose2(*guess),
-                                                     gtsam.noiseModel.Isotropic.Sigma(3, prior)))
-            r.cov = np.eye(3) * prior**2
-        self._values.insert(key, gtsam.Pose2(*guess))
-        self._stamps.insert((key, stamp_ns / 1e9))
-        r.kf_key, r.kf_stamp, r.kf_odom, r.estimate = key, stamp_ns, odom_pose, guess
-        r.kf_slip_m = r.slip_m
-        self.counters["keyframes"] += 1
-        return key
-
-    def _current(self, rid: int) -> Pose2 | None:
-        """Best current map pose of ``rid``: last keyframe ⊕ odometry since."""
-        r = self.robots[rid]
-        if r.estimate is None or r.latest_odom is None:
-            return None
-        return se2_compose(r.estimate, se2_between(r.kf_odom, r.latest_odom[1]))
-
-    def _robust(self, cov: Cov) -> gtsam.noiseModel.Base:
-        base = gtsam.noiseModel.Gaussian.Covariance(cov)
-        return gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(self.p.huber_k), base)
+            self.graph.new_keyframe(rid, stamp_ns, pose)
 
     def _gate(self, pred: Pose2, meas: Pose2, cov: Cov) -> float:
         e = np.array(se2_between(pred, meas))
@@ -268,7 +200,7 @@ class Fusion:
             self.counters["rejected_unknown_robot"] += 1
             return
         o, g = self.robots[observer], self.robots[target]
-        oo, go = self._odom_at(observer, stamp_ns), self._odom_at(target, stamp_ns)
+        oo, go = self.graph.odom_at(observer, stamp_ns), self.graph.odom_at(target, stamp_ns)
         if oo is None or go is None:
             self.counters["rejected_no_odometry"] += 1
             return
@@ -327,14 +259,15 @@ class Fusion:
             assert po is not None and pg is not None
             meas = self._first_factors(new, pl, stamp_ns, {observer: (po, oo), target: (pg, go)}, meas)
         assert po is not None and pg is not None
-        anchors = {observer: self._anchor(observer, stamp_ns, oo, po), target: self._anchor(target, stamp_ns, go, pg)}
+        anchors = {observer: self.graph.anchor(observer, stamp_ns, oo, po),
+                   target: self.graph.anchor(target, stamp_ns, go, pg)}
         for a, b, m_rel, m_cov in meas:
             for rid in (a, b):
                 if rid not in anchors:  # the robot that saw (or was seen by) the new one in the chosen candidate
-                    r_odom = self._odom_at(rid, stamp_ns)
+                    r_odom = self.graph.odom_at(rid, stamp_ns)
                     r = self.robots[rid]
                     assert r_odom is not None and r.estimate is not None
-                    anchors[rid] = self._anchor(rid, stamp_ns, r_odom,
+                    anchors[rid] = self.graph.anchor(rid, stamp_ns, r_odom,
                                                 se2_compose(r.estimate, se2_between(r.kf_odom, r_odom)))
             (ka, da, ca), (kb, db, cb) = anchors[a], anchors[b]
             if self._pair_factors.get((a, b)) == (ka, kb):
@@ -347,7 +280,7 @@ class Fusion:
             # the measurement between the two keyframes: observer's motion since its keyframe, the
             # observation, then back along the target's motion since its keyframe
             z = se2_compose(se2_compose(da, m_rel), se2_inverse(db))
-            self._factors.add(gtsam.BetweenFactorPose2(ka, kb, gtsam.Pose2(*z), self._robust(m_cov + ca + cb)))
+            self.graph.add(gtsam.BetweenFactorPose2(ka, kb, gtsam.Pose2(*z), self.graph.robust(m_cov + ca + cb)))
         self.counters["accepted_observations"] += 1
         o.last_fix_ns = g.last_fix_ns = stamp_ns
         self.edges[(observer, target)] = stamp_ns
@@ -410,7 +343,7 @@ class Fusion:
         poses = {rid: pose for rid, (pose, _) in now.items()}
         growth = np.zeros((3, 3))
         for rid in (b_obs, b_tgt):
-            then, odom_now = self._odom_at(rid, pl.best.stamp_ns), self._odom_at(rid, stamp_ns)
+            then, odom_now = self.graph.odom_at(rid, pl.best.stamp_ns), self.graph.odom_at(rid, stamp_ns)
             if then is not None and odom_now is not None:
                 growth += odom_increment_cov(se2_between(then, odom_now), self.p)
             if rid not in poses:
@@ -439,23 +372,7 @@ class Fusion:
         del self._init[rid]
         return Placement(se2_compose(best.origin, odom_pose), best, trigger, any(c is trigger for c in agree))
 
-    def _anchor(self, rid: int, stamp_ns: int, odom_pose: Pose2, guess: Pose2) -> tuple[int, Pose2, Cov]:
-        """Keyframe an observation at ``stamp_ns`` attaches to: the robot's latest
-        keyframe if it has barely moved since or ``stamp_ns`` is older than it (a late
-        observation), returning the odometry offset from it and that offset's
-        covariance; else a new keyframe at ``stamp_ns``.  Reusing
-        keyframes keeps the graph small when many robots see each other every frame."""
-        r = self.robots[rid]
-        if r.kf_key is not None and r.estimate is not None:
-            delta = se2_between(r.kf_odom, odom_pose)
-            small = math.hypot(delta[0], delta[1]) < self.p.kf_dist_m / 4 and abs(delta[2]) < self.p.kf_angle_rad / 4
-            # a late observation older than the keyframe hangs off it backwards: a keyframe before the
-            # latest would fork the robot's odometry chain
-            if small or stamp_ns < r.kf_stamp:
-                return r.kf_key, delta, odom_increment_cov(delta, self.p)
-        return self._new_keyframe(rid, stamp_ns, odom_pose, initial=guess), (0.0, 0.0, 0.0), np.zeros((3, 3))
-
-    def _rel_cov(self, o: _Robot, g: _Robot) -> Cov:
+    def _rel_cov(self, o: Robot, g: Robot) -> Cov:
         return o.cov + g.cov
 
     def _apply_landmark(self, stamp_ns: int, observer: int, landmark: int, rel: Pose2, cov: Cov) -> None:
@@ -463,7 +380,7 @@ class Fusion:
             self.counters["rejected_unknown_robot"] += 1
             return
         r = self.robots[observer]
-        oo = self._odom_at(observer, stamp_ns)
+        oo = self.graph.odom_at(observer, stamp_ns)
         if oo is None:
             self.counters["rejected_no_odometry"] += 1
             return
@@ -500,51 +417,24 @@ class Fusion:
             # trigger only if it agreed
             priors = priors if pl.trigger_agrees else []
             if pl.best is not pl.trigger:
-                then = self._odom_at(observer, pl.best.stamp_ns)
+                then = self.graph.odom_at(observer, pl.best.stamp_ns)
                 growth = np.zeros((3, 3)) if then is None else odom_increment_cov(se2_between(then, oo), self.p)
                 priors.append((pl.pose, pl.best.meas[1] + growth))
             if not pl.trigger_agrees:
                 self.counters["init_trigger_dropped"] += 1
-        key = self._new_keyframe(observer, stamp_ns, oo, initial=initial)
+        key = self.graph.new_keyframe(observer, stamp_ns, oo, initial=initial)
         for prior, prior_cov in priors:
-            self._factors.add(gtsam.PriorFactorPose2(key, gtsam.Pose2(*prior),
-                                                     self._robust(prior_cov + np.eye(3) * 1e-8)))
+            self.graph.add(gtsam.PriorFactorPose2(key, gtsam.Pose2(*prior),
+                                                     self.graph.robust(prior_cov + np.eye(3) * 1e-8)))
         r.last_fix_ns = stamp_ns
         self.recovery.accepted(observer, LANDMARK_WITNESS, stamp_ns)
         self.counters["accepted_landmarks"] += 1
-
-    def _flush(self) -> None:
-        if self._factors.size() == 0 and self._values.size() == 0:
-            return
-        self.smoother.update(self._factors, self._values, self._stamps)
-        self._factors = gtsam.NonlinearFactorGraph()
-        self._values = gtsam.Values()
-        self._stamps = gtsam.FixedLagSmootherKeyTimestampMap()
-        # only each robot's newest keyframe is needed; per-key retrieval avoids
-        # materialising every variable of the window on every update
-        with_cov = self.watermark_ns >= self._next_cov_ns
-        for r in self.robots.values():
-            if r.kf_key is None:
-                continue
-            try:
-                p = self.smoother.calculateEstimatePose2(r.kf_key)
-            except RuntimeError:
-                continue
-            r.estimate = (p.x(), p.y(), p.theta())
-            if with_cov:
-                try:
-                    r.cov = np.asarray(self.smoother.marginalCovariance(r.kf_key))
-                except RuntimeError:
-                    pass
-        if with_cov:
-            self._next_cov_ns = self.watermark_ns + int(self.p.cov_period_s * 1e9)
-        self.updates += 1
 
     # ------------------------------------------------------------------ output
     def pose(self, rid: int) -> tuple[Pose2, Cov] | None:
         """Fused map pose of ``rid`` now (last keyframe ⊕ odometry since) and the
         (3, 3) covariance of its last keyframe; None if not localised."""
-        cur = self._current(rid)
+        cur = self.graph.current(rid)
         if cur is None:
             return None
         return cur, self.robots[rid].cov

@@ -32,11 +32,11 @@ from tagswarm.runtime.config import ConfigError
 from tagswarm.runtime.lockstep import Participant
 from tagswarm.runtime.process import serve_node
 from tagswarm.server import journal as jr
+from tagswarm.server import outputs
 from tagswarm.server.config import ServerConfig, build_config
 from tagswarm.server.fusion import Fusion, FusionParams
 
 log = logging.getLogger("tagswarm.server")
-EDGE_MEMORY_NS = 5_000_000_000
 # realtime only: fresh observations trigger a fusion update at most this often (wall seconds)
 EAGER_UPDATE_MIN_S = 0.02
 IDLE_STATUS_MIN_S = 0.5  # an idle server reports changed counters at most this often (wall)
@@ -295,19 +295,8 @@ class ServerNode:
 
     # ------------------------------------------------------------------ outputs
     def global_map(self) -> m.GlobalMap:
-        entries = []
-        for rid in sorted(self.roster):
-            est = self.fusion.pose(rid)
-            if est is None:
-                continue
-            (x, y, yaw), cov = est
-            entries.append(m.MapEntry(robot_id=rid, x_m=x, y_m=y, yaw_rad=yaw,
-                                      cov=tuple(float(v) for v in cov.ravel()),
-                                      last_seen_ns=max(self.latest_rx.get(rid, 0), 0), alive=rid in self.alive))
-        edges = tuple(sorted(e for e, t in self.fusion.edges.items() if self.time_ns - t <= EDGE_MEMORY_NS))
-        key = self.keys.map()
-        return m.GlobalMap(seq=self.seq.peek(key), stamp_ns=self.time_ns, origin_id=self.s.map.origin_id,
-                           robots=tuple(entries), edges=edges)
+        return outputs.global_map(self.fusion, sorted(self.roster), self.s.map.origin_id, self.time_ns,
+                                  self.latest_rx, self.alive, self.seq.peek(self.keys.map()))
 
     def _publish_relocalisations(self) -> None:
         for ev in self.fusion.take_relocalisations():
@@ -315,28 +304,18 @@ class ServerNode:
                         "estimate did not)", ev.robot_id, ev.stamp_ns / 1e9, ev.jump_m, ev.evidence,
                         ", ".join("landmark" if w < 0 else f"robot {w}" for w in ev.observers))
             key = self.keys.relocalisation()
-            self._publish(key, m.Relocalisation(
-                seq=self.seq.next(key), stamp_ns=ev.stamp_ns, robot_id=ev.robot_id,
-                from_x_m=ev.before[0], from_y_m=ev.before[1], from_yaw_rad=ev.before[2],
-                to_x_m=ev.after[0], to_y_m=ev.after[1], to_yaw_rad=ev.after[2], jump_m=ev.jump_m,
-                evidence=ev.evidence, observers=ev.observers))
+            self._publish(key, outputs.relocalisation(ev, self.seq.next(key)))
 
     def _publish_corrections(self, all_robots: bool) -> None:
+        """Every localised robot's correction; with ``all_robots`` the others' too (``localised=False``)."""
         for rid in sorted(self.roster):
-            est, mo = self.fusion.pose(rid), self.fusion.map_to_odom(rid)
             key = self.keys.correction(rid)
-            if est is None or mo is None:
-                if all_robots:
-                    self._publish(key, m.Correction(seq=self.seq.next(key), stamp_ns=self.time_ns, robot_id=rid,
-                                                    map_odom_x_m=0.0, map_odom_y_m=0.0, map_odom_yaw_rad=0.0,
-                                                    x_m=0.0, y_m=0.0, yaw_rad=0.0, cov=(0.0,) * 9, localised=False))
-                continue
-            (x, y, yaw), cov = est
-            self._publish(key, m.Correction(
-                seq=self.seq.next(key), stamp_ns=self.time_ns, robot_id=rid, map_odom_x_m=mo[0], map_odom_y_m=mo[1],
-                map_odom_yaw_rad=mo[2], x_m=x, y_m=y, yaw_rad=yaw, cov=tuple(float(v) for v in cov.ravel()),
-                last_fix_ns=self.fusion.last_fix_ns(rid)))
-            self.counters["corrections"] += 1
+            msg = outputs.correction(self.fusion, rid, self.time_ns, self.seq.peek(key))
+            if msg.localised or all_robots:
+                self._publish(key, msg)
+                self.seq.next(key)
+            if msg.localised:
+                self.counters["corrections"] += 1
 
     def _maybe_publish_map(self) -> None:
         if self.time_ns >= self._next_map_ns:
@@ -351,16 +330,10 @@ class ServerNode:
 
     def _publish_status(self) -> None:
         self._status_sig, self._status_wall = self._status_signature(), time.monotonic()
-        counters = dict(self.counters)
-        counters.update({f"fusion_{k}": v for k, v in self.fusion.counters.items()})
-        counters.update(self.rejects.as_counters())
-        counters.update(self.gaps.as_counters())
-        counters.update(self.bus.fault_stats())
-        counters["accepted"] = counters.get("accepted_odometry", 0) + counters.get("accepted_observations", 0)
-        if self.journal is not None:
-            counters.update(self.journal.as_counters())
-        counters["localised"] = len(self.fusion.localised())
-        counters["alive"] = len(self.alive)
+        counters = outputs.status_counters(self.counters, self.fusion, self.rejects.as_counters(),
+                                           self.gaps.as_counters(), self.bus.fault_stats(),
+                                           None if self.journal is None else self.journal.as_counters(),
+                                           alive=len(self.alive))
         key = self.keys.server_status()
         self._publish(key, m.AgentStatus(seq=self.seq.next(key), stamp_ns=self.time_ns, role="server",
                                          mode=self.s.clock.mode, counters=counters))

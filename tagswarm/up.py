@@ -29,7 +29,7 @@ from tagswarm.protocol.bus import BusConfig, open_bus
 from tagswarm.protocol.keys import Keys
 from tagswarm.protocol.scenario import Scenario
 from tagswarm.recording.runrecorder import RunRecorder
-from tagswarm.runtime.config import ConfigError, OneLineParser, add_common_args, env_of, pick, scenario_from
+from tagswarm.runtime.config import ConfigError, Invocation, OneLineParser, add_common_args, scenario_from
 from tagswarm.runtime.process import run_main, setup_logging
 
 BIN = Path(sys.executable).parent
@@ -272,8 +272,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Console entry for ``tagswarm up``."""
 
     def body() -> int:
-        args = parser().parse_args(list(argv) if argv is not None else None)
-        env = env_of()
+        inv = Invocation(parser(), argv)
+        args = inv.args
+        env = inv.env
         if args.duration is not None and args.duration <= 0:
             raise ConfigError("--duration must be > 0")
         if args.robots is not None and args.robots < 1:
@@ -283,7 +284,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.record is not None and not args.record.parent.is_dir():
             raise ConfigError(f"--record: no such directory {str(args.record.parent)!r}")
         # the scenario loader says at INFO what it filled in (robots beyond the scenario's list, tag scheme)
-        setup_logging(pick(args, env, "log_level"), "up")
+        setup_logging(inv.pick("log_level"), "up")
         if args.replay is not None:
             from tagswarm.recording.replay import scenario_for_replay
 
@@ -294,7 +295,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             from tagswarm.recording.record import with_recorder
 
             scenario = with_recorder(scenario)  # lockstep: the world waits for the recorder (nothing missed)
-        run = pick(args, env, "run", f"up{int(time.time()) % 100000}")
+        run = inv.pick("run", f"up{int(time.time()) % 100000}")
         Keys(run)
         out = args.out or Path("runs") / datetime.now().strftime("%Y%m%d-%H%M%S")
         endpoint = (args.listen or [None])[0] or free_endpoint()

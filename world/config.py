@@ -8,18 +8,8 @@ from collections.abc import Mapping, Sequence
 import msgspec
 
 from tagswarm.protocol.bus import BusConfig
-from tagswarm.protocol.keys import Keys
 from tagswarm.protocol.scenario import Scenario
-from tagswarm.runtime.config import (
-    ConfigError,
-    OneLineParser,
-    add_common_args,
-    bus_from,
-    env_of,
-    parse,
-    pick,
-    scenario_from,
-)
+from tagswarm.runtime.config import ConfigError, Invocation, OneLineParser, add_common_args
 
 
 class WorldConfig(msgspec.Struct, frozen=True, kw_only=True):
@@ -52,17 +42,15 @@ def parser(prog: str = "tagswarm-world") -> argparse.ArgumentParser:
 def build_config(argv: Sequence[str] | None = None, environ: Mapping[str, str] | None = None) -> WorldConfig:
     """Parse flags and environment into a :class:`WorldConfig`; raises ConfigError /
     ScenarioError with a one-line message."""
-    args = parse(parser(), argv)
-    env = env_of(environ)
+    inv = Invocation(parser(), argv, environ)
+    args = inv.args
     if args.render_workers is not None:
         if args.render_workers < 0:
             raise ConfigError("--render-workers must be >= 0")
         args.overrides.append(f"render.workers={args.render_workers}")
-    scenario = scenario_from(args, env)
-    run = pick(args, env, "run", "default")
-    Keys(run)  # validates the run id
+    scenario = inv.scenario()
+    run = inv.run()
     if args.status_period <= 0:
         raise ConfigError("--status-period must be > 0")
-    return WorldConfig(scenario=scenario, bus=bus_from(args, env), run=run, status_period_s=args.status_period,
-                       spawn_render_workers=not args.no_spawn_workers,
-                       log_level=pick(args, env, "log_level", "INFO"))
+    return WorldConfig(scenario=scenario, bus=inv.bus(), run=run, status_period_s=args.status_period,
+                       spawn_render_workers=not args.no_spawn_workers, log_level=inv.log_level())

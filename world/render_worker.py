@@ -27,16 +27,7 @@ from tagswarm.protocol.bus import Bus, BusConfig
 from tagswarm.protocol.keys import Keys
 from tagswarm.protocol.scenario import Scenario
 from tagswarm.runtime import streams
-from tagswarm.runtime.config import (
-    ConfigError,
-    OneLineParser,
-    add_common_args,
-    bus_from,
-    env_of,
-    parse,
-    pick,
-    scenario_from,
-)
+from tagswarm.runtime.config import ConfigError, Invocation, OneLineParser, add_common_args
 from tagswarm.runtime.lockstep import Participant
 from tagswarm.runtime.process import serve_node
 from tagswarm.world.render import Renderer, image_message, pose_matrix
@@ -59,16 +50,15 @@ def build_config(argv: Sequence[str] | None = None, environ: Mapping[str, str] |
         description="A tagswarm render worker: renders a share of the robots' cameras for the world process.")
     add_common_args(p)
     p.add_argument("--worker-index", type=int, required=True, metavar="I", help="this worker's index, 0..K-1")
-    args = parse(p, argv)
-    env = env_of(environ)
-    scenario = scenario_from(args, env)
+    inv = Invocation(p, argv, environ)
+    args = inv.args
+    scenario = inv.scenario()
     if not 0 <= args.worker_index < max(scenario.render.workers, 1):
         raise ConfigError(f"--worker-index {args.worker_index} is outside 0..{scenario.render.workers - 1} "
                           "(render.workers)")
-    run = pick(args, env, "run", "default")
-    Keys(run)
-    return RenderConfig(scenario=scenario, bus=bus_from(args, env), worker_index=args.worker_index, run=run,
-                        log_level=pick(args, env, "log_level", "INFO"))
+    run = inv.run()
+    return RenderConfig(scenario=scenario, bus=inv.bus(), worker_index=args.worker_index, run=run,
+                        log_level=inv.log_level())
 
 
 class RenderWorkerNode:

@@ -22,7 +22,7 @@ from collections.abc import Sequence
 
 from tagswarm.protocol.bus import open_bus
 from tagswarm.protocol.keys import Keys, split_participant
-from tagswarm.runtime.config import ConfigError, OneLineParser, add_common_args, bus_from, env_of, pick
+from tagswarm.runtime.config import ConfigError, Invocation, OneLineParser, add_common_args
 from tagswarm.runtime.process import run_main, setup_logging
 
 PROG = "tagswarm alive"
@@ -54,13 +54,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Console entry for ``tagswarm alive``: 0 alive, 1 not alive, 2 bad usage."""
 
     def body() -> int:
-        args = parser().parse_args(list(argv) if argv is not None else None)
-        env = env_of()
+        inv = Invocation(parser(), argv)
+        args = inv.args
         for name in ("timeout", "max_age"):
             value = getattr(args, name)
             if not math.isfinite(value) or value <= 0:
                 raise ConfigError(f"--{name.replace('_', '-')} must be a positive number of seconds")
-        setup_logging(pick(args, env, "log_level", "WARNING"), "alive")  # validates --log-level too
+        setup_logging(inv.log_level("WARNING"), "alive")  # validates --log-level too
         if (args.participant is None) == (args.heartbeat is None):
             raise ConfigError("give either PARTICIPANT (e.g. world/0) or --heartbeat PATH")
         if args.heartbeat is not None:
@@ -74,9 +74,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             print(f"heartbeat {args.heartbeat} is {max(age, 0.0):.1f} s old")
             return 0
         split_participant(args.participant)  # one-line KeyNameError -> exit 2
-        run = pick(args, env, "run", "default")
+        run = inv.pick("run", "default")
         key = Keys(run).alive(args.participant)
-        with open_bus(bus_from(args, env)) as bus:
+        with open_bus(inv.bus()) as bus:
             tokens = bus.alive_now(key, args.timeout)
         if key in tokens:
             print(f"{args.participant} is alive ({key})")

@@ -41,7 +41,15 @@ import msgspec
 from tagswarm.deploy import acl
 from tagswarm.protocol.bus import BusConfig, open_bus
 from tagswarm.protocol.keys import Keys
-from tagswarm.runtime.config import ConfigError, OneLineParser, add_common_args, bus_from, env_of, pick, scenario_from
+from tagswarm.runtime.config import (
+    ConfigError,
+    Invocation,
+    OneLineParser,
+    add_common_args,
+    bus_from,
+    pick,
+    scenario_from,
+)
 from tagswarm.runtime.process import install_stop_signals, run_main, setup_logging
 
 PROG = "tagswarm router"
@@ -149,9 +157,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Console entry for ``tagswarm router``."""
 
     def body() -> int:
-        args = parser().parse_args(list(argv) if argv is not None else None)
-        env = env_of()
-        keys = Keys(pick(args, env, "run", "default"))
+        inv = Invocation(parser(), argv)
+        args = inv.args
+        env = inv.env
+        keys = Keys(inv.pick("run", "default"))
         if args.make_secrets:
             folder = Path(args.make_secrets)
             try:
@@ -165,7 +174,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             command = " ".join([PROG, *(sys.argv[1:] if argv is None else argv)])
             sys.stdout.write(print_config(cfg, keys, robot_ids(args, env), command))
             return 0
-        setup_logging(pick(args, env, "log_level", "INFO"), "router")
+        setup_logging(inv.log_level("INFO"), "router")
         heartbeat = Heartbeat(args.heartbeat) if args.heartbeat else None
         if heartbeat is not None:
             try:  # fail early, with one line; the first real beat comes once the router is up

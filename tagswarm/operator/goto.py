@@ -17,16 +17,15 @@ import math
 import sys
 from collections.abc import Sequence
 
+from tagswarm.operator.reach import MAX_ROBOT_ID, TICK_WAIT_S, next_tick, wait_alive
 from tagswarm.protocol import codec
 from tagswarm.protocol import messages as m
-from tagswarm.protocol.bus import Bus, open_bus
+from tagswarm.protocol.bus import open_bus
 from tagswarm.protocol.keys import Keys
-from tagswarm.runtime.config import ConfigError, OneLineParser, add_common_args, bus_from, env_of, pick
+from tagswarm.runtime.config import ConfigError, Invocation, OneLineParser, add_common_args
 from tagswarm.runtime.process import run_main, setup_logging
 
 PROG = "tagswarm goto"
-MAX_ROBOT_ID = 100_000  # tagswarm.protocol.messages.RobotId
-TICK_WAIT_S = 0.5
 
 
 def parser() -> OneLineParser:
@@ -53,57 +52,27 @@ def make_goal(robot: int, x: float, y: float, tolerance: float, stamp_ns: int = 
     return m.Goal(seq=0, stamp_ns=stamp_ns, robot_id=robot, x_m=x, y_m=y, tolerance_m=tolerance)
 
 
-def wait_alive(bus: Bus, key: str, timeout_s: float) -> bool:
-    """True once a liveliness token on ``key`` is (or already was) visible."""
-    changes = bus.watch_liveliness(key)
-    seen = False
-
-    def up() -> bool:
-        nonlocal seen
-        seen = seen or any(c.value for c in changes.drain())
-        return seen
-
-    return bus.wait_for(up, timeout_s)
-
-
-def newest_tick_ns(bus: Bus, keys: Keys, timeout_s: float) -> int:
-    """Simulation time of the next world tick, or 0 if none comes within ``timeout_s``."""
-    ticks = bus.subscribe(keys.tick(), newest_only=True)
-    stamp = 0
-
-    def got() -> bool:
-        nonlocal stamp
-        for item in ticks.drain():
-            try:
-                stamp = max(stamp, codec.decode(m.Tick, item.value).stamp_ns)
-            except codec.DecodeError:
-                continue
-        return stamp > 0
-
-    bus.wait_for(got, timeout_s)
-    return stamp
-
-
 def main(argv: Sequence[str] | None = None) -> int:
     """Console entry for ``tagswarm goto``: 0 sent, 1 agent not alive, 2 bad arguments."""
 
     def body() -> int:
-        args = parser().parse_args(list(argv) if argv is not None else None)
-        env = env_of()
+        inv = Invocation(parser(), argv)
+        args = inv.args
         make_goal(args.robot, args.x, args.y, args.tolerance)  # validate before touching the network
         if not math.isfinite(args.timeout) or args.timeout <= 0:
             raise ConfigError("--timeout must be a positive number of seconds")
-        setup_logging(pick(args, env, "log_level", "WARNING"), "goto")  # validates --log-level too
-        run = pick(args, env, "run", "default")
+        setup_logging(inv.log_level("WARNING"), "goto")  # validates --log-level too
+        run = inv.pick("run", "default")
         keys = Keys(run)
         participant = f"agent/{args.robot}"
         alive_key = keys.alive(participant)
-        with open_bus(bus_from(args, env)) as bus:
+        with open_bus(inv.bus()) as bus:
             if not wait_alive(bus, alive_key, args.timeout):
                 sys.stderr.write(f"{PROG}: error: {participant} is not alive on run {run!r} "
                                  f"(no liveliness token {alive_key} after {args.timeout:g} s)\n")
                 return 1
-            goal = make_goal(args.robot, args.x, args.y, args.tolerance, newest_tick_ns(bus, keys, TICK_WAIT_S))
+            tick = next_tick(bus, keys, TICK_WAIT_S, lambda t: t.stamp_ns > 0)  # stamped like the world's time
+            goal = make_goal(args.robot, args.x, args.y, args.tolerance, tick.stamp_ns if tick is not None else 0)
             bus.put(keys.goal(args.robot), codec.encode(goal))
             # a round trip on the same link before closing the session, so the goal is on its way
             bus.alive_now(alive_key, 1.0)

@@ -32,16 +32,20 @@ import math
 import sys
 from collections.abc import Sequence
 
-from tagswarm.operator.goto import MAX_ROBOT_ID, wait_alive
+from tagswarm.operator.reach import MAX_ROBOT_ID, TICK_WAIT_S, next_tick, wait_alive
 from tagswarm.protocol import codec
 from tagswarm.protocol import messages as m
-from tagswarm.protocol.bus import Bus, open_bus
+from tagswarm.protocol.bus import open_bus
 from tagswarm.protocol.keys import Keys
-from tagswarm.runtime.config import ConfigError, OneLineParser, add_common_args, bus_from, env_of, pick, scenario_from
+from tagswarm.runtime.config import (
+    ConfigError,
+    Invocation,
+    OneLineParser,
+    add_common_args,
+)
 from tagswarm.runtime.process import run_main, setup_logging
 
 PROG = "tagswarm kidnap"
-TICK_WAIT_S = 0.5
 
 
 def parser() -> OneLineParser:
@@ -85,49 +89,32 @@ def stamp_for(at_s: float, dt_ns: int | None) -> int:
     return k * dt_ns
 
 
-def tick_length_ns(bus: Bus, keys: Keys, timeout_s: float) -> int | None:
-    """``dt_ns`` of the next world tick, or None if none comes within ``timeout_s``."""
-    ticks = bus.subscribe(keys.tick(), newest_only=True)
-    dt: int | None = None
-
-    def got() -> bool:
-        nonlocal dt
-        for item in ticks.drain():
-            try:
-                dt = codec.decode(m.Tick, item.value).dt_ns
-            except codec.DecodeError:
-                continue
-        return dt is not None
-
-    bus.wait_for(got, timeout_s)
-    return dt
-
-
 def main(argv: Sequence[str] | None = None) -> int:
     """Console entry for ``tagswarm kidnap``: 0 sent, 1 world not alive, 2 bad arguments."""
 
     def body() -> int:
-        args = parser().parse_args(list(argv) if argv is not None else None)
-        env = env_of()
+        inv = Invocation(parser(), argv)
+        args = inv.args
         make_command(args.robot, args.x, args.y, args.yaw, args.push)  # validate before touching the network
         if args.at is not None and (not math.isfinite(args.at) or args.at < 0):
             raise ConfigError(f"--at must be a simulation time in seconds >= 0, got {args.at!r}")
         if not math.isfinite(args.timeout) or args.timeout <= 0:
             raise ConfigError("--timeout must be a positive number of seconds")
-        setup_logging(pick(args, env, "log_level", "WARNING"), "kidnap")  # validates --log-level too
-        run = pick(args, env, "run", "default")
+        setup_logging(inv.log_level("WARNING"), "kidnap")  # validates --log-level too
+        run = inv.pick("run", "default")
         keys = Keys(run)
         # the scenario's tick length stands in when the world sends no tick (so also validated up front)
-        scenario_dt_ns = round(1e9 / scenario_from(args, env).clock.tick_hz) if args.at is not None else None
+        scenario_dt_ns = round(1e9 / inv.scenario().clock.tick_hz) if args.at is not None else None
         alive_key = keys.alive("world/0")
-        with open_bus(bus_from(args, env)) as bus:
+        with open_bus(inv.bus()) as bus:
             if not wait_alive(bus, alive_key, args.timeout):
                 sys.stderr.write(f"{PROG}: error: the world is not alive on run {run!r} "
                                  f"(no liveliness token {alive_key} after {args.timeout:g} s)\n")
                 return 1
             stamp = 0
             if args.at is not None:
-                stamp = stamp_for(args.at, tick_length_ns(bus, keys, TICK_WAIT_S) or scenario_dt_ns)
+                tick = next_tick(bus, keys, TICK_WAIT_S)
+                stamp = stamp_for(args.at, (tick.dt_ns if tick is not None else None) or scenario_dt_ns)
             cmd = make_command(args.robot, args.x, args.y, args.yaw, args.push, stamp)
             bus.put(keys.world_command(), codec.encode(cmd))
             # a round trip on the same link before closing the session, so the command is on its way

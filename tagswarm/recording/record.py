@@ -54,7 +54,12 @@ from tagswarm.recording.mcaprecording import (
     with_recorder,
     without_recorders,
 )
-from tagswarm.runtime.config import ConfigError, OneLineParser, add_common_args, bus_from, env_of, pick, scenario_from
+from tagswarm.runtime.config import (
+    ConfigError,
+    Invocation,
+    OneLineParser,
+    add_common_args,
+)
 from tagswarm.runtime.lockstep import Participant
 from tagswarm.runtime.process import install_stop_signals, run_main, setup_logging
 
@@ -245,20 +250,21 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Console entry for ``tagswarm record``."""
 
     def body() -> int:
-        args = parser().parse_args(list(argv) if argv is not None else None)
-        env = env_of()
-        setup_logging(pick(args, env, "log_level", "INFO"), "record")
-        keys = Keys(pick(args, env, "run", "default"))
+        inv = Invocation(parser(), argv)
+        args = inv.args
+        env = inv.env
+        setup_logging(inv.log_level("INFO"), "record")
+        keys = Keys(inv.pick("run", "default"))
         keyexpr = args.keyexpr if args.keyexpr is not None else keys.all()
         if not keyexpr.strip():
             raise ConfigError("KEYEXPR must not be empty")
-        duration = pick(args, env, "duration")
+        duration = inv.pick("duration")
         duration_s = float(duration) if duration is not None else math.inf
         if not duration_s > 0:
             raise ConfigError("--duration must be > 0")
         # the scenario only tells the Foxglove views where the map frame is: use it when named
         given = args.scenario is not None or "TAGSWARM_SCENARIO" in env
-        scenario = scenario_from(args, env) if given else None
+        scenario = inv.scenario() if given else None
         options = RecordOptions(images=not args.no_images, image_scale=args.image_scale,
                                 foxglove=not args.no_foxglove, compression=args.compression)
         if args.participant is not None:
@@ -268,7 +274,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             split_participant(peer)
         if not args.out.parent.is_dir():
             raise ConfigError(f"--out: no such directory {str(args.out.parent)!r}")
-        bus_cfg = bus_from(args, env)
+        bus_cfg = inv.bus()
         recording = McapRecording(args.out, options, run=keys.run, keyexpr=keyexpr, scenario=scenario)
         stop = threading.Event()
         install_stop_signals(stop)

@@ -63,7 +63,13 @@ from tagswarm.recording.mcapio import (
     run_of,
 )
 from tagswarm.runtime import streams
-from tagswarm.runtime.config import ConfigError, OneLineParser, add_common_args, bus_from, env_of, pick, scenario_from
+from tagswarm.runtime.config import (
+    ConfigError,
+    Invocation,
+    OneLineParser,
+    add_common_args,
+    scenario_from,
+)
 from tagswarm.runtime.process import install_stop_signals, run_main, setup_logging
 from tagswarm.world.lockstep import AckTracker
 
@@ -297,18 +303,19 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Console entry for ``tagswarm replay``."""
 
     def body() -> int:
-        args = parser().parse_args(list(argv) if argv is not None else None)
-        env = env_of()
-        setup_logging(pick(args, env, "log_level", "INFO"), "replay")
+        inv = Invocation(parser(), argv)
+        args = inv.args
+        env = inv.env
+        setup_logging(inv.log_level("INFO"), "replay")
         if args.speed is not None and not (math.isfinite(args.speed) and args.speed > 0):
             raise ConfigError("--speed must be a positive number")
         if not args.file.is_file():
             raise ConfigError(f"no such recording {str(args.file)!r}")
-        duration = pick(args, env, "duration")
+        duration = inv.pick("duration")
         end_s = float(duration) if duration is not None else None
         if end_s is not None and not end_s > 0:
             raise ConfigError("--duration must be > 0")
-        run = pick(args, env, "run")
+        run = inv.pick("run")
         if run is not None:
             Keys(run)
         for pattern in args.keys:
@@ -334,7 +341,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise ConfigError("--lockstep: no participants to wait for; name them with --participants")
         stop = threading.Event()
         install_stop_signals(stop)
-        with open_bus(bus_from(args, env)) as bus:
+        with open_bus(inv.bus()) as bus:
             replayer = Replayer(bus, args.file, accept=accept, run=run,
                                 speed=None if lockstep else (args.speed or 1.0), participants=participants,
                                 clock=clock, end_s=end_s, wait_for=wait_for)

@@ -26,6 +26,7 @@ from tagswarm.protocol.bus import (
     check_key_expr,
 )
 from tagswarm.protocol.errors import UsageError
+from tagswarm.protocol.keys import Keys
 from tagswarm.protocol.scenario import Scenario, ScenarioError, convert, load_scenario
 
 ENV_PREFIX = "TAGSWARM_"
@@ -217,3 +218,35 @@ def env_of(environ: Mapping[str, str] | None = None) -> dict[str, str]:
 def parse(parser: argparse.ArgumentParser, argv: Sequence[str] | None) -> argparse.Namespace:
     """Parse ``argv`` (``None`` means ``sys.argv[1:]``)."""
     return parser.parse_args(list(argv) if argv is not None else None)
+
+
+class Invocation:
+    """How a process was started: its parsed flags and its ``TAGSWARM_*`` environment, and
+    what every process reads from them (a flag, else its variable, else the default)."""
+
+    def __init__(self, parser: argparse.ArgumentParser, argv: Sequence[str] | None = None,
+                 environ: Mapping[str, str] | None = None) -> None:
+        self.args = parse(parser, argv)
+        self.env = env_of(environ)
+
+    def pick(self, attr: str, default: Any = None) -> Any:
+        """Flag ``attr`` if given, else ``TAGSWARM_<ATTR>``, else ``default``."""
+        return pick(self.args, self.env, attr, default)
+
+    def scenario(self) -> Scenario:
+        """The scenario with environment then flag overrides applied, validated."""
+        return scenario_from(self.args, self.env)
+
+    def bus(self) -> BusConfig:
+        """The Zenoh settings."""
+        return bus_from(self.args, self.env)
+
+    def run(self, default: str = "default") -> str:
+        """The run id, validated (it is part of every key: KeyNameError otherwise)."""
+        run: str = self.pick("run", default)
+        Keys(run)
+        return run
+
+    def log_level(self, default: str = "INFO") -> str:
+        level: str = self.pick("log_level", default)
+        return level

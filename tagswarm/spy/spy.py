@@ -40,7 +40,7 @@ from rich.table import Table
 
 from tagswarm.protocol.bus import Bus, open_bus
 from tagswarm.protocol.keys import Keys
-from tagswarm.runtime.config import ConfigError, OneLineParser, add_common_args, bus_from, env_of, pick
+from tagswarm.runtime.config import ConfigError, Invocation, OneLineParser, add_common_args
 from tagswarm.runtime.process import install_stop_signals, run_main, setup_logging
 from tagswarm.spy.describe import decode, echo_line, image_summary, message_json, summarise, type_name
 
@@ -166,18 +166,18 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Console entry for ``tagswarm spy``."""
 
     def body() -> int:
-        args = parser().parse_args(list(argv) if argv is not None else None)
-        env = env_of()
+        inv = Invocation(parser(), argv)
+        args = inv.args
         if not math.isfinite(args.window) or args.window <= 0:
             raise ConfigError("--window must be a positive number of seconds")
-        setup_logging(pick(args, env, "log_level", "WARNING"), "spy")  # validates --log-level too
-        keys = Keys(pick(args, env, "run", "default"))
+        setup_logging(inv.log_level("WARNING"), "spy")  # validates --log-level too
+        keys = Keys(inv.pick("run", "default"))
         keyexpr = args.keyexpr if args.keyexpr is not None else keys.all()
         if not keyexpr.strip():
             raise ConfigError("KEYEXPR must not be empty")
         stop = threading.Event()
         install_stop_signals(stop)
-        with open_bus(bus_from(args, env)) as bus:
+        with open_bus(inv.bus()) as bus:
             spy = Spy(bus, keyexpr, args.window, alive=not args.no_alive)
             try:
                 return run_spy(spy, keyexpr=keyexpr, once=args.once, window_s=args.window, echo=args.echo,

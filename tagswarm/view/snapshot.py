@@ -22,7 +22,7 @@ from tagswarm.protocol import codec, tags
 from tagswarm.protocol import messages as m
 from tagswarm.protocol.bus import BusConfig, open_bus
 from tagswarm.protocol.keys import Keys
-from tagswarm.runtime.config import ConfigError, OneLineParser, add_common_args, env_of, pick, scenario_from
+from tagswarm.runtime.config import ConfigError, Invocation, OneLineParser, add_common_args
 from tagswarm.runtime.process import run_main
 
 
@@ -68,10 +68,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--timeout", type=float, default=60.0, help="seconds to wait for frames (default 60)")
 
     def body() -> int:
-        args = p.parse_args(list(argv) if argv is not None else None)
-        env = env_of()
-        scenario = scenario_from(args, env)  # validates before anything starts
-        run = pick(args, env, "run", "snapshot")
+        inv = Invocation(p, argv)
+        args = inv.args
+        scenario = inv.scenario()  # validates before anything starts
+        run = inv.pick("run", "snapshot")
         keys = Keys(run)
         out = args.out or Path("runs") / f"snapshot-{datetime.now():%Y%m%d-%H%M%S}"
         out.mkdir(parents=True, exist_ok=True)

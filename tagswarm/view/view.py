@@ -44,16 +44,7 @@ from tagswarm.protocol.bus import Bus, BusConfig, Inbox
 from tagswarm.protocol.keys import Keys
 from tagswarm.protocol.scenario import Scenario
 from tagswarm.runtime import streams
-from tagswarm.runtime.config import (
-    ConfigError,
-    OneLineParser,
-    add_common_args,
-    bus_from,
-    env_of,
-    parse,
-    pick,
-    scenario_from,
-)
+from tagswarm.runtime.config import ConfigError, Invocation, OneLineParser, add_common_args
 from tagswarm.runtime.process import serve_node
 from tagswarm.view.state import ViewState
 from tagswarm.view.thumbnails import camera_message
@@ -107,8 +98,8 @@ def parser() -> OneLineParser:
 
 def build_config(argv: Sequence[str] | None, environ: Mapping[str, str] | None = None) -> ViewConfig:
     """Parse flags and environment into a :class:`ViewConfig`; raises :class:`ConfigError`."""
-    args = parse(parser(), argv)
-    env = env_of(environ)
+    inv = Invocation(parser(), argv, environ)
+    args, env = inv.args, inv.env
     port_raw = args.port if args.port is not None else env.get("TAGSWARM_VIEW_PORT", DEFAULT_PORT)
     try:
         port = int(port_raw)
@@ -122,12 +113,11 @@ def build_config(argv: Sequence[str] | None, environ: Mapping[str, str] | None =
         raise ConfigError(f"--camera-rate must be in (0, 30] Hz, got {args.camera_rate:g}")
     if not 32 <= args.thumb_width <= 4096:
         raise ConfigError(f"--thumb-width must be 32..4096 px, got {args.thumb_width}")
-    run = pick(args, env, "run", "default")
-    Keys(run)  # validates the run id (KeyNameError -> exit 2)
-    return ViewConfig(scenario=scenario_from(args, env), run=run, bus=bus_from(args, env),
+    run = inv.run()
+    return ViewConfig(scenario=inv.scenario(), run=run, bus=inv.bus(),
                       host=args.host or env.get("TAGSWARM_VIEW_HOST", "127.0.0.1"), port=port,
                       rate_hz=args.rate, camera_rate_hz=args.camera_rate, thumb_width=args.thumb_width,
-                      log_level=pick(args, env, "log_level", "INFO"))
+                      log_level=inv.log_level())
 
 
 # --------------------------------------------------------------------------- node

@@ -1,0 +1,179 @@
+"""The store of the fusion's pose graph (pure code, GTSAM): one chain of ``Pose2`` keyframes
+per robot in the map frame, the factors and values staged for the next update, and the
+iSAM2 fixed-lag smoother they go to.
+
+:class:`~tagswarm.server.fusion.Fusion` decides what goes in (which observation, which
+prior, when a robot is placed or taken out); this module keeps each robot's bookkeeping,
+makes keyframes (with the odometry factor from the previous one), finds the keyframe an
+observation hangs on, and after each update reads every robot's newest estimate back (its
+covariance every ``cov_period_s`` of simulated time).  Poses are (x_m, y_m, yaw_rad) in the
+map frame; odometry poses are ``base_link`` in the robot's ``odom`` frame; covariances are
+3x3 in GTSAM's tangent space.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import Counter, deque
+from dataclasses import dataclass, field
+
+import gtsam
+import numpy as np
+
+from tagswarm.protocol.geometry import Pose2, se2_between, se2_compose
+from tagswarm.server.noise import Cov, FusionParams, odom_increment_cov
+
+
+@dataclass
+class Robot:
+    """One robot's keyframe chain and odometry (checkpointed field by field, see
+    :mod:`tagswarm.server.checkpoint`)."""
+
+    odom: deque[tuple[int, Pose2]] = field(default_factory=lambda: deque(maxlen=4096))
+    chain: int = 0  # bumped when the robot's odometry restarts
+    kf_index: int = -1
+    kf_key: int | None = None
+    kf_stamp: int = -1
+    kf_odom: Pose2 = (0.0, 0.0, 0.0)
+    estimate: Pose2 | None = None  # of the last keyframe
+    cov: Cov = field(default_factory=lambda: np.diag([1e-4, 1e-4, 1e-4]))
+    drift_cov: Cov = field(default_factory=lambda: np.zeros((3, 3)))  # odometry since the last keyframe
+    latest_odom: tuple[int, Pose2] | None = None
+    last_fix_ns: int = 0
+    accepted: int = 0  # observations involving this robot in the graph
+    last_distance: float = 0.0
+    reset_hint: Pose2 | None = None
+    slip_m: float = 0.0  # the agent's cumulative slip evidence at the latest odometry
+    kf_slip_m: float = 0.0  # ... at the last keyframe
+
+
+def robot_key(rid: int, chain: int, index: int) -> int:
+    """The GTSAM key of keyframe ``index`` of chain ``chain`` of robot ``rid``."""
+    return int(gtsam.symbol("x", (rid << 40) | (chain << 24) | index))
+
+
+class KeyframeGraph:
+    """The robots' keyframe chains, what is staged for the smoother, and the smoother.
+    ``counters`` is the fusion's (``keyframes`` is counted here)."""
+
+    def __init__(self, params: FusionParams, robot_ids: tuple[int, ...], counters: Counter[str]) -> None:
+        self.p = params
+        self.counters = counters
+        self.robots = {rid: Robot(odom=deque(maxlen=params.odom_buffer)) for rid in robot_ids}
+        isam = gtsam.ISAM2Params()
+        isam.setRelinearizeThreshold(0.01)
+        isam.relinearizeSkip = 5
+        self.smoother = gtsam.IncrementalFixedLagSmoother(params.lag_s, isam)
+        self.factors = gtsam.NonlinearFactorGraph()
+        self.values = gtsam.Values()
+        self.stamps = gtsam.FixedLagSmootherKeyTimestampMap()
+        self.next_cov_ns = 0
+        self.updates = 0
+
+    def staged(self) -> bool:
+        """Whether factors or values wait for the next update."""
+        return bool(self.factors.size() or self.values.size())
+
+    def add(self, factor: gtsam.NonlinearFactor) -> None:
+        """Stage ``factor`` for the next update."""
+        self.factors.add(factor)
+
+    def robust(self, cov: Cov) -> gtsam.noiseModel.Base:
+        """Huber-robust Gaussian noise of covariance ``cov``."""
+        base = gtsam.noiseModel.Gaussian.Covariance(cov)
+        return gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(self.p.huber_k), base)
+
+    def odom_at(self, rid: int, stamp_ns: int) -> Pose2 | None:
+        """Odometry pose of ``rid`` at ``stamp_ns`` (nearest sample within 0.2 s)."""
+        best = None
+        for t, pose in reversed(self.robots[rid].odom):
+            if best is None or abs(t - stamp_ns) < abs(best[0] - stamp_ns):
+                best = (t, pose)
+            if t < stamp_ns:
+                break
+        if best is None or abs(best[0] - stamp_ns) > 200_000_000:
+            return None
+        return best[1]
+
+    def current(self, rid: int) -> Pose2 | None:
+        """Best current map pose of ``rid``: last keyframe ⊕ odometry since."""
+        r = self.robots[rid]
+        if r.estimate is None or r.latest_odom is None:
+            return None
+        return se2_compose(r.estimate, se2_between(r.kf_odom, r.latest_odom[1]))
+
+    def new_keyframe(self, rid: int, stamp_ns: int, odom_pose: Pose2, initial: Pose2 | None = None,
+                     prior: float | None = None) -> int:
+        """Add a keyframe variable for ``rid`` at ``stamp_ns`` (odometry ``odom_pose``): tied to
+        the previous keyframe by the odometry between them, else started at ``initial``;
+        ``prior`` (m and rad) pins it with an isotropic prior."""
+        r = self.robots[rid]
+        if r.kf_key is not None and r.kf_stamp == stamp_ns:
+            return r.kf_key
+        r.kf_index += 1
+        key = robot_key(rid, r.chain, r.kf_index)
+        if r.kf_key is not None and r.estimate is not None:
+            delta = se2_between(r.kf_odom, odom_pose)
+            cov = odom_increment_cov(delta, self.p, r.slip_m - r.kf_slip_m)
+            self.factors.add(gtsam.BetweenFactorPose2(r.kf_key, key, gtsam.Pose2(*delta),
+                                                      gtsam.noiseModel.Gaussian.Covariance(cov)))
+            guess = se2_compose(r.estimate, delta)
+            r.cov = r.cov + cov
+        else:
+            assert initial is not None
+            guess = initial
+        if prior is not None:
+            self.factors.add(gtsam.PriorFactorPose2(key, gtsam.Pose2(*guess),
+                                                    gtsam.noiseModel.Isotropic.Sigma(3, prior)))
+            r.cov = np.eye(3) * prior**2
+        self.values.insert(key, gtsam.Pose2(*guess))
+        self.stamps.insert((key, stamp_ns / 1e9))
+        r.kf_key, r.kf_stamp, r.kf_odom, r.estimate = key, stamp_ns, odom_pose, guess
+        r.kf_slip_m = r.slip_m
+        self.counters["keyframes"] += 1
+        return key
+
+    def anchor(self, rid: int, stamp_ns: int, odom_pose: Pose2, guess: Pose2) -> tuple[int, Pose2, Cov]:
+        """Keyframe an observation at ``stamp_ns`` attaches to: the robot's latest
+        keyframe if it has barely moved since or ``stamp_ns`` is older than it (a late
+        observation), returning the odometry offset from it and that offset's
+        covariance; else a new keyframe at ``stamp_ns``.  Reusing
+        keyframes keeps the graph small when many robots see each other every frame."""
+        r = self.robots[rid]
+        if r.kf_key is not None and r.estimate is not None:
+            delta = se2_between(r.kf_odom, odom_pose)
+            small = math.hypot(delta[0], delta[1]) < self.p.kf_dist_m / 4 and abs(delta[2]) < self.p.kf_angle_rad / 4
+            # a late observation older than the keyframe hangs off it backwards: a keyframe before the
+            # latest would fork the robot's odometry chain
+            if small or stamp_ns < r.kf_stamp:
+                return r.kf_key, delta, odom_increment_cov(delta, self.p)
+        return self.new_keyframe(rid, stamp_ns, odom_pose, initial=guess), (0.0, 0.0, 0.0), np.zeros((3, 3))
+
+    def update(self, watermark_ns: int) -> None:
+        """Hand what is staged to the smoother and read each robot's newest keyframe back
+        (its marginal covariance too once ``cov_period_s`` has passed since the last time)."""
+        if self.factors.size() == 0 and self.values.size() == 0:
+            return
+        self.smoother.update(self.factors, self.values, self.stamps)
+        self.factors = gtsam.NonlinearFactorGraph()
+        self.values = gtsam.Values()
+        self.stamps = gtsam.FixedLagSmootherKeyTimestampMap()
+        # only each robot's newest keyframe is needed; per-key retrieval avoids
+        # materialising every variable of the window on every update
+        with_cov = watermark_ns >= self.next_cov_ns
+        for r in self.robots.values():
+            if r.kf_key is None:
+                continue
+            try:
+                p = self.smoother.calculateEstimatePose2(r.kf_key)
+            except RuntimeError:
+                continue
+            r.estimate = (p.x(), p.y(), p.theta())
+            if with_cov:
+                try:
+                    r.cov = np.asarray(self.smoother.marginalCovariance(r.kf_key))
+                except RuntimeError:
+                    pass
+        if with_cov:
+            self.next_cov_ns = watermark_ns + int(self.p.cov_period_s * 1e9)
+        self.updates += 1

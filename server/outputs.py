@@ -1,0 +1,73 @@
+"""What the map server publishes, built from its fusion (pure code: state in, messages out;
+:mod:`tagswarm.server.node` numbers and sends them).
+
+Poses are in the map frame (metres, radians); covariances are the fusion's, 3x3 row-major in
+the robot's own axes (see :class:`~tagswarm.protocol.messages.Correction`); times are
+simulation nanoseconds.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping
+
+from tagswarm.protocol import messages as m
+from tagswarm.server.fusion import Fusion, RelocEvent
+
+#: an observation edge stays in the map this long after it was last seen (simulation ns)
+EDGE_MEMORY_NS = 5_000_000_000
+
+
+def global_map(fusion: Fusion, robot_ids: Iterable[int], origin_id: int, time_ns: int,
+               latest_rx: Mapping[int, int], alive: set[int], seq: int) -> m.GlobalMap:
+    """Every localised robot of ``robot_ids`` (in that order) with its fused pose, when its
+    odometry last arrived and whether its agent is alive, and the recent observation edges."""
+    entries = []
+    for rid in robot_ids:
+        est = fusion.pose(rid)
+        if est is None:
+            continue
+        (x, y, yaw), cov = est
+        entries.append(m.MapEntry(robot_id=rid, x_m=x, y_m=y, yaw_rad=yaw,
+                                  cov=tuple(float(v) for v in cov.ravel()),
+                                  last_seen_ns=max(latest_rx.get(rid, 0), 0), alive=rid in alive))
+    edges = tuple(sorted(e for e, t in fusion.edges.items() if time_ns - t <= EDGE_MEMORY_NS))
+    return m.GlobalMap(seq=seq, stamp_ns=time_ns, origin_id=origin_id, robots=tuple(entries), edges=edges)
+
+
+def correction(fusion: Fusion, rid: int, time_ns: int, seq: int) -> m.Correction:
+    """Robot ``rid``'s ``map -> odom`` correction and fused pose now; ``localised=False`` (every
+    pose field zero) while the fusion cannot place it."""
+    est, mo = fusion.pose(rid), fusion.map_to_odom(rid)
+    if est is None or mo is None:
+        return m.Correction(seq=seq, stamp_ns=time_ns, robot_id=rid, map_odom_x_m=0.0, map_odom_y_m=0.0,
+                            map_odom_yaw_rad=0.0, x_m=0.0, y_m=0.0, yaw_rad=0.0, cov=(0.0,) * 9, localised=False)
+    (x, y, yaw), cov = est
+    return m.Correction(seq=seq, stamp_ns=time_ns, robot_id=rid, map_odom_x_m=mo[0], map_odom_y_m=mo[1],
+                        map_odom_yaw_rad=mo[2], x_m=x, y_m=y, yaw_rad=yaw, cov=tuple(float(v) for v in cov.ravel()),
+                        last_fix_ns=fusion.last_fix_ns(rid))
+
+
+def relocalisation(ev: RelocEvent, seq: int) -> m.Relocalisation:
+    """The event of a robot re-localised by the fusion."""
+    return m.Relocalisation(seq=seq, stamp_ns=ev.stamp_ns, robot_id=ev.robot_id,
+                            from_x_m=ev.before[0], from_y_m=ev.before[1], from_yaw_rad=ev.before[2],
+                            to_x_m=ev.after[0], to_y_m=ev.after[1], to_yaw_rad=ev.after[2], jump_m=ev.jump_m,
+                            evidence=ev.evidence, observers=ev.observers)
+
+
+def status_counters(node: Mapping[str, int], fusion: Fusion, rejects: Mapping[str, int], gaps: Mapping[str, int],
+                    faults: Mapping[str, int], journal: Mapping[str, int] | None, alive: int) -> dict[str, int]:
+    """The server's status counters, in this order: its own, the fusion's (prefixed
+    ``fusion_``), rejects, sequence gaps, network faults, the inputs accepted in all, the
+    journal's, and how many robots are localised and alive."""
+    counters = dict(node)
+    counters.update({f"fusion_{k}": v for k, v in fusion.counters.items()})
+    counters.update(rejects)
+    counters.update(gaps)
+    counters.update(faults)
+    counters["accepted"] = counters.get("accepted_odometry", 0) + counters.get("accepted_observations", 0)
+    if journal is not None:
+        counters.update(journal)
+    counters["localised"] = len(fusion.localised())
+    counters["alive"] = alive
+    return counters

@@ -4,8 +4,8 @@ Frames: a result is ``T_base_target``, the pose of the observed robot's BASE fra
 (on the floor, x forward, y left, z up) -- or of a landmark tag's frame (origin at
 the plate centre, +x the tag's outward normal, z up; see
 ``tagswarm.world.assets.landmark_mesh``) -- in the OBSERVER's base frame.  Cameras are OpenCV
-pinholes (pixel centres at integer coordinates, no distortion) mounted at
-``T_base_cam``.  Metres, radians, pixels.
+pinholes (pixel centres at integer coordinates) mounted at ``T_base_cam``; a distorted
+camera's corners are undistorted onto its pinhole first (:mod:`tagswarm.agents.lens`).  Metres, radians, pixels.
 
 :mod:`tagswarm.agents.cubepose` is the estimator; :mod:`tagswarm.agents.sixdof` its 6-DOF core and
 :mod:`tagswarm.agents.planar` its planar model.
@@ -42,15 +42,21 @@ class Rejected(TagswarmError):
 
 @dataclass(frozen=True)
 class CameraModel:
-    """A pinhole camera on the observer: ``K`` (3, 3) in OpenCV's pixel convention, no
-    distortion; ``T_base_cam`` (4, 4) pose of the optical frame (z forward, x right,
-    y down) in the observer's base frame; image size in pixels."""
+    """A camera on the observer: ``K`` (3, 3) in OpenCV's pixel convention; ``T_base_cam``
+    (4, 4) pose of the optical frame (z forward, x right, y down) in the observer's base
+    frame; image size in pixels; ``lens`` and ``distortion`` as in
+    :class:`~tagswarm.protocol.messages.CameraImage` (the estimator works on pinholes:
+    :mod:`tagswarm.agents.lens` undistorts the corners first); ``robot_id`` the observer
+    (-1: unknown), which seeds its calibration error."""
 
     name: str
     K: Mat
     T_base_cam: Mat
     width: int
     height: int
+    lens: str = "pinhole"
+    distortion: tuple[float, ...] = ()
+    robot_id: int = -1
     T_cam_base: Mat = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
@@ -62,7 +68,8 @@ class CameraModel:
     def from_message(cls, msg: CameraImage) -> CameraModel:
         """Intrinsics and mount of a :class:`~tagswarm.protocol.messages.CameraImage`."""
         k = np.array([[msg.fx_px, 0.0, msg.cx_px], [0.0, msg.fy_px, msg.cy_px], [0.0, 0.0, 1.0]])
-        return cls(msg.camera, k, pose3_to_matrix(msg.mount), msg.width, msg.height)
+        return cls(msg.camera, k, pose3_to_matrix(msg.mount), msg.width, msg.height, msg.lens, tuple(msg.distortion),
+                   msg.robot_id)
 
 
 @dataclass(frozen=True)

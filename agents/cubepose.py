@@ -8,8 +8,9 @@ Frames: the result is ``T_base_target``, the pose of the observed robot's BASE
 frame (on the floor, x forward, y left, z up) -- or of a landmark tag's frame
 (origin at the plate centre, +x the tag's outward normal, z up; see
 ``tagswarm.world.assets.landmark_mesh``) -- in the OBSERVER's base frame.  Cameras are
-OpenCV pinholes (pixel centres at integer coordinates, no distortion) mounted at
-``T_base_cam``.  Metres, radians, pixels.
+OpenCV pinholes (pixel centres at integer coordinates) mounted at ``T_base_cam``; a
+distorted lens's corners are first undistorted onto its pinhole, with the calibration
+the agent believes (:mod:`tagswarm.agents.lens`).  Metres, radians, pixels.
 
 Algorithm per target (``c0``: the camera that sees the target's largest tag):
 
@@ -88,6 +89,7 @@ from tagswarm.agents.cubegeom import (
     quad_area,
 )
 from tagswarm.agents.detect import TagDetection, TagMap
+from tagswarm.agents.lens import LensCorrector
 from tagswarm.agents.planar import PlanarProblem
 from tagswarm.agents.sixdof import AMBIGUITY_GAP, Prior, SixDofSolver
 from tagswarm.protocol import tags
@@ -153,6 +155,7 @@ class CubePoseEstimator:
         self.max_iterations = max_iterations
         self.rejects: Counter[str] = Counter()
         self.tag_map = TagMap.from_scenario(scenario)
+        self.lens = LensCorrector(scenario.camera.calibration_error, scenario.seed)
         self._six = SixDofSolver(pixel_sigma_px=pixel_sigma_px, choice_sigma_px=self.choice_sigma_px,
                                  max_rms_px=max_rms_px, z_tol_m=z_tol_m, tilt_tol_rad=tilt_tol_rad,
                                  prior_sigma_xy_m=prior_sigma_xy_m, prior_sigma_yaw_rad=prior_sigma_yaw_rad,
@@ -190,6 +193,8 @@ class CubePoseEstimator:
         observer's base frame; it only helps choose between the two-fold solutions.
         Rejected targets are counted in :attr:`rejects` by reason.
         """
+        # distorted lenses and the believed calibration: from here on every camera is a pinhole
+        views = [self.lens.prepare(cam, dets) for cam, dets in views]
         groups: dict[tuple[str, int], list[tuple[int, TagGeom, TagDetection]]] = {}
         for vi, (_, dets) in enumerate(views):
             for d in dets:

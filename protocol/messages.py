@@ -75,10 +75,18 @@ class TickAck(Msg, frozen=True, kw_only=True, tag="tick_ack"):
 
 class CameraImage(Msg, frozen=True, kw_only=True, tag="camera_image"):
     """One camera frame.  ``data`` is (height, width) uint8 row-major for
-    ``encoding == "mono8"``.  Intrinsics are for the pinhole model in OpenCV's
-    pixel convention (pixel centres at integer coordinates), no distortion.
-    ``mount`` is the pose of the camera optical frame in the robot base frame
-    (T_base_camera), so a point p_cam maps to p_base = R p_cam + t."""
+    ``encoding == "mono8"``.  Intrinsics (fx, fy, cx, cy) are in OpenCV's pixel
+    convention (pixel centres at integer coordinates).  ``mount`` is the pose of
+    the camera optical frame in the robot base frame (T_base_camera), so a point
+    p_cam maps to p_base = R p_cam + t.
+
+    ``lens`` and ``distortion`` (``version`` 2 on) are OpenCV's models: ``pinhole``
+    (no coefficients), ``brown_conrady`` (k1, k2, p1, p2, k3 of ``cv2.projectPoints``)
+    or ``fisheye`` (equidistant, k1..k4 of ``cv2.fisheye.projectPoints``); the pixels
+    of the image are those of that model, and it is the true one (a calibration error
+    is applied by the agent, docs/camera.md).  Versions: 1 (before lenses) had neither
+    field; an old recording decodes as version 1 with the defaults, a pinhole without
+    distortion, which is what its images were.  Senders now write ``version=2``."""
 
     robot_id: RobotId
     camera: str
@@ -92,6 +100,9 @@ class CameraImage(Msg, frozen=True, kw_only=True, tag="camera_image"):
     cy_px: float
     mount: Pose3
     data: bytes
+    lens: Literal["pinhole", "brown_conrady", "fisheye"] = "pinhole"
+    distortion: Annotated[tuple[float, ...], msgspec.Meta(max_length=8)] = ()
+    version: Annotated[int, msgspec.Meta(ge=1)] = 1
 
 
 class EncoderTicks(Msg, frozen=True, kw_only=True, tag="encoder_ticks"):

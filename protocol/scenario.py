@@ -28,9 +28,12 @@ from tagswarm.protocol.keys import KeyNameError, check_name, split_participant
 from tagswarm.protocol.layout import footprint_radius, start_poses
 from tagswarm.protocol.robotfill import complete
 from tagswarm.protocol.scenario_schema import (
+    LENS_COEFFICIENTS,
     Agent,
     Arena,
+    CalibrationError,
     Camera,
+    CameraSensor,
     Clock,
     Encoders,
     Event,
@@ -51,7 +54,8 @@ from tagswarm.protocol.scenario_schema import (
 )
 
 __all__ = [
-    "Agent", "Arena", "Camera", "Clock", "Encoders", "Event", "Landmark", "MapFrame", "Mission", "NonNeg", "Obstacle",
+    "Agent", "Arena", "CalibrationError", "Camera", "CameraSensor",
+    "Clock", "Encoders", "Event", "Landmark", "MapFrame", "Mission", "NonNeg", "Obstacle",
     "Pos", "Render", "Robot", "Robots", "Scenario", "ScenarioError", "Spec", "StartPose", "TagScheme", "apply_override",
     "builtin_descriptions", "builtin_names", "convert", "load_scenario", "parse_value", "read_scenario_dict",
     "validate",
@@ -217,6 +221,7 @@ def validate(s: Scenario) -> None:
             raise ScenarioError(f"robot.cameras[{i}]: far_m must exceed near_m")
         if c.rate_hz > s.clock.tick_hz:
             raise ScenarioError(f"robot.cameras[{i}].rate_hz={c.rate_hz} exceeds clock.tick_hz={s.clock.tick_hz}")
+        _validate_lens(c, i)
     if s.encoders.rate_hz > s.clock.tick_hz:
         raise ScenarioError(f"encoders.rate_hz={s.encoders.rate_hz} exceeds clock.tick_hz={s.clock.tick_hz}")
     if s.robot.wheel_base_m < s.robot.wheel_radius_m:
@@ -256,6 +261,31 @@ def validate(s: Scenario) -> None:
         for k, ob in enumerate(s.arena.obstacles):
             if segment_box_distance(poses[i][:2], poses[i][:2], ob) < r:
                 raise ScenarioError(f"robot {i} starts on arena.obstacles[{k}] (robots.placement/start)")
+
+
+#: the widest ray a lens may reach in its image corners: the lens is rendered as a wider
+#: pinhole view, which needs tan(angle) pixels (world/lens.py)
+MAX_LENS_HALF_ANGLE_DEG = 80.0
+
+
+def _validate_lens(c: Camera, i: int) -> None:
+    """A lens's coefficient count, and a field of view a pinhole render can cover."""
+    if c.lens == "auto":
+        if c.distortion and len(c.distortion) not in (4, 5):
+            raise ScenarioError(f"robot.cameras[{i}].distortion: an auto lens takes 5 (Brown-Conrady) or 4 "
+                                f"(fisheye) coefficients, got {len(c.distortion)}")
+    else:
+        want = LENS_COEFFICIENTS[c.lens]
+        if c.distortion and len(c.distortion) != want:
+            raise ScenarioError(f"robot.cameras[{i}].distortion: lens {c.lens!r} takes {want} coefficients "
+                                f"{'(k1, k2, p1, p2, k3)' if want == 5 else '(k1, k2, k3, k4)' if want else ''}, "
+                                f"got {len(c.distortion)}")
+    if c.lens == "fisheye" or (c.lens == "auto" and c.hfov_deg >= 120.0):
+        diag = math.hypot(c.width, c.height) / c.width * c.hfov_deg / 2.0  # equidistant: angle ~ radius
+        if diag > MAX_LENS_HALF_ANGLE_DEG:
+            raise ScenarioError(f"robot.cameras[{i}]: a fisheye of hfov_deg={c.hfov_deg} reaches {diag:.0f} deg "
+                                f"off-axis in its corners, more than the {MAX_LENS_HALF_ANGLE_DEG:.0f} deg a "
+                                "rendered pinhole view can cover (lower hfov_deg)")
 
 
 def _validate_events(s: Scenario) -> None:

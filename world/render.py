@@ -11,10 +11,13 @@ robot.
 
 from __future__ import annotations
 
+import functools
 import itertools
 import math
 import tempfile
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -26,7 +29,9 @@ from tagswarm.protocol.messages import CameraImage
 from tagswarm.protocol.scenario import Camera, Scenario
 from tagswarm.world import assets
 from tagswarm.world._pybullet import pb
-from tagswarm.world.camera import intrinsics, mount_transform, vfov_deg
+from tagswarm.world.camera import mount_transform, vfov_deg
+from tagswarm.world.lens import Lens, RenderPlan, lens_for, plan
+from tagswarm.world.sensor import camera_twist, develop, frame_rng, linear_depth, motion_blur, vignetting_gain
 
 WALL_RGBA = (0.55, 0.55, 0.6, 1.0)
 OBSTACLE_RGBA = (0.45, 0.35, 0.3, 1.0)
@@ -48,6 +53,13 @@ class Renderer:
         self._proj: dict[str, list[float]] = {}
         self._mount: dict[str, Mat] = {c.name: mount_transform(c) for c in scenario.robot.cameras}
         self.frames_rendered = 0
+        self._sensor = scenario.camera.resolved()
+        self._effects = scenario.camera.has_effects
+        self._plans: dict[str, RenderPlan] = {}
+        self._gain: dict[str, NDArray[np.float32] | None] = {}
+        self._poses: dict[int, Mat] = {}
+        # per robot: (stamp, T_world_base) of the two newest instants this renderer developed a frame at
+        self._track: dict[int, tuple[tuple[int, Mat], tuple[int, Mat] | None]] = {}
         self._build()
 
     # ------------------------------------------------------------------ scene
@@ -108,6 +120,8 @@ class Renderer:
                  orientation: tuple[float, float, float, float]) -> None:
         """Place robot ``robot_id``'s base frame (floor level, body axes) in the arena."""
         pb.resetBasePositionAndOrientation(self.bodies[robot_id], position, orientation, physicsClientId=self.cid)
+        if self._effects:
+            self._poses[robot_id] = pose_matrix(position, orientation)
 
     # ------------------------------------------------------------------ cameras
     def _projection(self, cam: Camera) -> list[float]:
@@ -118,20 +132,76 @@ class Renderer:
                 physicsClientId=self.cid))
         return proj
 
-    def render(self, robot_id: int, cam: Camera, base_pose: Mat) -> NDArray[np.uint8]:
-        """Grayscale image (H, W) uint8 of camera ``cam`` on robot ``robot_id`` whose
-        base is at ``base_pose`` (T_world_base, (4, 4))."""
-        t_wc = base_pose @ self._mount[cam.name]
+    def plan(self, cam: Camera) -> RenderPlan:
+        """The render plan of ``cam`` (its lens's pinhole render and remap maps), made once."""
+        p = self._plans.get(cam.name)
+        if p is None:
+            p = self._plans[cam.name] = plan(cam, self.scenario.camera.preset)
+        return p
+
+    def _shoot(self, cam: Camera, t_wc: Mat, depth: bool) -> tuple[NDArray[np.uint8], NDArray[Any] | None]:
+        """Grayscale pinhole render (H, W) of ``cam`` at T_world_cam ``t_wc``, and its depth buffer if asked."""
         eye = t_wc[:3, 3]
         fwd, down = t_wc[:3, 2], t_wc[:3, 1]
         view = pb.computeViewMatrix(eye.tolist(), (eye + fwd).tolist(), (-down).tolist(), physicsClientId=self.cid)
-        _, _, rgba, _, _ = pb.getCameraImage(
+        _, _, rgba, zbuf, _ = pb.getCameraImage(
             cam.width, cam.height, viewMatrix=view, projectionMatrix=self._projection(cam),
             shadow=int(self.scenario.render.shadows), renderer=pb.ER_TINY_RENDERER,
             flags=pb.ER_NO_SEGMENTATION_MASK, physicsClientId=self.cid)
         img = np.asarray(rgba, dtype=np.uint8).reshape(cam.height, cam.width, 4)
         self.frames_rendered += 1
-        return np.asarray(cv2.cvtColor(img, cv2.COLOR_RGBA2GRAY), np.uint8)  # ITU-R 601 luma
+        gray = np.asarray(cv2.cvtColor(img, cv2.COLOR_RGBA2GRAY), np.uint8)  # ITU-R 601 luma
+        return gray, (np.asarray(zbuf, np.float32).reshape(cam.height, cam.width) if depth else None)
+
+    def render(self, robot_id: int, cam: Camera, base_pose: Mat) -> NDArray[np.uint8]:
+        """Grayscale image (H, W) uint8 of camera ``cam`` on robot ``robot_id`` whose
+        base is at ``base_pose`` (T_world_base, (4, 4)), through its lens.  With sensor
+        effects on (``[camera]``) it is an :class:`Exposure`: the noise-free image, which
+        :func:`image_message` develops with the frame's tick (seed, motion blur)."""
+        t_wc = base_pose @ self._mount[cam.name]
+        p = self.plan(cam)
+        if p.maps is None and not self._effects:
+            return self._shoot(cam, t_wc, False)[0]
+        need_depth = self._effects and bool(self._sensor.exposure_ms)
+        gray, zbuf = self._shoot(p.render_cam, t_wc, need_depth)
+        lensed = np.asarray(p.apply(gray), np.uint8)
+        if not self._effects:
+            return lensed
+        depth = None if zbuf is None else linear_depth(zbuf, cam.near_m, cam.far_m)
+        frame = lensed.view(Exposure)
+        frame.develop_fn = functools.partial(self._develop, robot_id, cam, gray, depth, base_pose.copy())
+        return frame
+
+    def _twist(self, robot_id: int, cam: Camera, base_pose: Mat, stamp_ns: int) -> NDArray[np.float64] | None:
+        """The camera's twist (optical frame) from its robot's motion since the previous instant this
+        renderer developed a frame at; every robot's track advances to ``stamp_ns``."""
+        for rid, pose in {**self._poses, robot_id: base_pose}.items():
+            cur = self._track.get(rid)
+            if cur is None or cur[0][0] < stamp_ns:
+                self._track[rid] = ((stamp_ns, pose), None if cur is None else cur[0])
+        (_, now), prev = self._track[robot_id]
+        if prev is None:
+            return None
+        mount = self._mount[cam.name]
+        return camera_twist(prev[1] @ mount, now @ mount, (stamp_ns - prev[0]) * 1e-9)
+
+    def _develop(self, robot_id: int, cam: Camera, gray: NDArray[np.uint8], depth: NDArray[np.float32] | None,
+                 base_pose: Mat, step: int, stamp_ns: int) -> NDArray[np.uint8]:
+        """The finished frame: motion blur on the pinhole render, the lens, then vignetting,
+        contrast/brightness and noise seeded by (scenario seed, robot, camera, tick)."""
+        p = self.plan(cam)
+        img = gray.astype(np.float32)
+        if depth is not None:
+            twist = self._twist(robot_id, cam, base_pose, stamp_ns)
+            img = motion_blur(img, depth, p.K_render, twist, float(self._sensor.exposure_ms or 0.0) * 1e-3)
+        else:
+            self._twist(robot_id, cam, base_pose, stamp_ns)
+        img = np.asarray(p.apply(img), np.float32)
+        if cam.name not in self._gain:
+            v = self._sensor.vignetting or 0.0
+            self._gain[cam.name] = vignetting_gain(cam.width, cam.height, p.lens.K, v) if v > 0 else None
+        rng = frame_rng(self.scenario.seed, robot_id, cam.name, step)
+        return develop(img, self._sensor, rng, self._gain[cam.name])
 
     def close(self) -> None:
         """Disconnect the pybullet client and remove temporary assets."""
@@ -154,10 +224,34 @@ def pose_matrix(position: tuple[float, float, float], orientation: tuple[float, 
     return transform(quat_to_rot(orientation), position)
 
 
+class Exposure(np.ndarray):  # type: ignore[type-arg]
+    """A rendered frame not yet developed: the noise-free lens image, and ``develop_fn(step,
+    stamp_ns)`` giving the finished one (motion blur needs the frame's time, the noise its
+    tick).  :func:`image_message` develops it; as an array it is the noise-free image."""
+
+    develop_fn: Callable[[int, int], NDArray[np.uint8]] | None = None
+
+    def __array_finalize__(self, obj: Any) -> None:
+        self.develop_fn = getattr(obj, "develop_fn", None)
+
+
+@functools.lru_cache(maxsize=64)
+def published_lens(cam: Camera, preset: str) -> Lens:
+    """The lens a camera's images are published with (cached: one per camera)."""
+    return lens_for(cam, preset)
+
+
 def image_message(scenario: Scenario, robot_id: int, cam: Camera, img: NDArray[np.uint8], *, seq: int, step: int,
                   stamp_ns: int) -> CameraImage:
-    """Wrap a rendered (H, W) uint8 frame with its intrinsics and mount pose."""
-    fx, fy, cx, cy = intrinsics(cam)
+    """Wrap a rendered (H, W) uint8 frame with its intrinsics, lens and mount pose (an
+    :class:`Exposure` is developed first, with tick ``step`` at ``stamp_ns``)."""
+    fn = getattr(img, "develop_fn", None)
+    if fn is not None:
+        img = fn(step, stamp_ns)
+    lens = published_lens(cam, scenario.camera.preset)
+    k = lens.K
     return CameraImage(seq=seq, stamp_ns=stamp_ns, robot_id=robot_id, camera=cam.name, step=step,
-                       width=cam.width, height=cam.height, fx_px=fx, fy_px=fy, cx_px=cx, cy_px=cy,
-                       mount=matrix_to_pose3(mount_transform(cam)), data=img.tobytes())
+                       width=cam.width, height=cam.height, fx_px=float(k[0, 0]), fy_px=float(k[1, 1]),
+                       cx_px=float(k[0, 2]), cy_px=float(k[1, 2]), mount=matrix_to_pose3(mount_transform(cam)),
+                       data=np.ascontiguousarray(img, np.uint8).tobytes(), lens=lens.model,
+                       distortion=lens.coeffs, version=2)

@@ -127,6 +127,17 @@ class Behaviour:
             return 0.0
         return self.avoider.goal_slack(goal, self._neighbours, self.static_obstacles)
 
+    def target(self, pose: Pose2, t_s: float) -> tuple[float, float] | None:
+        """Where to go now (map frame), None to stand still; a hook for subclasses
+        (:class:`tagswarm.agents.controller.BehaviourController`).  The built-in one follows
+        the run-time goal, else the mission's waypoints."""
+        return self._target(pose, t_s)
+
+    def steer(self, pose: Pose2, target: tuple[float, float], speed_factor: float) -> tuple[float, float]:
+        """The twist (v_m_s, w_rad_s) towards ``target`` from ``pose`` (map frame) before collision
+        avoidance; a hook for subclasses.  The built-in one is :func:`go_to`."""
+        return go_to(pose, target, self.cfg, speed_factor)
+
     def _target(self, pose: Pose2, t_s: float) -> tuple[float, float] | None:
         """Current goal (map frame) or None to stand still; advances waypoints."""
         if self.goal is not None:
@@ -200,15 +211,15 @@ class Behaviour:
                     return 0.0, self.cfg.search_speed_rad_s
         if map_pose is None:
             return 0.0, 0.0
-        target = self._target(map_pose, t_s)
+        target = self.target(map_pose, t_s)
         if target is None:
             return 0.0, 0.0
         factor = self.cfg.lost_speed_factor if self.mode == Mode.LOST else 1.0
         if not self.cfg.avoid:
-            return go_to(map_pose, target, self.cfg, factor)
+            return self.steer(map_pose, target, factor)
 
         def steer(p: Pose2) -> tuple[float, float]:
-            return go_to(p, target, self.cfg, factor)
+            return self.steer(p, target, factor)
 
         return self.avoider.command(pose=map_pose, target=target, steer=steer, v_max=self.cfg.max_speed_m_s * factor,
                                     w_max=self.cfg.max_turn_rad_s * factor, neighbours=self._neighbours,

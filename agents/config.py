@@ -7,6 +7,7 @@ from collections.abc import Mapping, Sequence
 
 import msgspec
 
+from tagswarm.agents.controller import load_factory
 from tagswarm.protocol.bus import BusConfig
 from tagswarm.protocol.scenario import Scenario
 from tagswarm.runtime.config import ConfigError, Invocation, OneLineParser, add_common_args
@@ -22,6 +23,7 @@ class AgentConfig(msgspec.Struct, frozen=True, kw_only=True):
     log_level: str = "INFO"
     fetch_map_timeout_s: float = 1.0
     inject_frame_delay_s: float = 0.0  # extra seconds per processed frame (overload tests); agent.inject_frame_delay_s
+    agent_module: str | None = None  # a user's controller (tagswarm.agents.controller); None = built-in behaviour
 
     @property
     def participant(self) -> str:
@@ -41,6 +43,11 @@ def parser(prog: str = "tagswarm-agent") -> argparse.ArgumentParser:
     p.add_argument("--inject-frame-delay", type=float, metavar="SECONDS",
                    help="fault injection: spend this much extra wall time on every camera frame, as a slow detector "
                         "would (frames are then skipped, never queued); same as --set agent.inject_frame_delay_s=S")
+    p.add_argument("--agent-module", metavar="MODULE",
+                   help="drive this robot with your own controller instead of the built-in behaviour: a module "
+                        "importable in this process (pkg.mod, see PYTHONPATH) or a path to a .py file, defining "
+                        "make_controller(config) -> tagswarm.agents.controller.Controller; detection, odometry and "
+                        "localisation stay as they are (env TAGSWARM_AGENT_MODULE; see docs/controllers.md)")
     return p
 
 
@@ -65,6 +72,9 @@ def build_config(argv: Sequence[str] | None = None, environ: Mapping[str, str] |
     run = inv.run()
     if args.fetch_map_timeout < 0:
         raise ConfigError("--fetch-map-timeout must be >= 0")
+    agent_module = inv.pick("agent_module") or None
+    if agent_module is not None:
+        load_factory(agent_module)  # import now: a broken module is a one-line error (exit 2) at start
     return AgentConfig(scenario=scenario, bus=inv.bus(), robot_id=robot_id, run=run,
                        log_level=inv.log_level(), fetch_map_timeout_s=args.fetch_map_timeout,
-                       inject_frame_delay_s=scenario.agent.inject_frame_delay_s)
+                       inject_frame_delay_s=scenario.agent.inject_frame_delay_s, agent_module=agent_module)

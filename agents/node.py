@@ -39,6 +39,15 @@ import numpy as np
 from tagswarm.agents.avoid import Neighbour, static_boxes
 from tagswarm.agents.behaviour import Behaviour, wheel_speeds
 from tagswarm.agents.config import AgentConfig, build_config
+from tagswarm.agents.controller import (
+    BehaviourController,
+    ControllerConfig,
+    ControllerRunner,
+    GoalRequest,
+    control_input,
+    load_factory,
+    make,
+)
 from tagswarm.agents.cubepose import CameraModel, CubePoseEstimator, PoseEstimate
 from tagswarm.agents.detect import TagMap, make_detector
 from tagswarm.agents.neighbours import NeighbourTracker
@@ -100,12 +109,16 @@ class AgentNode:
         self.server_alive = False
         self.runs = streams.RunFollower()  # the world instance whose ticks we follow
         self.wait_for_server = any(p.startswith("server/") for p in s.clock.participants)
+        # a user's controller (docs/controllers.md): made anew with every run, like the behaviour
+        self._factory = None if config.agent_module is None else load_factory(config.agent_module)
+        self._goals = 0
         self._reset_run()
         if config.fetch_map_timeout_s > 0:
             self._fetch_last_pose(config.fetch_map_timeout_s)
         bus.declare_token(self.keys.alive(config.participant))
-        log.info("agent %d up: %d camera(s), mission %s, %s clock", rid, len(s.robot.cameras),
-                 self.behaviour.mission.kind, s.clock.mode)
+        log.info("agent %d up: %d camera(s), %s, %s clock", rid, len(s.robot.cameras),
+                 f"mission {self.behaviour.mission.kind}" if self.custom is None
+                 else f"controller {config.agent_module}", s.clock.mode)
 
     # ------------------------------------------------------------------ helpers
     def _reset_run(self) -> None:
@@ -118,6 +131,16 @@ class AgentNode:
         team = tuple(sorted(mi.robot for mi in s.missions if mi.kind == "leapfrog"))
         self.behaviour = Behaviour(rid, s.mission(rid), a, s.robot, arena_to_map(s), team,
                                    static_obstacles=self.static_obstacles)
+        self.custom: ControllerRunner | None = None
+        if self._factory is not None:
+            ccfg = ControllerConfig(rid, s, self.cfg.run)
+            self.custom = ControllerRunner(make(self._factory, ccfg, str(self.cfg.agent_module)), ccfg, log)
+            if isinstance(self.custom.controller, BehaviourController):
+                self.behaviour = self.custom.controller.behaviour  # its counters in the status
+        self.map_cov: tuple[float, ...] | None = None  # of the newest correction
+        self.goal: GoalRequest | None = None
+        self._observed: list[m.RelativeObservation] = []  # since the last control cycle (for a controller)
+        self._frames_seen: dict[str, m.CameraImage] = {}
         r = s.robot
         self.neighbours = NeighbourTracker(rid, footprint_radius(r), r.max_wheel_speed_rad_s * r.wheel_radius_m)
         tick_ns = round(1e9 / s.clock.tick_hz)
@@ -256,6 +279,7 @@ class AgentNode:
                 self.counters["stale_corrections"] += 1
                 continue
             self.map_odom = (c.map_odom_x_m, c.map_odom_y_m, c.map_odom_yaw_rad)
+            self.map_cov = c.cov
             self.counters["corrections"] += 1
             if c.last_fix_ns > self.last_fix_ns:
                 self.last_fix_ns = c.last_fix_ns
@@ -264,7 +288,10 @@ class AgentNode:
             if g.robot_id != self.rid:
                 self.rejects.reject("spoofed", f"goal for robot {g.robot_id} on {item.key}")
                 continue
-            self.behaviour.set_goal(g.x_m, g.y_m, g.tolerance_m)
+            self._goals += 1
+            self.goal = GoalRequest(g.x_m, g.y_m, g.tolerance_m, self._goals)
+            if self.custom is None:
+                self.behaviour.set_goal(g.x_m, g.y_m, g.tolerance_m)
             log.info("new goal (%.2f, %.2f)", g.x_m, g.y_m)
 
     def _take_frames(self, upto_ns: int | None = None) -> None:
@@ -291,6 +318,8 @@ class AgentNode:
             return
         frames = list(self.pending_frames.values())
         self.pending_frames.clear()
+        if self.custom is not None and self.custom.wants_images:
+            self._frames_seen.update((img.camera, img) for img in frames)
         views = []
         for img in frames:
             if self.frame_delay_s > 0:
@@ -324,8 +353,11 @@ class AgentNode:
 
     def _publish_observation(self, est: PoseEstimate, stamp_ns: int) -> None:
         key = self.keys.observation(self.rid)
-        self._publish(key, est.to_message(self.rid, seq=self.seq.next(key), stamp_ns=stamp_ns))
+        msg = est.to_message(self.rid, seq=self.seq.next(key), stamp_ns=stamp_ns)
+        self._publish(key, msg)
         self.counters["observations"] += 1
+        if self.custom is not None:
+            self._observed.append(msg)
 
     # ------------------------------------------------------------------ control
     def _others(self) -> tuple[Neighbour, ...]:
@@ -341,11 +373,20 @@ class AgentNode:
         return self.neighbours.neighbours(self.time_ns, usable)
 
     def _control(self) -> None:
-        b = self.behaviour
-        v, w = b.cycle(t_s=self.time_ns / 1e9, map_pose=self.map_pose, odom_yaw=self.odom.yaw_rad,
-                       moved=self._moved, fix=self._fix, server_up=self.server_alive, neighbours=self._others())
+        if self.custom is None:
+            v, w = self.behaviour.cycle(t_s=self.time_ns / 1e9, map_pose=self.map_pose, odom_yaw=self.odom.yaw_rad,
+                                        moved=self._moved, fix=self._fix, server_up=self.server_alive,
+                                        neighbours=self._others())
+            left, right = wheel_speeds(v, w, self.s.robot)
+        else:
+            left, right = self.custom.command(control_input(
+                robot_id=self.rid, time_ns=self.time_ns, map_odom=self.map_odom, map_cov=self.map_cov,
+                odom_pose=self.odom.pose(), odom_cov=self.odom.cov, distance_m=self.odom.distance_m,
+                moved=self._moved, fix=self._fix, server_up=self.server_alive, observations=tuple(self._observed),
+                neighbours=self._others(), goal=self.goal, images=self._frames_seen))
+            self._observed.clear()
+            self._frames_seen.clear()
         self._moved = self._fix = False
-        left, right = wheel_speeds(v, w, self.s.robot)
         key = self.keys.cmd(self.rid)
         self._publish(key, m.WheelCommand(seq=self.seq.next(key), stamp_ns=self.time_ns, robot_id=self.rid,
                                           left_rad_s=left, right_rad_s=right))
@@ -375,6 +416,8 @@ class AgentNode:
                    frames_skipped=received - self._frames_taken + self.counters["frames_replaced"])
         out.update(self.rejects.as_counters())
         out.update(self.gaps.as_counters())
+        if self.custom is not None:
+            out.update(self.custom.counters())
         out.update(self.bus.fault_stats())
         out.update({f"pose_rejected_{k}": v for k, v in self.estimator.rejects.items()})
         return out
@@ -382,7 +425,8 @@ class AgentNode:
     def _publish_status(self) -> None:
         key = self.keys.robot_status(self.rid)
         self._publish(key, m.AgentStatus(seq=self.seq.next(key), stamp_ns=self.time_ns, robot_id=self.rid, role="agent",
-                                         mode=str(self.behaviour.mode), counters=self.status_counters()))
+                                         mode=str(self.behaviour.mode) if self.custom is None else self.custom.mode,
+                                         counters=self.status_counters()))
 
     # ------------------------------------------------------------------ cycle
     def step(self) -> bool:

@@ -9,6 +9,8 @@ trajectories, ``metrics.json`` and plots.
 
 from __future__ import annotations
 
+import os
+import re
 import signal
 import socket
 import subprocess
@@ -25,6 +27,7 @@ from rich.console import Console
 from rich.live import Live
 from rich.table import Table
 
+from tagswarm.agents.controller import load_factory
 from tagswarm.protocol.bus import BusConfig, open_bus
 from tagswarm.protocol.keys import Keys
 from tagswarm.protocol.scenario import Scenario
@@ -64,16 +67,52 @@ def parser() -> OneLineParser:
                         "(scenario: the recorded one unless --scenario)")
     p.add_argument("--view", nargs="?", const=8765, type=int, metavar="PORT",
                    help="also serve the live web view (tagswarm view) on http://127.0.0.1:PORT/ (default 8765)")
+    p.add_argument("--agent-module", action="append", metavar="MODULE[:ROBOTS]",
+                   help="drive robots ROBOTS (e.g. 1,3; default all) with your own controller: a module importable "
+                        "here and in the agents (pkg.mod, see PYTHONPATH) or a .py file, defining "
+                        "make_controller(config) (docs/controllers.md); repeatable; env TAGSWARM_AGENT_MODULE "
+                        "(';'-separated)")
     return p
+
+
+AGENT_MODULE_ENV = "TAGSWARM_AGENT_MODULE"
+
+
+def agent_modules(specs: Sequence[str], robot_ids: Sequence[int]) -> dict[int, str]:
+    """Robot id -> controller module from ``MODULE[:ROBOTS]`` specs; each module is imported
+    here first, so that a broken one is a one-line error before anything starts."""
+    out: dict[int, str] = {}
+    for spec in specs:
+        module, robots = spec, ""
+        head, sep, tail = spec.rpartition(":")
+        if sep and re.fullmatch(r"[0-9, ]*", tail):
+            module, robots = head, tail
+            if not re.fullmatch(r" *[0-9]+ *(, *[0-9]+ *)*", tail):
+                raise ConfigError(f"--agent-module {spec}: ROBOTS must be robot ids like 1,3")
+        if not module:
+            raise ConfigError(f"--agent-module {spec}: no module named")
+        if module.endswith(".py"):
+            module = str(Path(module).resolve())  # the agents resolve it alike, but say which file in their logs
+        load_factory(module)
+        chosen = [int(r) for r in robots.split(",")] if robots else list(robot_ids)
+        for rid in chosen:
+            if rid not in robot_ids:
+                raise ConfigError(f"--agent-module {spec}: robot {rid} is not in this run "
+                                  f"({', '.join(map(str, robot_ids))})")
+            if rid in out:
+                raise ConfigError(f"--agent-module {spec}: robot {rid} already has controller {out[rid]}")
+            out[rid] = module
+    return out
 
 
 class Child:
     """One child process and its log file."""
 
-    def __init__(self, name: str, argv: list[str], log: Path) -> None:
+    def __init__(self, name: str, argv: list[str], log: Path, env: dict[str, str] | None = None) -> None:
         self.name, self.log = name, log
         self._fh = open(log, "wb")
-        self.proc = subprocess.Popen(argv, stdout=self._fh, stderr=subprocess.STDOUT, start_new_session=True)
+        self.proc = subprocess.Popen(argv, stdout=self._fh, stderr=subprocess.STDOUT, start_new_session=True,
+                                     env=env)
 
     def stop(self, timeout_s: float = 10.0) -> None:
         if self.proc.poll() is None:
@@ -119,9 +158,11 @@ def _table(rec: RunRecorder, scenario: Scenario, wall_s: float, out: Path, endpo
 
 def run_up(scenario: Scenario, out: Path, endpoint: str, run: str, *, live: bool, report: bool,
            stop: threading.Event, console: Console, record: Path | None = None, replay: Path | None = None,
-           child_args: Sequence[str] = (), view: int | None = None) -> int:
+           child_args: Sequence[str] = (), view: int | None = None,
+           controllers: dict[int, str] | None = None) -> int:
     """Start everything, record until the world ends or ``stop``, write the run folder.
-    ``child_args`` go to every child (e.g. the ``--net-*`` fault-injection flags)."""
+    ``child_args`` go to every child (e.g. the ``--net-*`` fault-injection flags);
+    ``controllers``: robot id -> ``--agent-module`` of its agent (the others run the built-in behaviour)."""
     out.mkdir(parents=True, exist_ok=True)
     logs = out / "logs"
     logs.mkdir(exist_ok=True)
@@ -141,9 +182,13 @@ def run_up(scenario: Scenario, out: Path, endpoint: str, run: str, *, live: bool
         journal.unlink(missing_ok=True)
         children.append(Child("server", [*_script("tagswarm-server"), *common, "--connect", endpoint,
                                          "--journal", str(journal)], logs / "server.log"))
+        # which agents run a user's controller is up's choice alone: not the environment's
+        agent_env = {k: v for k, v in os.environ.items() if k != AGENT_MODULE_ENV}
         for rid in scenario.robot_ids:
+            own = ["--agent-module", controllers[rid]] if controllers and rid in controllers else []
             children.append(Child(f"agent/{rid}", [*_script("tagswarm-agent"), *common, "--connect", endpoint,
-                                                   "--robot-id", str(rid)], logs / f"agent{rid}.log"))
+                                                   "--robot-id", str(rid), *own], logs / f"agent{rid}.log",
+                                  env=agent_env))
         # a replay plays the world; it also waits for this process's token (up/0) so the run folder misses nothing
         world_cmd = [sys.executable, "-m", "tagswarm.recording.replay", str(replay), "--lockstep",
                      "--wait-for", "up/0"] if replay else _script("tagswarm-world")
@@ -291,6 +336,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             scenario = scenario_for_replay(args.replay, args, env, resolve)
         else:
             scenario = resolve(args, env)
+        specs = args.agent_module or [x for x in env.get(AGENT_MODULE_ENV, "").split(";") if x.strip()]
+        controllers = agent_modules(specs, scenario.robot_ids)
         if args.record is not None:
             from tagswarm.recording.record import with_recorder
 
@@ -305,7 +352,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         try:
             return run_up(scenario, out, endpoint, run, live=not args.no_live and sys.stdout.isatty(),
                           report=not args.no_report, stop=stop, console=Console(), record=args.record,
-                          replay=args.replay, child_args=net_flags(args), view=args.view)
+                          replay=args.replay, child_args=net_flags(args), view=args.view,
+                          controllers=controllers)
         finally:
             signal.signal(signal.SIGINT, previous)
 

@@ -1,0 +1,1 @@
+"""Example controllers for ``tagswarm-agent --agent-module`` (docs/controllers.md)."""

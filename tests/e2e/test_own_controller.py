@@ -1,0 +1,109 @@
+"""Bring your own controller, end to end: ``tagswarm up --agent-module`` drives robot 3 of
+the paper scenario (lockstep, seed 0, 20 s) with the example controller
+(examples/controllers/circle.py), and the run folder shows that robot driving the
+example's circle (not the built-in patrol) while the server localises it like the
+built-in agents.  A broken module stops ``tagswarm up`` and ``tagswarm-agent`` at start
+with exit code 2 and one line."""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import os
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from tests.harness import endpoint, script
+
+ROOT = Path(__file__).resolve().parents[2]
+EXAMPLE = ROOT / "examples" / "controllers" / "circle.py"
+ROBOT = 3
+DURATION_S = 20.0
+RADIUS_M = 0.15  # examples/controllers/circle.py
+START = (2.7, 0.0)  # robot 3's start in the map frame (robot 0's first pose is the map origin)
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("own") / "run"
+    res = subprocess.run([script("tagswarm"), "up", "--clock", "lockstep", "--seed", "0", "--duration",
+                          str(DURATION_S), "--listen", endpoint(), "--run", f"own{os.getpid()}", "--out", str(out),
+                          "--no-live", "--agent-module", f"{EXAMPLE}:{ROBOT}"],
+                         capture_output=True, text=True, timeout=900)
+    assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
+    return out
+
+
+def _truth(run: Path, rid: int) -> np.ndarray:
+    return np.loadtxt(run / "trajectories" / f"truth_{rid}.tum", ndmin=2)
+
+
+def _final_error(run: Path, rid: int) -> float:
+    truth = _truth(run, rid)
+    fused = np.loadtxt(run / "trajectories" / f"fused_{rid}.tum", ndmin=2)
+    i = int(np.argmin(np.abs(fused[:, 0] - truth[-1, 0])))
+    assert abs(fused[i, 0] - truth[-1, 0]) < 0.1
+    return float(np.hypot(fused[i, 1] - truth[-1, 1], fused[i, 2] - truth[-1, 2]))
+
+
+def test_the_robot_drives_the_example_circle(run: Path) -> None:
+    truth = _truth(run, ROBOT)
+    assert truth[-1, 0] >= DURATION_S - 0.5
+    x, y = truth[:, 1], truth[:, 2]
+    yaw = np.unwrap(2.0 * np.arctan2(truth[:, 6], truth[:, 7]))  # planar: qz, qw
+    turns = np.diff(yaw)
+    # it turns left all the time (the built-in patrol drives straight legs and turns round at each end)
+    assert np.mean(turns > 0) >= 0.95, np.mean(turns > 0)
+    # a circle of the example's radius about a fixed centre, one radius to its left at the start
+    a = np.c_[2 * x, 2 * y, np.ones_like(x)]
+    cx, cy, c = np.linalg.lstsq(a, x * x + y * y, rcond=None)[0]
+    radius = math.sqrt(c + cx * cx + cy * cy)
+    assert radius == pytest.approx(RADIUS_M, abs=0.01)
+    assert np.max(np.abs(np.hypot(x - cx, y - cy) - radius)) < 0.02
+    # started facing -x: left of it is -y
+    assert (cx, cy) == pytest.approx((START[0], START[1] - RADIUS_M), abs=0.02)
+    # about v / r * t: more than two laps (the first cycles at half speed, before it is localised)
+    assert yaw[-1] - yaw[0] >= 0.8 * 0.1 / RADIUS_M * DURATION_S
+    # the built-in patrol would have taken it 1.2 m away, to the other end of its leg
+    assert np.max(np.hypot(x - START[0], y - START[1])) <= 2 * RADIUS_M + 0.02
+
+
+def test_the_agent_reports_the_controller(run: Path) -> None:
+    counters = json.loads((run / "run.json").read_text())["counters"][f"agent/{ROBOT}"]
+    assert counters["controller_errors"] == 0
+    assert counters["controller_cycles"] >= 0.95 * DURATION_S * 30  # one per tick at 30 Hz
+    with open(run / "modes.csv") as fh:
+        modes = {row["mode"] for row in csv.DictReader(fh) if int(row["robot"]) == ROBOT}
+    assert modes == {"circle"}
+
+
+def test_the_server_localises_it_like_the_built_in_agents(run: Path) -> None:
+    metrics = json.loads((run / "metrics.json").read_text())
+    robots = metrics["robots"]
+    mine = robots[str(ROBOT)]["fused"]
+    assert _final_error(run, ROBOT) < 0.10
+    assert mine["ate_unaligned"]["rmse"] < 0.10
+    others = [r["fused"]["time_localised"] for rid, r in robots.items() if int(rid) != ROBOT]
+    assert mine["time_localised"] >= min(others) - 0.05, (mine["time_localised"], others)
+    assert metrics["swarm"]["contacts"]["robot_robot"] == 0
+
+
+def test_a_broken_module_exits_2_with_one_line(tmp_path: Path) -> None:
+    broken = tmp_path / "broken_ctrl.py"
+    broken.write_text("import not_a_module_anywhere\n")
+    out = tmp_path / "run"
+    up = subprocess.run([script("tagswarm"), "up", "--duration", "5", "--out", str(out), "--no-live",
+                         "--agent-module", f"{broken}:1"], capture_output=True, text=True, timeout=120)
+    lines = up.stderr.strip().splitlines()
+    assert up.returncode == 2 and len(lines) == 1, up.stderr
+    assert lines[0].startswith(f"tagswarm up: error: --agent-module {broken}: cannot import it: ModuleNotFoundError")
+    assert not out.exists()  # nothing was started
+    agent = subprocess.run([script("tagswarm-agent"), "--robot-id", "1"], capture_output=True, text=True,
+                           timeout=120, env={**os.environ, "TAGSWARM_AGENT_MODULE": "no_such_pkg.ctrl"})
+    lines = agent.stderr.strip().splitlines()
+    assert agent.returncode == 2 and len(lines) == 1, agent.stderr
+    assert lines[0].startswith("tagswarm-agent: error: --agent-module no_such_pkg.ctrl: cannot import it")

@@ -1,8 +1,9 @@
 """Zenoh session setup and the small pub/sub surface the nodes use.
 
-This is the only module that imports ``zenoh``.  Rules it enforces
-(docs/architecture.md, sections 2 and 5): callbacks only enqueue into an :class:`Inbox` and wake the owner's
-loop (on Zenoh's own receive thread, so arrival order across keys is kept);
+This is the only module that imports ``zenoh``.  Every publication carries the Zenoh
+encoding of its message type, ``application/msgpack;<MessageType>`` (:mod:`tagswarm.protocol.wire`).
+Rules it enforces (docs/architecture.md, sections 2 and 5): callbacks only enqueue
+into an :class:`Inbox` and wake the owner's loop (on Zenoh's own receive thread, so arrival order across keys is kept);
 sessions are opened in a ``with`` block (:func:`open_bus`) and always
 closed; large frames go out with DROP congestion control into newest-only
 inboxes, small must-arrive messages with BLOCK into FIFO inboxes.
@@ -30,6 +31,7 @@ from typing import Annotated, Any, Generic, Literal, TypeVar
 import msgspec
 import zenoh
 
+from tagswarm.protocol import wire
 from tagswarm.protocol.errors import UsageError
 from tagswarm.protocol.keys import ROOT, Keys
 from tagswarm.protocol.netfaults import NetFaults
@@ -248,14 +250,47 @@ class Inbox(Generic[T]):
         return len(self._items)
 
 
-class Publisher:
-    """Publishes raw payloads on one key."""
+# One Encoding object per message type, built once: "application/msgpack;<MessageType>" (protocol/wire.py).
+_ENCODINGS: dict[type[Any], zenoh.Encoding] = {cls: zenoh.Encoding(wire.encoding_of(cls))
+                                               for cls in wire.MESSAGE_TYPES}
+_NO_ENCODING = zenoh.Encoding.ZENOH_BYTES  # a payload that is not a tagswarm message (tests' garbage)
 
-    def __init__(self, pub: Any) -> None:
-        self._pub = pub
+
+def encoding_for(payload: bytes) -> zenoh.Encoding:
+    """The Zenoh encoding of ``payload``: ``application/msgpack;<MessageType>`` read from its
+    ``type`` entry, or ``zenoh/bytes`` for a payload that is not a tagswarm message."""
+    cls = wire.message_type_of(payload)
+    return _NO_ENCODING if cls is None else _ENCODINGS[cls]
+
+
+class Publisher:
+    """Publishes payloads on one key, each with the Zenoh encoding of its message type.
+
+    The Zenoh publisher is declared at the first put, with the encoding of that payload's
+    type, so every later payload of the same type (the same head bytes: one key carries
+    one type) goes out with the declared encoding at no cost per put; another payload
+    sets its own encoding."""
+
+    def __init__(self, declare: Any) -> None:
+        self._declare = declare
+        self._pub: Any = None
+        self._declared = _NO_ENCODING
+        self._head = b""  # payloads starting with it are of the declared type
 
     def put(self, payload: bytes) -> None:
-        self._pub.put(payload)
+        if self._head and payload.startswith(self._head):
+            self._pub.put(payload)
+            return
+        head = wire.message_head(payload)
+        encoding = _NO_ENCODING if head is None else _ENCODINGS[head[0]]
+        if self._pub is None:
+            self._pub, self._declared = self._declare(encoding), encoding
+            if head is not None:
+                self._head = bytes(payload[: head[1]])
+        if encoding is self._declared:
+            self._pub.put(payload)
+        else:
+            self._pub.put(payload, encoding=encoding)
 
 
 class Bus:
@@ -274,12 +309,17 @@ class Bus:
 
     def publisher(self, key: str, *, drop: bool = False) -> Publisher:
         """Publisher for ``key``; ``drop=True`` for large frames (DROP congestion
-        control), otherwise BLOCK so small messages are not lost under load."""
+        control), otherwise BLOCK so small messages are not lost under load.  Every
+        payload carries the Zenoh encoding of its message type (see :class:`Publisher`)."""
         cached = self._publishers.get((key, drop))
         if cached is None:
             cc = zenoh.CongestionControl.DROP if drop else zenoh.CongestionControl.BLOCK
-            pub = self._session.declare_publisher(key, congestion_control=cc, express=not drop)
-            cached = self._publishers[(key, drop)] = Publisher(pub)
+
+            def declare(encoding: zenoh.Encoding) -> Any:
+                return self._session.declare_publisher(key, congestion_control=cc, express=not drop,
+                                                       encoding=encoding)
+
+            cached = self._publishers[(key, drop)] = Publisher(declare)
         return cached
 
     def put(self, key: str, payload: bytes, *, drop: bool = False) -> None:
@@ -352,7 +392,7 @@ class Bus:
     def reply(query: Any, key: str, payload: bytes) -> None:
         """Answer a query taken from a :meth:`queryable` inbox, then finish it."""
         with query:  # leaving the block finalises the query
-            query.reply(key, payload)
+            query.reply(key, payload, encoding=encoding_for(payload))
 
     def get(self, key: str, timeout_s: float = 2.0) -> list[Received[bytes]]:
         """Query ``key`` and collect the answers (blocking, never from a callback)."""

@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 from tagswarm.agents.config import build_config
-from tagswarm.agents.controller import Controller, ControllerConfig, load_factory, make
+from tagswarm.agents.controller import ControlInput, Controller, ControllerConfig, Twist, load_factory, make
 from tagswarm.agents.node import main as agent_main
 from tagswarm.protocol.errors import UsageError
 from tagswarm.protocol.scenario import load_scenario
@@ -114,3 +114,18 @@ def test_up_chooses_robots_per_module(pkg: Path) -> None:
                            (["ctrl_zz:1"], "--agent-module ctrl_zz: cannot import it")):
         with pytest.raises(UsageError, match=message):
             agent_modules(specs, ids)
+
+
+def test_the_controllers_in_the_docs_load_and_drive(tmp_path: Path) -> None:
+    text = (EXAMPLES.parent / "docs" / "controllers.md").read_text()
+    blocks = [b.split("```", 1)[0] for b in text.split("```python\n")[1:]]
+    modules = [b for b in blocks if "def make_controller" in b]
+    assert len(modules) == 2
+    for k, source in enumerate(modules):
+        path = tmp_path / f"doc_ctrl_{k}.py"
+        path.write_text(source)
+        ctrl = make(load_factory(str(path)), ControllerConfig(1, load_scenario("paper")), str(path))
+        cmd = ctrl.step(ControlInput(robot_id=1, t_s=0.0, localised=True, pose=(1.0, 0.0, 0.0), pose_cov=(0.0,) * 9,
+                                     odom=(0.0, 0.0, 0.0), odom_cov=(0.0,) * 9, distance_m=0.0, moved=False,
+                                     fix=True, server_up=True))
+        assert isinstance(cmd, Twist) and (cmd.v_m_s, cmd.w_rad_s) != (0.0, 0.0)

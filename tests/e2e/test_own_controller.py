@@ -2,8 +2,9 @@
 the paper scenario (lockstep, seed 0, 20 s) with the example controller
 (examples/controllers/circle.py), and the run folder shows that robot driving the
 example's circle (not the built-in patrol) while the server localises it like the
-built-in agents.  A broken module stops ``tagswarm up`` and ``tagswarm-agent`` at start
-with exit code 2 and one line."""
+built-in agents.  In the same run robot 1's controller raises on every cycle: its agent
+logs that once, stands the robot still and keeps serving.  A broken module stops
+``tagswarm up`` and ``tagswarm-agent`` at start with exit code 2 and one line."""
 
 from __future__ import annotations
 
@@ -25,14 +26,32 @@ ROBOT = 3
 DURATION_S = 20.0
 RADIUS_M = 0.15  # examples/controllers/circle.py
 START = (2.7, 0.0)  # robot 3's start in the map frame (robot 0's first pose is the map origin)
+FAILING = 1
+FAILING_SOURCE = """
+from tagswarm.agents.controller import Controller
+
+
+class Broken(Controller):
+    mode = "broken"
+
+    def step(self, inputs):
+        raise RuntimeError("a controller bug on purpose")
+
+
+def make_controller(config):
+    return Broken()
+"""
 
 
 @pytest.fixture(scope="module")
 def run(tmp_path_factory: pytest.TempPathFactory) -> Path:
     out = tmp_path_factory.mktemp("own") / "run"
+    failing = out.parent / "failing_ctrl.py"
+    failing.write_text(FAILING_SOURCE)
     res = subprocess.run([script("tagswarm"), "up", "--clock", "lockstep", "--seed", "0", "--duration",
                           str(DURATION_S), "--listen", endpoint(), "--run", f"own{os.getpid()}", "--out", str(out),
-                          "--no-live", "--agent-module", f"{EXAMPLE}:{ROBOT}"],
+                          "--no-live", "--agent-module", f"{EXAMPLE}:{ROBOT}",
+                          "--agent-module", f"{failing}:{FAILING}"],
                          capture_output=True, text=True, timeout=900)
     assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
     return out
@@ -79,6 +98,17 @@ def test_the_agent_reports_the_controller(run: Path) -> None:
     with open(run / "modes.csv") as fh:
         modes = {row["mode"] for row in csv.DictReader(fh) if int(row["robot"]) == ROBOT}
     assert modes == {"circle"}
+
+
+def test_a_controller_that_raises_stops_its_robot_and_not_its_agent(run: Path) -> None:
+    summary = json.loads((run / "run.json").read_text())
+    assert summary["exit_codes"][f"agent/{FAILING}"] == 0
+    counters = summary["counters"][f"agent/{FAILING}"]
+    assert counters["controller_errors"] == counters["controller_cycles"] >= 0.95 * DURATION_S * 30
+    truth = _truth(run, FAILING)
+    assert np.max(np.hypot(truth[:, 1] - truth[0, 1], truth[:, 2] - truth[0, 2])) < 0.01
+    log = (run / "logs" / f"agent{FAILING}.log").read_text()
+    assert log.count("Traceback") == 1 and "RuntimeError: a controller bug on purpose" in log
 
 
 def test_the_server_localises_it_like_the_built_in_agents(run: Path) -> None:

@@ -190,9 +190,10 @@ class Fusion:
         if moved or stamp_ns - r.kf_stamp > self.p.kf_max_interval_s * 1e9:
             self.graph.new_keyframe(rid, stamp_ns, pose)
 
-    def _gate(self, pred: Pose2, meas: Pose2, cov: Cov) -> float:
+    def _gate(self, pred: Pose2, meas: Pose2, cov: Cov, floor_m: float | None = None) -> float:
+        floor = self.p.gate_floor_m if floor_m is None else floor_m
         e = np.array(se2_between(pred, meas))
-        s = cov + np.diag([self.p.gate_floor_m**2, self.p.gate_floor_m**2, (self.p.gate_floor_m / 2) ** 2])
+        s = cov + np.diag([floor**2, floor**2, (floor / 2) ** 2])
         return float(e @ np.linalg.solve(s, e))
 
     def _apply_obs(self, stamp_ns: int, observer: int, target: int, rel: Pose2, cov: Cov) -> None:
@@ -214,14 +215,17 @@ class Fusion:
             return
         po = None if o.estimate is None else se2_compose(o.estimate, se2_between(o.kf_odom, oo))
         pg = None if g.estimate is None else se2_compose(g.estimate, se2_between(g.kf_odom, go))
-        # the gate trusts the current estimate only once a robot is established: right after
-        # its first placement the estimate may be the wrong one of a flip, and gating would then
-        # lock the mistake in (the robust loss still bounds a bad observation's pull)
+        # right after its first placement a robot's estimate may be somewhat off (placed from one
+        # observation), so until it is established the gate is wide: it lets a slightly wrong
+        # placement converge, yet keeps out a gross outlier (a far single-tag pose whose yaw is
+        # off by a radian), whose pull on a robot tied to the map by a few factors swung it by a
+        # metre.  A placement wrong beyond the wide gate is re-localised from the rejected ones.
         established = all(r.accepted >= self.p.gate_after or rid == self.origin_id
                           for rid, r in ((observer, o), (target, g)))
         reloc: tuple[Verdict, Pose2] | None = None
-        if po is not None and pg is not None and established:
-            d2 = self._gate(se2_between(po, pg), rel, tangent_cov(rel, cov) + self._rel_cov(o, g))
+        if po is not None and pg is not None:
+            d2 = self._gate(se2_between(po, pg), rel, tangent_cov(rel, cov) + self._rel_cov(o, g),
+                            None if established else self.p.gate_young_floor_m)
             if d2 > self.p.chi2_gate:
                 self.counters["rejected_gate"] += 1
                 verdict = self._contradiction(observer, target, stamp_ns, rel, cov, po, pg, oo, go)
@@ -296,10 +300,11 @@ class Fusion:
         placed_g = se2_compose(po, rel)
         placed_o = se2_compose(pg, se2_inverse(rel))
         inv = inverse_cov(rel, cov)
-        for suspect, placed, odom, spread in ((target, placed_g, go, cov), (observer, placed_o, oo, inv)):
+        for suspect, placed, odom, spread, now in ((target, placed_g, go, cov, pg), (observer, placed_o, oo, inv, po)):
             cand = Candidate(stamp_ns, se2_compose(placed, se2_inverse(odom)), float(spread[0, 0] + spread[1, 1]),
                              meas)
-            verdict = self.recovery.add(suspect, cand)
+            r_cov = self.robots[suspect].cov
+            verdict = self.recovery.add(suspect, cand, current=(now, odom, float(r_cov[0, 0] + r_cov[1, 1]) / 2))
             if verdict is not None:
                 # _initial_pose adds the triggering observation itself
                 self._init[suspect] = [c for c in verdict.agree if c is not cand]
@@ -398,7 +403,8 @@ class Fusion:
                 self.counters["rejected_gate"] += 1
                 cand = Candidate(stamp_ns, se2_compose(pose, se2_inverse(oo)),
                                  float(cov_map[0, 0] + cov_map[1, 1]), (pose, cov_map))
-                verdict = self.recovery.add(observer, cand, landmark=True)
+                verdict = self.recovery.add(observer, cand, landmark=True,
+                                            current=(cur, oo, float(r.cov[0, 0] + r.cov[1, 1]) / 2))
                 if verdict is None:
                     return
                 self._init[observer] = [c for c in verdict.agree if c is not cand]

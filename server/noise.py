@@ -29,7 +29,8 @@ class FusionParams:
     huber_k: float = 1.345
     chi2_gate: float = CHI2_3DOF_999
     gate_floor_m: float = 0.05  # gate tolerance never below this (estimates are never perfect)
-    gate_after: int = 8  # observations a robot needs in the graph before the chi² gate applies to it
+    gate_after: int = 8  # observations a robot needs in the graph before the chi² gate tightens for it
+    gate_young_floor_m: float = 0.3  # the gate's floor (m; half of it in rad) before that
     origin_sigma: float = 1e-4
     odom_buffer: int = 4096
     cov_period_s: float = 1.0  # marginal covariances are recomputed at most this often (simulated time)
@@ -52,6 +53,7 @@ class FusionParams:
     reloc_min_single: int = 5
     reloc_span_s: float = 1.0
     reloc_trust_s: float = 3.0
+    reloc_min_turn_rad: float = 0.25  # a consensus this far off in yaw is significant whatever the distance
     # slip evidence (the agents' OdometryEstimate.slip_m, metres of unexplained wheel travel) widens an
     # odometry increment: this many metres of position sigma (and sigma / (wheel base / 2) of yaw) per metre
     odom_slip_sigma: float = 1.0

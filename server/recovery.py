@@ -25,7 +25,14 @@ Mangelson et al. 2018; Kimera-Multi) does for loop closures:
 - accepted observations of the suspect during that time are counter-evidence:
   a robot that is still seen where the map has it (a decoy tag of its ID on a
   wall, a spoofed stream) is not moved while more than a third as many
-  observations keep agreeing with its estimate.
+  observations keep agreeing with its estimate;
+- the move must be significant: the consensus of the agreeing evidence (their
+  mean, weighted by certainty) must differ from the suspect's estimate by more
+  than both can be wrong together (3 σ in position, or more than
+  ``reloc_min_turn_rad`` in yaw).  Far observations lever the yaw error by the
+  range, so several of them can agree on a pose tens of centimetres off; a
+  robot 10 cm off would otherwise be re-localised 25 cm the other way (measured
+  in a 10-robot hall).  Such evidence waits for better evidence instead.
 
 A single wrong observation, a mis-decoded tag or a spoofed one never forms a
 consistent set, so it stays rejected.  The origin robot is never re-localised:
@@ -34,9 +41,13 @@ its first pose *is* the map frame.
 
 from __future__ import annotations
 
+import math
 from collections import deque
 from dataclasses import dataclass, field
 
+import numpy as np
+
+from tagswarm.protocol.geometry import Pose2, se2_compose
 from tagswarm.server.noise import FusionParams
 from tagswarm.server.placement import Candidate, choose
 
@@ -96,9 +107,13 @@ class Recovery:
     def _counter_evidence(self, suspect: int, since_ns: int) -> int:
         return sum(1 for t, _ in self.partners.get(suspect, ()) if t >= since_ns)
 
-    def add(self, suspect: int, cand: Candidate, landmark: bool = False) -> Verdict | None:
+    def add(self, suspect: int, cand: Candidate, landmark: bool = False,
+            current: tuple[Pose2, Pose2, float] | None = None) -> Verdict | None:
         """Record one piece of contradicting evidence about ``suspect``; a verdict if
-        the evidence now forms a consistent set that should re-localise it."""
+        the evidence now forms a consistent set that should re-localise it.
+        ``current``: the suspect's estimated map pose at ``cand``'s instant, its odometry
+        pose then and the variance (m², per axis) of its position, to judge whether the
+        move is significant."""
         if suspect == self.origin_id and self.anchored_origin:
             return None
         witness = witness_of(suspect, cand)
@@ -125,7 +140,25 @@ class Recovery:
             return None
         if self._counter_evidence(suspect, first) * 3 > len(agree):
             return None
+        if current is not None and not self.significant(agree, len(witnesses), *current):
+            return None
         return Verdict(suspect, [best, *(c for c in agree if c is not best)], witnesses)
+
+    def significant(self, agree: list[Candidate], n_witnesses: int, pose: Pose2, odom: Pose2, var_m2: float) -> bool:
+        """Whether the consensus of ``agree`` is far enough from the estimated ``pose``
+        (map frame, position variance ``var_m2`` per axis) to move the robot; ``odom`` is
+        its odometry pose of that instant, which carries each piece of evidence there."""
+        now = [se2_compose(c.origin, odom) for c in agree]
+        w = np.array([1.0 / max(c.trace / 2, 1e-6) for c in agree])
+        mean = (w[:, None] * np.array([p[:2] for p in now])).sum(axis=0) / w.sum()
+        yaw = math.atan2(float((w * np.sin([p[2] for p in now])).sum()), float((w * np.cos([p[2] for p in now])).sum()))
+        # observations from one witness share its error (its own pose, the same tag), so the
+        # consensus is only as certain as its median piece over the number of witnesses
+        var_cons = float(np.median([c.trace / 2 for c in agree])) / n_witnesses
+        floor = self.p.gate_floor_m
+        dist = math.hypot(mean[0] - pose[0], mean[1] - pose[1])
+        turn = abs(math.remainder(yaw - pose[2], math.tau))
+        return dist > 3 * math.sqrt(var_cons + var_m2 + floor**2) or turn > self.p.reloc_min_turn_rad
 
     def forget(self, rid: int) -> None:
         """After ``rid`` was re-localised: its evidence is used up, and evidence that

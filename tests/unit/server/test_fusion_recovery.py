@@ -11,6 +11,8 @@ import numpy as np
 
 from tagswarm.protocol.geometry import Pose2, se2_between, se2_compose
 from tagswarm.server.fusion import Fusion, FusionParams
+from tagswarm.server.placement import Candidate
+from tagswarm.server.recovery import Recovery
 
 DT_NS = 100_000_000  # 10 Hz
 COV = np.diag([0.01**2, 0.01**2, 0.01**2])
@@ -168,3 +170,25 @@ def test_slip_evidence_widens_the_odometry_increment() -> None:
     slipped = odom_increment_cov((0.5, 0.0, 0.0), p, slip_m=0.2)
     assert slipped[0, 0] > clean[0, 0] + 0.03 and slipped[1, 1] > clean[1, 1] + 0.03
     assert slipped[2, 2] > clean[2, 2]
+
+
+def _evidence(at: Pose2, sigma_m: float, n: int, witnesses: int) -> list[Candidate]:
+    """``n`` agreeing pieces placing the odometry origin at ``at``, each ``sigma_m`` uncertain per axis."""
+    return [Candidate(k * DT_NS, at, 2 * sigma_m**2, (k % witnesses + 10, 3, at, COV)) for k in range(n)]
+
+
+def test_a_move_is_significant_only_beyond_what_the_evidence_and_the_estimate_can_both_be_wrong() -> None:
+    rec = Recovery(FusionParams(), origin_id=0, anchored_origin=True)
+    estimate, odom = (1.0, 0.0, 0.0), (0.0, 0.0, 0.0)
+    # 0.2 m off: precise evidence (1 cm) moves the robot; far, levered evidence (20 cm each) does not
+    assert rec.significant(_evidence((1.2, 0.0, 0.0), 0.01, 5, 2), 2, estimate, odom, 0.01**2)
+    assert not rec.significant(_evidence((1.2, 0.0, 0.0), 0.20, 5, 2), 2, estimate, odom, 0.01**2)
+    # ... nor does precise evidence when the estimate itself is known to be that uncertain
+    assert not rec.significant(_evidence((1.2, 0.0, 0.0), 0.01, 5, 2), 2, estimate, odom, 0.1**2)
+    # a robot turned around is moved whatever the distance
+    assert rec.significant(_evidence((1.0, 0.0, 0.5), 0.20, 5, 2), 2, estimate, odom, 0.01**2)
+    # evidence about the odometry origin is compared where the robot is now: origin (0, 0, 0.3) with the
+    # robot 2 m along its odometry puts it at (1.91, 0.59), 0.6 m sideways from an estimate at (2, 0, 0.3)
+    assert rec.significant(_evidence((0.0, 0.0, 0.3), 0.01, 5, 2), 2, (2.0, 0.0, 0.3), (2.0, 0.0, 0.0), 0.01**2)
+    assert not rec.significant(_evidence((0.0, 0.0, 0.3), 0.01, 5, 2), 2, (2 * math.cos(0.3), 2 * math.sin(0.3), 0.3),
+                               (2.0, 0.0, 0.0), 0.01**2)

@@ -3,7 +3,8 @@ the paper scenario (lockstep, seed 0, 20 s) with the example controller
 (examples/controllers/circle.py), and the run folder shows that robot driving the
 example's circle (not the built-in patrol) while the server localises it like the
 built-in agents.  In the same run robot 1's controller raises on every cycle: its agent
-logs that once, stands the robot still and keeps serving.  A broken module stops
+logs that once, stands the robot still and keeps serving.  A controller that drives
+robot 3 straight at robot 0 is stopped short of it by the collision filter.  A broken module stops
 ``tagswarm up`` and ``tagswarm-agent`` at start with exit code 2 and one line."""
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ import json
 import math
 import os
 import subprocess
+import uuid
 from pathlib import Path
 
 import numpy as np
@@ -43,17 +45,34 @@ def make_controller(config):
 """
 
 
+STRAIGHT_SOURCE = """
+from tagswarm.agents.controller import Controller, Twist
+
+
+class Straight(Controller):
+    def step(self, inputs):
+        return Twist(0.25, 0.0)  # robot 3 starts facing robot 0, 2.7 m away: contact after about 9 s
+
+
+def make_controller(config):
+    return Straight()
+"""
+
+
+def _up(out: Path, duration_s: float, *agent_modules: str) -> None:
+    flags = [f for spec in agent_modules for f in ("--agent-module", spec)]
+    res = subprocess.run([script("tagswarm"), "up", "--clock", "lockstep", "--seed", "0", "--duration",
+                          str(duration_s), "--listen", endpoint(), "--run", f"own{os.getpid()}x{uuid.uuid4().hex[:6]}",
+                          "--out", str(out), "--no-live", *flags], capture_output=True, text=True, timeout=900)
+    assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
+
+
 @pytest.fixture(scope="module")
 def run(tmp_path_factory: pytest.TempPathFactory) -> Path:
     out = tmp_path_factory.mktemp("own") / "run"
     failing = out.parent / "failing_ctrl.py"
     failing.write_text(FAILING_SOURCE)
-    res = subprocess.run([script("tagswarm"), "up", "--clock", "lockstep", "--seed", "0", "--duration",
-                          str(DURATION_S), "--listen", endpoint(), "--run", f"own{os.getpid()}", "--out", str(out),
-                          "--no-live", "--agent-module", f"{EXAMPLE}:{ROBOT}",
-                          "--agent-module", f"{failing}:{FAILING}"],
-                         capture_output=True, text=True, timeout=900)
-    assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
+    _up(out, DURATION_S, f"{EXAMPLE}:{ROBOT}", f"{failing}:{FAILING}")
     return out
 
 
@@ -120,6 +139,23 @@ def test_the_server_localises_it_like_the_built_in_agents(run: Path) -> None:
     others = [r["fused"]["time_localised"] for rid, r in robots.items() if int(rid) != ROBOT]
     assert mine["time_localised"] >= min(others) - 0.05, (mine["time_localised"], others)
     assert metrics["swarm"]["contacts"]["robot_robot"] == 0
+
+
+def test_collision_avoidance_filters_a_controller_driving_into_a_robot(tmp_path: Path) -> None:
+    straight = tmp_path / "straight_ctrl.py"
+    straight.write_text(STRAIGHT_SOURCE)
+    out = tmp_path / "run"
+    _up(out, 14.0, f"{straight}:{ROBOT}")
+    mine, origin = _truth(out, ROBOT), _truth(out, 0)
+    n = min(len(mine), len(origin))
+    gap = np.hypot(mine[:n, 1] - origin[:n, 1], mine[:n, 2] - origin[:n, 2])
+    footprint = 0.192  # protocol.layout.footprint_radius of the paper robot
+    assert gap[0] > 2.5 and gap.min() < 2 * footprint + 0.2  # it did drive up to robot 0 ...
+    assert gap.min() >= 2 * footprint + 0.05  # ... and kept (about) the 0.1 m clearance
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["swarm"]["contacts"]["robot_robot"] == 0
+    counters = json.loads((out / "run.json").read_text())["counters"][f"agent/{ROBOT}"]
+    assert counters["controller_filtered"] > 0 and counters["controller_errors"] == 0
 
 
 def test_a_broken_module_exits_2_with_one_line(tmp_path: Path) -> None:

@@ -16,32 +16,34 @@ import json
 import math
 import time
 from collections.abc import Callable
-from pathlib import Path
 from typing import Any
-
-import pytest
 
 from tagswarm.protocol import codec
 from tagswarm.protocol import messages as m
 from tagswarm.protocol.bus import DEFAULT_LEASE_MS
-from tests.e2e.swarm import PAPER_DURATION_S, PAPER_SEED, Swarm, clean_run, errors, rms, scenario, tum
+from tagswarm.testing import LiveSwarm, Run, SwarmFactory
+from tagswarm.testing.trajectories import recorded_errors as errors
+from tagswarm.testing.trajectories import rms
 
 VICTIM = 1
 KILL_AT_S = 5.0
 RESTART_AT_S = 8.0
+#: the fault-free reference run (shared with the determinism and world-restart tests: reuse=True)
+PAPER_SEED = 3
+PAPER_DURATION_S = 24.0
 
 
-def _clean_errors(folder: Path, rid: int, since_s: float) -> list[float]:
-    truth = {round(r[0], 6): r for r in tum(folder, "truth", rid)}
+def _clean_errors(run: Run, rid: int, since_s: float) -> list[float]:
+    truth = {round(r[0], 6): r for r in run.truth(rid)}
     out = []
-    for r in tum(folder, "fused", rid):
+    for r in run.fused(rid):
         t = truth.get(round(r[0], 6))
         if t is not None and r[0] >= since_s:
             out.append(math.hypot(r[1] - t[1], r[2] - t[2]))
     return out
 
 
-def _server_view(sw: Swarm, every_s: float = 0.02) -> Callable[[], bool | None]:
+def _server_view(sw: LiveSwarm, every_s: float = 0.02) -> Callable[[], bool | None]:
     """A function giving the victim's alive flag in the map the server's queryable answers with (None: not in
     it, or no answer), asking the server at most every ``every_s`` (in between: the last answer)."""
     last: list[Any] = [-math.inf, None]
@@ -57,27 +59,23 @@ def _server_view(sw: Swarm, every_s: float = 0.02) -> Callable[[], bool | None]:
     return alive
 
 
-def test_killed_agent_drops_out_its_robot_stops_and_a_restart_resumes_from_the_map(
-        tmp_path_factory: pytest.TempPathFactory) -> None:
-    base = tmp_path_factory.mktemp("agentfault")
-    clean = clean_run(base)
-    scen = scenario("paper", f"seed={PAPER_SEED}", f"duration_s={PAPER_DURATION_S}")
-    with Swarm(base / "fault", scen, "agentfault") as sw:
+def test_killed_agent_drops_out_its_robot_stops_and_a_restart_resumes_from_the_map(swarm: SwarmFactory) -> None:
+    clean = swarm("paper", seed=PAPER_SEED, duration_s=PAPER_DURATION_S, reuse=True)
+    with swarm.start("paper", seed=PAPER_SEED, duration_s=PAPER_DURATION_S, launch=False) as sw:
+        scen = sw.scenario
         keys = sw.keys
         presence = sw.bus.watch_liveliness(keys.alive(f"agent/{VICTIM}"))
         maps = sw.bus.subscribe(keys.map())
         odom = sw.bus.subscribe(keys.odometry(VICTIM))
         status = sw.bus.subscribe(keys.robot_status(VICTIM))
-        sw.server()
-        sw.agents()
-        sw.world()
+        sw.launch()
         sw.wait_sim(KILL_AT_S)
 
         # ---- kill: Zenoh liveliness tells everybody, the server marks the robot not alive
-        kill_sim_s = sw.rec.sim_ns / 1e9
+        kill_sim_s = sw.recorder.sim_ns / 1e9
         presence.drain()
         t_kill = time.monotonic()
-        sw.kill(f"agent{VICTIM}")
+        sw.kill(f"agent/{VICTIM}")
         gone: dict[str, float] = {}
         server_says_alive = _server_view(sw)
 
@@ -99,7 +97,7 @@ def test_killed_agent_drops_out_its_robot_stops_and_a_restart_resumes_from_the_m
             assert time.monotonic() < deadline, f"the server never marked the killed agent not alive: {gone}\n" \
                                                 f"{sw.tails()}"
             sw.bus.wait(0.02)
-            sw.rec.poll()
+            sw.recorder.poll()
         # in its published map (2 simulated Hz), in simulated time: while the world still waits for the dead
         # agent's ack it cannot step (at most one step per ack timeout)
         assert gone["server_sim"] < 2.0, gone
@@ -110,14 +108,14 @@ def test_killed_agent_drops_out_its_robot_stops_and_a_restart_resumes_from_the_m
 
         # ---- the world's command timeout stops the orphaned robot
         sw.wait_sim(RESTART_AT_S)
-        restart_sim_s = sw.rec.sim_ns / 1e9
+        restart_sim_s = sw.recorder.sim_ns / 1e9
         presence.drain()
-        sw.agent(VICTIM)
+        sw.spawn(f"agent/{VICTIM}")
         joined: dict[str, float] = {}
 
         def back() -> bool:
             if "join_sim" not in joined and any(c.value for c in presence.drain()):
-                joined["join_sim"] = sw.rec.sim_ns / 1e9
+                joined["join_sim"] = sw.recorder.sim_ns / 1e9
             for it in odom.drain():
                 od = codec.decode(m.OdometryEstimate, it.value)
                 if od.stamp_ns / 1e9 > restart_sim_s and "odom_sim" not in joined:
@@ -135,13 +133,12 @@ def test_killed_agent_drops_out_its_robot_stops_and_a_restart_resumes_from_the_m
             return bool(first_status)
 
         sw.wait(reported, 30, "no status from the restarted agent")
-        sw.finish()
-        sw.write()
-    run_dir = base / "fault"
+        fault_run = sw.finish()
+    run_dir = fault_run.run_dir
 
     # the world stopped robot 1 once its last command timed out, until the new agent drove it
     stop_from = kill_sim_s + scen.clock.command_timeout_s + 0.1
-    parked = [p for t, p in sw.rec.truth[VICTIM] if stop_from <= t / 1e9 <= joined["join_sim"] - 0.1]
+    parked = [p for t, p in sw.recorder.truth[VICTIM] if stop_from <= t / 1e9 <= joined["join_sim"] - 0.1]
     assert len(parked) > 30, (kill_sim_s, joined)
     moved = max(math.dist(p[:2], parked[0][:2]) for p in parked)
     turned = max(abs(math.remainder(p[2] - parked[0][2], math.tau)) for p in parked)
@@ -151,13 +148,14 @@ def test_killed_agent_drops_out_its_robot_stops_and_a_restart_resumes_from_the_m
     assert first_status.get("resumed_from_map") == 1, first_status
     resume_s = joined["odom_sim"] - joined["join_sim"]
     assert resume_s < 2.0, joined
-    after = [(t, p) for t, p in sw.rec.truth[VICTIM] if joined["odom_sim"] <= t / 1e9 <= joined["odom_sim"] + 2.0]
+    after = [(t, p) for t, p in sw.recorder.truth[VICTIM] if joined["odom_sim"] <= t / 1e9 <= joined["odom_sim"] + 2.0]
     # on its mission again (a patrol starts over at its first waypoint: it may turn on the spot first)
     assert max(math.dist(p[:2], after[0][1][:2]) + abs(math.remainder(p[2] - after[0][1][2], math.tau))
                for _, p in after) > 0.05
 
     # its fused error is back under 10 cm within 10 simulated seconds and stays there
-    errs = errors(sw.rec.truth[VICTIM], [(t, p) for t, p in sw.rec.fused[VICTIM] if t / 1e9 >= joined["odom_sim"]])
+    errs = errors(sw.recorder.truth[VICTIM],
+                  [(t, p) for t, p in sw.recorder.fused[VICTIM] if t / 1e9 >= joined["odom_sim"]])
     late = [e for t, e in errs if t >= joined["odom_sim"] + 10.0]
     assert len(late) > 30 and max(late) < 0.10, max(late, default=None)
     below = next((t for t, e in errs if e < 0.10 and all(e2 < 0.10 for t2, e2 in errs if t2 >= t)), None)
@@ -165,7 +163,7 @@ def test_killed_agent_drops_out_its_robot_stops_and_a_restart_resumes_from_the_m
     # the other robots hardly notice: fused error within 1.5x of the same seed without the fault
     ratios = {}
     for rid in (0, 2, 3):
-        fault = rms(_clean_errors(run_dir, rid, kill_sim_s))
+        fault = rms(_clean_errors(fault_run, rid, kill_sim_s))
         ref = rms(_clean_errors(clean, rid, kill_sim_s))
         ratios[rid] = (fault, ref)
         # + 5 mm: both are sub-centimetre, where 1.5x alone would be below the estimator's noise

@@ -3,30 +3,28 @@ another seed does not (so identical output is not trivially true)."""
 
 from __future__ import annotations
 
-from pathlib import Path
-
-import pytest
-
-from tests.e2e.swarm import PAPER_DURATION_S, PAPER_SEED, clean_run, tum
+from tagswarm.testing import Run, SwarmFactory
 
 KINDS = ("truth", "odom", "fused")
+#: the fault-free reference run (shared with the agent- and world-restart tests: reuse=True)
+PAPER_SEED = 3
+PAPER_DURATION_S = 24.0
 
 
-def _bytes(folder: Path, kind: str, rid: int) -> bytes:
-    return (folder / "trajectories" / f"{kind}_{rid}.tum").read_bytes()
+def _bytes(run: Run, kind: str, rid: int) -> bytes:
+    return (run.run_dir / "trajectories" / f"{kind}_{rid}.tum").read_bytes()
 
 
-def test_same_seed_same_bytes_other_seed_other_bytes(tmp_path_factory: pytest.TempPathFactory) -> None:
-    base = tmp_path_factory.mktemp("determinism")
-    first = clean_run(base)
-    second = clean_run(base, again=True)
-    other = clean_run(base, seed=PAPER_SEED + 1, duration_s=5.0)
+def test_same_seed_same_bytes_other_seed_other_bytes(swarm: SwarmFactory) -> None:
+    first = swarm("paper", seed=PAPER_SEED, duration_s=PAPER_DURATION_S, reuse=True)
+    second = swarm("paper", seed=PAPER_SEED, duration_s=PAPER_DURATION_S)  # a new run, not the shared one
+    other = swarm("paper", seed=PAPER_SEED + 1, duration_s=5.0, reuse=True)
     for rid in range(4):
-        truth = tum(first, "truth", rid)
+        truth = first.truth(rid)
         # complete from the first tick to the end: the comparison covers the whole run
         span = (truth[0, 0], truth[-1, 0], len(truth))
         assert span[0] == 0.0 and span[1] >= PAPER_DURATION_S - 0.1 and span[2] >= 700, (rid, span)
-        assert len(tum(first, "fused", rid)) >= 500  # every robot localised most of the run
+        assert len(first.fused(rid)) >= 500  # every robot localised most of the run
         for kind in KINDS:
             a, b = _bytes(first, kind, rid), _bytes(second, kind, rid)
             assert a == b, f"{kind}_{rid}.tum differs between two runs with seed {PAPER_SEED}"

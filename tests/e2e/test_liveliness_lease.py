@@ -20,8 +20,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import signal
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -30,7 +28,7 @@ from typing import Any, cast
 from tagswarm.protocol import codec
 from tagswarm.protocol import messages as m
 from tagswarm.protocol.bus import DEFAULT_LEASE_MS
-from tests.e2e.swarm import Swarm, scenario
+from tagswarm.testing import SwarmFactory
 
 VICTIM = 2
 STOP_AT_S = 4.0
@@ -38,15 +36,14 @@ DURATION_S = 12.0
 QUERY_EVERY_S = 0.02  # at most this long between two looks at the server's map
 
 
-def test_frozen_agent_is_marked_not_alive_within_2s_by_the_lease_and_the_others_run_on(tmp_path: Path) -> None:
-    scen = scenario("paper", "seed=3", f"duration_s={DURATION_S}")
-    with Swarm(tmp_path / "frozen", scen, "frozen") as sw:
+def test_frozen_agent_is_marked_not_alive_within_2s_by_the_lease_and_the_others_run_on(
+        tmp_path: Path, swarm: SwarmFactory) -> None:
+    with swarm.start("paper", seed=3, duration_s=DURATION_S, launch=False) as sw:
+        scen = sw.scenario
         keys = sw.keys
         presence = sw.bus.watch_liveliness(keys.alive(f"agent/{VICTIM}"))
         odom = {rid: sw.bus.subscribe(keys.odometry(rid)) for rid in scen.robot_ids if rid != VICTIM}
-        sw.server()
-        sw.agents()
-        sw.world()
+        sw.launch()
 
         last: list[Any] = [-math.inf, None]  # when the server was last asked, and its answer
 
@@ -64,21 +61,21 @@ def test_frozen_agent_is_marked_not_alive_within_2s_by_the_lease_and_the_others_
             """Like ``sw.wait``, but ``cond`` runs outside the bus lock: ``Bus.wait_for`` holds it while
             checking, which blocks Zenoh's receive thread, so a query made there gets no reply."""
             deadline = time.monotonic() + timeout_s
-            sw.rec.poll()
+            sw.recorder.poll()
             while not cond():
                 left = deadline - time.monotonic()
                 assert left > 0, f"{what} (after {timeout_s} s)\n{sw.tails()}"
                 sw.bus.wait(min(left, QUERY_EVERY_S))
-                sw.rec.poll()
+                sw.recorder.poll()
 
         # mid-run, with the victim localised and alive in the server's map
-        until(lambda: sw.rec.sim_ns >= STOP_AT_S * 1e9 and server_says_alive() is True, 120,
+        until(lambda: sw.recorder.sim_ns >= STOP_AT_S * 1e9 and server_says_alive() is True, 120,
               "the victim never showed up alive in the server's map")
-        victim = sw.procs[f"agent{VICTIM}"]
-        stop_sim_s = sw.rec.sim_ns / 1e9
+        victim = sw.process(f"agent/{VICTIM}")
+        stop_sim_s = sw.recorder.sim_ns / 1e9
         presence.drain()
         t_stop = time.monotonic()
-        os.kill(victim.pid, signal.SIGSTOP)
+        sw.freeze(f"agent/{VICTIM}")  # SIGSTOP
         seen: dict[str, float] = {}
 
         def noticed() -> bool:
@@ -86,7 +83,7 @@ def test_frozen_agent_is_marked_not_alive_within_2s_by_the_lease_and_the_others_
                 seen["liveliness"] = time.monotonic() - t_stop
             if "server" not in seen and server_says_alive() is False:
                 seen["server"] = time.monotonic() - t_stop
-                seen["server_sim_s"] = sw.rec.sim_ns / 1e9
+                seen["server_sim_s"] = sw.recorder.sim_ns / 1e9
                 seen["victim_still_running"] = float(victim.poll() is None)
             return "liveliness" in seen and "server" in seen
 
@@ -102,11 +99,11 @@ def test_frozen_agent_is_marked_not_alive_within_2s_by_the_lease_and_the_others_
         assert seen["server"] < 2.0, seen
 
         # ---- kill the frozen agent for good; the others run the scenario to its end
-        sw.kill(f"agent{VICTIM}")
+        sw.kill(f"agent/{VICTIM}")
         for inbox in odom.values():
             inbox.drain()
-        killed_sim_s = sw.rec.sim_ns / 1e9
-        sw.finish()
+        killed_sim_s = sw.recorder.sim_ns / 1e9
+        sw.wait_exit()
         after = {rid: [codec.decode(m.OdometryEstimate, it.value).stamp_ns / 1e9 for it in inbox.drain()]
                  for rid, inbox in odom.items()}
     # every other agent kept publishing odometry up to the end of the run

@@ -16,22 +16,20 @@ import psutil
 
 from tagswarm.protocol import codec
 from tagswarm.protocol import messages as m
-from tests.e2e.swarm import Swarm, scenario
+from tagswarm.testing import SwarmFactory
 
 SLOW = 1
 DELAY_S = 0.25  # per frame: 4 frames/s at most against a 10 Hz camera
 MB = 1 << 20
 
 
-def test_slow_agent_skips_frames_keeps_flat_memory_and_the_world_keeps_pace(tmp_path: Path) -> None:
-    scen = scenario("paper", "seed=5", "duration_s=300", lockstep=False)
-    with Swarm(tmp_path / "overload", scen, "overload") as sw:
+def test_slow_agent_skips_frames_keeps_flat_memory_and_the_world_keeps_pace(tmp_path: Path,
+                                                                             swarm: SwarmFactory) -> None:
+    with swarm.start("paper", seed=5, duration_s=300, clock="realtime", launch=False) as sw:
         world_status = sw.bus.subscribe(sw.keys.world_status())
         statuses = sw.bus.subscribe(sw.keys.robot_status(SLOW))
         presence = sw.bus.watch_liveliness(sw.keys.alive(f"agent/{SLOW}"))
-        sw.server()
-        sw.agents()
-        sw.world()
+        sw.launch()
         steps: list[tuple[float, int]] = []  # (wall, world step) from the world's status
         world: dict[str, int] = {}
 
@@ -49,7 +47,7 @@ def test_slow_agent_skips_frames_keeps_flat_memory_and_the_world_keeps_pace(tmp_
 
         def sim_past(t_s: float) -> bool:
             track()
-            return sw.rec.sim_ns >= t_s * 1e9
+            return sw.recorder.sim_ns >= t_s * 1e9
 
         sw.wait(lambda: sim_past(2.0), 60, "the world never started")
         t_normal = time.monotonic()
@@ -57,12 +55,12 @@ def test_slow_agent_skips_frames_keeps_flat_memory_and_the_world_keeps_pace(tmp_
         normal_rate = rate(t_normal)
 
         # the same robot's agent again, now with a slow detector
-        sw.kill(f"agent{SLOW}")
+        sw.kill(f"agent/{SLOW}")
         presence.drain()
         statuses.drain()  # the killed agent's
-        sw.agent(SLOW, "--inject-frame-delay", str(DELAY_S))
+        sw.spawn(f"agent/{SLOW}", "--inject-frame-delay", str(DELAY_S))
         sw.wait(lambda: any(c.value for c in presence.drain()), 60, "the slow agent never came up")
-        slow = psutil.Process(sw.procs[f"agent{SLOW}"].pid)
+        slow = psutil.Process(sw.pid(f"agent/{SLOW}"))
         counters: dict[str, int] = {}
 
         def latest() -> bool:
@@ -73,7 +71,7 @@ def test_slow_agent_skips_frames_keeps_flat_memory_and_the_world_keeps_pace(tmp_
 
         # warmed up (the first tag sightings allocate a few MB once): from here on memory must stay flat
         sw.wait(latest, 60, "the slow agent never saw a tag")
-        t0 = sw.rec.sim_ns / 1e9
+        t0 = sw.recorder.sim_ns / 1e9
         t_slow = time.monotonic()
         rss: list[tuple[float, int]] = []
 
@@ -86,8 +84,8 @@ def test_slow_agent_skips_frames_keeps_flat_memory_and_the_world_keeps_pace(tmp_
         slow_rate = rate(t_slow)
         n = counters["frames_processed"]
         sw.wait(lambda: latest() and counters["frames_processed"] > n, 30, "no status from the slow agent")
-        sw.rec.poll()
-        server = dict(sw.rec.counters.get("server", {}))
+        sw.recorder.poll()
+        server = dict(sw.recorder.counters.get("server", {}))
 
     received, processed, skipped = counters["frames_received"], counters["frames_processed"], counters["frames_skipped"]
     # realtime: an observation lands after later odometry (its image had to be rendered and detected,

@@ -12,47 +12,47 @@ from __future__ import annotations
 import json
 import math
 
-import pytest
-
 from tagswarm.protocol import codec
 from tagswarm.protocol import messages as m
-from tests.e2e.swarm import PAPER_DURATION_S, PAPER_SEED, Swarm, clean_run, errors, scenario
+from tagswarm.testing import SwarmFactory
+from tagswarm.testing.trajectories import recorded_errors as errors
 
 KILL_AT_S = 6.0
+#: the fault-free reference run (shared with the determinism and agent-restart tests: reuse=True)
+PAPER_SEED = 3
+PAPER_DURATION_S = 24.0
 
 
-def test_agents_and_server_reset_on_a_new_world_and_localise_again(tmp_path_factory: pytest.TempPathFactory) -> None:
-    base = tmp_path_factory.mktemp("worldrestart")
-    clean = clean_run(base)
-    scen = scenario("paper", f"seed={PAPER_SEED}", f"duration_s={PAPER_DURATION_S}")
-    with Swarm(base / "restart", scen, "worldrestart") as sw:
+def test_agents_and_server_reset_on_a_new_world_and_localise_again(swarm: SwarmFactory) -> None:
+    clean = swarm("paper", seed=PAPER_SEED, duration_s=PAPER_DURATION_S, reuse=True)
+    with swarm.start("paper", seed=PAPER_SEED, duration_s=PAPER_DURATION_S, launch=False) as sw:
+        scen = sw.scenario
         statuses = sw.bus.subscribe(sw.keys.robot_status())
         server_status = sw.bus.subscribe(sw.keys.server_status())
         ticks = sw.bus.subscribe(sw.keys.tick())
-        sw.server()
-        sw.agents()
-        first = sw.world()
+        sw.launch()
+        first = sw.process("world")
         sw.wait_sim(KILL_AT_S)
         sw.kill("world")
         assert first.returncode != 0
-        sw.rec.poll()
-        before = {rid: sw.rec.fused_error(rid) for rid in scen.robot_ids}
+        sw.recorder.poll()
+        before = {rid: sw.recorder.fused_error(rid) for rid in scen.robot_ids}
         # everything of the first world is in; record the second one from scratch
-        for series in (sw.rec.truth, sw.rec.odom, sw.rec.fused):
+        for series in (sw.recorder.truth, sw.recorder.odom, sw.recorder.fused):
             series.clear()
-        sw.rec.sim_ns = 0
+        sw.recorder.sim_ns = 0
         runs = {codec.decode(m.Tick, it.value).run_id for it in ticks.drain()}
-        sw.world()
-        sw.finish()
+        sw.spawn("world")
+        sw.wait_exit()
         # a message of the first world still in flight when the series were cleared (stamped seconds
         # later than the second world's first ones) is not part of the second run
         leftovers = {rid: 0 for rid in scen.robot_ids}
-        for series in (sw.rec.truth, sw.rec.odom, sw.rec.fused):
+        for series in (sw.recorder.truth, sw.recorder.odom, sw.recorder.fused):
             for rid, samples in series.items():
                 cut = max((i for i in range(1, len(samples)) if samples[i][0] < samples[i - 1][0]), default=0)
                 leftovers[rid] += cut
                 del samples[:cut]
-        sw.write()
+        restarted = sw.write()
         runs |= {codec.decode(m.Tick, it.value).run_id for it in ticks.drain()}
         agents = {}
         for it in statuses.drain():
@@ -67,7 +67,7 @@ def test_agents_and_server_reset_on_a_new_world_and_localise_again(tmp_path_fact
         assert agents[rid].get("rejected_foreign_run", 0) == 0, agents[rid]
     assert server["world_restarts"] == 1, server
     # localised again after the restart, from scratch: small error a few seconds in ...
-    errs = {rid: errors(sw.rec.truth[rid], sw.rec.fused[rid]) for rid in scen.robot_ids}
+    errs = {rid: errors(sw.recorder.truth[rid], sw.recorder.fused[rid]) for rid in scen.robot_ids}
     for rid, es in errs.items():
         late = [e for t, e in es if t >= 5.0]
         assert len(late) > 100 and max(late) < 0.10, (rid, max(late, default=None))
@@ -88,6 +88,6 @@ def test_agents_and_server_reset_on_a_new_world_and_localise_again(tmp_path_fact
     # ... and exactly as a fresh run: nothing of the first world leaked into the second
     for rid in scen.robot_ids:
         for kind in ("truth", "odom", "fused"):
-            mine = (sw.folder / "trajectories" / f"{kind}_{rid}.tum").read_bytes()
-            ref = (clean / "trajectories" / f"{kind}_{rid}.tum").read_bytes()
+            mine = (restarted.run_dir / "trajectories" / f"{kind}_{rid}.tum").read_bytes()
+            ref = (clean.run_dir / "trajectories" / f"{kind}_{rid}.tum").read_bytes()
             assert mine == ref, f"{kind}_{rid}.tum after the restart differs from a fresh run"

@@ -1,0 +1,251 @@
+"""The shipped pytest plugin (tagswarm.testing) as a user meets it: a test file in a temporary
+directory outside the repository, no conftest, run by ``python -m pytest`` in a subprocess
+with only the installed package.
+
+- a finished run (every robot localised within 10 cm at the end) and a live handle (map,
+  subscription, goal, teleport, kill, restart with network faults, freeze) pass;
+- two such pytest processes at once do not mix: different run ids, each run's metrics and
+  counters name only its own robots;
+- no process of a swarm survives a test that fails, one that pytest-timeout stops (its
+  ``signal`` method: teardown runs; its ``thread`` method: ``os._exit``, only the reaper is
+  left), or a pytest interrupted with SIGINT (psutil: every descendant seen during the run is
+  gone, and no process on the machine carries the run id).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import psutil
+import pytest
+
+REPO = Path(__file__).resolve().parents[2]
+
+USER_TESTS = '''
+import json, math, os, signal, sys
+from pathlib import Path
+
+import pytest
+
+from tagswarm.testing import NetFault
+
+OUT = Path(os.environ["TSW_OUT"])
+ROBOTS = int(os.environ["TSW_ROBOTS"])
+
+
+def test_only_the_installed_package():
+    import tagswarm
+    assert not any(Path(p or ".").resolve() == Path({repo!r}) for p in sys.path), sys.path
+    assert "tests" not in sys.modules
+
+
+def test_a_finished_run_localises_every_robot(swarm):
+    run = swarm(scenario="paper", robots=ROBOTS, seed=0, duration_s=8)
+    errors = {{r: run.final_error(r) for r in run.robots}}
+    assert run.robots == tuple(range(ROBOTS))
+    assert all(e < 0.10 for e in errors.values()), errors
+    truth = run.truth(1)
+    assert truth.shape[1] == 4 and truth[-1, 0] >= 7.9
+    info = json.loads((run.run_dir / "run.json").read_text())
+    OUT.write_text(json.dumps({{"run_id": run.run_id, "robots": run.metrics["run"]["robots"],
+                               "metric_robots": sorted(run.metrics["robots"]), "counters": sorted(info["counters"]),
+                               "errors": errors}}))
+
+
+def test_a_live_swarm(swarm):
+    with swarm.start(robots=3, duration_s=16) as s:
+        odo = s.subscribe("robot/1/odometry")
+        s.wait_sim(2.0)
+        first = odo.get(timeout_s=60)
+        assert first.msg.robot_id == 1 and first.key == f"tagswarm/{{s.run_id}}/robot/1/odometry"
+        assert {{e.robot_id for e in s.latest_map(after_s=1.0).robots}} == {{0, 1, 2}}
+        _, (x, y, _) = s.recorder.truth[1][-1]  # map frame
+        s.goto(1, x, y + 0.4, tolerance_m=0.05)
+        s.wait(lambda: math.dist(s.recorder.truth[1][-1][1][:2], (x, y + 0.4)) < 0.1, 120, "robot 1 never arrived")
+        cmd = s.teleport(2, 0.3, 0.0, push=True, at_s=round(s.sim_time_s) + 1.0)
+
+        def jumped():
+            tr = s.recorder.truth[2]
+            return any(math.dist(a[1][:2], b[1][:2]) > 0.25 for a, b in zip(tr, tr[1:]) if b[0] >= cmd.stamp_ns)
+
+        s.wait(jumped, 120, "robot 2 was never moved")
+        odo2 = s.subscribe("robot/2/odometry")
+        s.kill("agent/2")
+        killed_ns = s.recorder.sim_ns
+        assert s.process("agent/2").returncode == -signal.SIGKILL
+        s.spawn("agent/2", net=NetFault(loss=0.05, seed=2))
+        assert odo2.get(timeout_s=120, where=lambda smp: smp.msg.stamp_ns > killed_ns).msg.robot_id == 2
+        s.freeze("agent/0")
+        assert s.running("agent/0")
+        s.thaw("agent/0")
+        run = s.finish()
+    assert "injecting network faults" in run.log("agent/2.1") and "injecting" not in run.log("agent/2")
+    assert run.exit_codes == {{"server": 0, "agent/0": 0, "agent/1": 0, "agent/2": 0, "world": 0}}
+    assert run.metrics["run"]["robots"] == [0, 1, 2]
+    assert run.final_error(0) < 0.10 and run.final_error(1) < 0.10
+'''
+
+#: a swarm is up (its run id written to $TSW_READY), then the test fails, hangs or is interrupted
+STRAY_TESTS = '''
+import os
+from pathlib import Path
+
+import pytest
+
+READY = Path(os.environ["TSW_READY"])
+
+
+def _up(swarm):
+    s = swarm.start(robots=2, duration_s=600)
+    s.wait_sim(0.5)
+    READY.write_text(s.run_id)
+    return s
+
+
+def test_fails(swarm):
+    with _up(swarm) as s:
+        assert s.sim_time_s < 0, "fails on purpose"
+
+
+@pytest.mark.timeout(40, method="signal")
+def test_times_out(swarm):
+    s = _up(swarm)
+    s.wait_sim(1e9, timeout_s=1e9)
+
+
+@pytest.mark.timeout(40, method="thread")
+def test_times_out_hard(swarm):
+    s = _up(swarm)
+    s.wait_sim(1e9, timeout_s=1e9)
+
+
+def test_interrupted(swarm):
+    s = _up(swarm)
+    s.wait_sim(1e9, timeout_s=1e9)
+'''
+
+
+def _env(**extra: str) -> dict[str, str]:
+    env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "PYTEST_ADDOPTS", "PYTEST_PLUGINS")}
+    return {**env, **extra}
+
+
+def _pytest(folder: Path, test_file: str, *args: str, **env: str) -> subprocess.Popen[str]:
+    """``python -m pytest`` on ``test_file`` with ``folder`` as its working directory (outside the repo)."""
+    return subprocess.Popen([sys.executable, "-m", "pytest", "-p", "no:cacheprovider", "-q", "-rA",
+                             f"--basetemp={folder / 'tmp'}", test_file, *args], cwd=folder, env=_env(**env),
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+
+
+def _outside(tmp_path_factory: pytest.TempPathFactory, name: str) -> Path:
+    folder = tmp_path_factory.mktemp(name)
+    assert not folder.resolve().is_relative_to(REPO)
+    assert not (folder / "conftest.py").exists()
+    return folder
+
+
+def test_a_user_test_file_passes_outside_the_repo_and_two_run_in_parallel_without_mixing(
+        tmp_path_factory: pytest.TempPathFactory) -> None:
+    procs: dict[int, tuple[subprocess.Popen[str], Path]] = {}
+    started: dict[int, float] = {}
+    for robots in (2, 3):
+        folder = _outside(tmp_path_factory, f"user{robots}")
+        (folder / "test_my_swarm.py").write_text(USER_TESTS.format(repo=str(REPO)))
+        started[robots] = time.monotonic()
+        procs[robots] = (_pytest(folder, "test_my_swarm.py", TSW_OUT=str(folder / "out.json"),
+                                 TSW_ROBOTS=str(robots)), folder)
+    results: dict[int, dict[str, Any]] = {}
+    ended: dict[int, float] = {}
+    for robots, (proc, folder) in procs.items():
+        out, _ = proc.communicate(timeout=900)
+        ended[robots] = time.monotonic()
+        assert proc.returncode == 0 and "3 passed" in out, out[-6000:]
+        results[robots] = json.loads((folder / "out.json").read_text())
+    print(json.dumps({"results": results, "wall_s": {r: ended[r] - started[r] for r in procs}}, indent=1))
+    # both pytest processes ran at the same time (each took minutes, they started together)
+    assert started[3] < ended[2] and started[2] < ended[3]
+    a, b = results[2], results[3]
+    assert a["run_id"] != b["run_id"]
+    for robots, res in results.items():
+        assert res["robots"] == list(range(robots)), res
+        assert res["metric_robots"] == [str(r) for r in range(robots)], res
+        assert res["counters"] == sorted([*(f"agent/{r}" for r in range(robots)), "server", "world"]), res
+
+
+def _descendants(pid: int, cmdlines: dict[psutil.Process, str]) -> None:
+    """Add every live descendant of ``pid`` with its command line (read now: a dead process has none)."""
+    try:
+        children = psutil.Process(pid).children(recursive=True)
+    except psutil.NoSuchProcess:
+        return
+    for p in children:
+        if p not in cmdlines:
+            try:
+                cmdlines[p] = " ".join(p.cmdline())
+            except psutil.Error:
+                cmdlines[p] = ""
+
+
+def _with_run_id(run_id: str) -> list[psutil.Process]:
+    found = []
+    for p in psutil.process_iter(["cmdline"]):
+        try:
+            if run_id in " ".join(p.info["cmdline"] or ()) and p.status() != psutil.STATUS_ZOMBIE:
+                found.append(p)
+        except psutil.Error:
+            pass
+    return found
+
+
+def _alive(procs: list[psutil.Process]) -> list[psutil.Process]:
+    out = []
+    for p in procs:
+        try:
+            if p.is_running() and p.status() != psutil.STATUS_ZOMBIE:
+                out.append(p)
+        except psutil.NoSuchProcess:
+            pass
+    return out
+
+
+@pytest.mark.parametrize(("case", "code"), [("test_fails", 1), ("test_times_out", 1), ("test_times_out_hard", 1),
+                                            ("test_interrupted", 2)])
+def test_no_process_survives_a_failed_timed_out_or_interrupted_test(
+        tmp_path_factory: pytest.TempPathFactory, case: str, code: int) -> None:
+    folder = _outside(tmp_path_factory, case)
+    (folder / "test_strays.py").write_text(STRAY_TESTS)
+    ready = folder / "ready"
+    proc = _pytest(folder, f"test_strays.py::{case}", TSW_READY=str(ready))
+    seen: dict[psutil.Process, str] = {}
+    interrupted = False
+    deadline = time.monotonic() + 600
+    while proc.poll() is None:
+        assert time.monotonic() < deadline, "the pytest run never ended"
+        _descendants(proc.pid, seen)
+        if case == "test_interrupted" and ready.exists() and not interrupted:
+            proc.send_signal(signal.SIGINT)  # what Ctrl-C in a terminal sends to the foreground pytest
+            interrupted = True
+        time.sleep(0.2)  # sampling the process tree, not waiting for a result
+    out = proc.stdout.read() if proc.stdout else ""
+    assert proc.returncode == code, out[-6000:]
+    run_id = ready.read_text()
+    with_id = [cmd for cmd in seen.values() if run_id in cmd]
+    # the swarm was up while the test ran: server, two agents and the world carry its run id
+    assert len(with_id) >= 4, list(seen.values())
+    # the reaper acts once the pytest process is gone (os._exit): give the kernel a moment to deliver its SIGKILL
+    left = _alive(list(seen))
+    until = time.monotonic() + 15
+    while left and time.monotonic() < until:
+        time.sleep(0.1)
+        left = _alive(list(seen))
+    assert left == [], [(p.pid, seen[p]) for p in left]
+    assert _with_run_id(run_id) == []
+    print(json.dumps({"case": case, "exit_code": proc.returncode, "processes_seen": len(seen),
+                      "with_run_id": len(with_id)}))

@@ -4,9 +4,14 @@ Layout of a tagswarm recording:
 
 - one *raw* channel per Zenoh key, topic = the key itself (``tagswarm/<run>/robot/1/encoders``),
   message encoding ``msgpack``: every payload exactly as it came off the wire, so a replay is
-  byte-exact.  Its schema (encoding ``jsonschema``) is the msgspec JSON schema of the tagswarm
-  message type the key carries (``tagswarm.EncoderTicks``...); the channel metadata says
-  ``tagswarm_type`` and ``zenoh_key``.
+  byte-exact.  Which type a key carries comes from :mod:`tagswarm.protocol.wire` (every key of
+  a run, ``world/command`` and ``server/relocalisation`` included); the channel's schema
+  (encoding ``jsonschema``, name ``tagswarm.EncoderTicks``...) is that type's JSON Schema in
+  its msgpack form (:mod:`tagswarm.wireschema`: ``bytes`` are msgpack bin, not base64), and
+  the channel metadata says ``zenoh_key``, ``tagswarm_type``, ``zenoh_encoding``
+  (``application/msgpack;EncoderTicks``), ``qos``, ``sender`` and ``readers``.  Files written
+  before held msgspec's JSON-form schemas and fewer metadata entries: replay reads only the
+  raw payloads and never needs either.
 - Foxglove channels (protobuf, well-known ``foxglove.*`` schemas) for viewing, topics starting
   with ``/`` (see :mod:`tagswarm.recording.foxglove_views`).
 - log time = the message's simulation time ``stamp_ns``; publish time = the recorder's wall
@@ -21,86 +26,71 @@ import json
 from collections import Counter
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
+from functools import cache, lru_cache
 from pathlib import Path
 from typing import Any, Final
 
-import msgspec
 from mcap.exceptions import McapError
 from mcap.reader import make_reader
 from mcap.records import Channel, Chunk, ChunkIndex, DataEnd, Footer, Message, Metadata, Schema, Statistics
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
+from tagswarm import wireschema
 from tagswarm.protocol import messages as m
+from tagswarm.protocol import wire
 from tagswarm.protocol.errors import UsageError
-from tagswarm.protocol.keys import ROOT
+from tagswarm.protocol.keys import ROOT, KeyNameError, Keys
 
 RAW_ENCODING: Final = "msgpack"
 SCHEMA_ENCODING: Final = "jsonschema"
+SCHEMA_DIALECT: Final = "https://json-schema.org/draft/2020-12/schema"
 META_RUN: Final = "tagswarm"
 META_STATS: Final = "tagswarm.stats"
 COMPRESSION: Final = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
 
-# key shape after ``tagswarm/<run>/`` -> message type ("*" = any one chunk)
-_SHAPES: Final[tuple[tuple[tuple[str, ...], type[m.Msg]], ...]] = (
-    (("world", "tick"), m.Tick),
-    (("world", "ack", "*", "*"), m.TickAck),
-    (("world", "render", "*"), m.RenderPoses),
-    (("world", "status"), m.AgentStatus),
-    (("robot", "*", "camera", "*"), m.CameraImage),
-    (("robot", "*", "encoders"), m.EncoderTicks),
-    (("robot", "*", "cmd"), m.WheelCommand),
-    (("robot", "*", "truth"), m.GroundTruthPose),
-    (("robot", "*", "observation"), m.RelativeObservation),
-    (("robot", "*", "odometry"), m.OdometryEstimate),
-    (("robot", "*", "correction"), m.Correction),
-    (("robot", "*", "goal"), m.Goal),
-    (("robot", "*", "status"), m.AgentStatus),
-    (("server", "map"), m.GlobalMap),
-    (("server", "status"), m.AgentStatus),
-)
+_WORLD: Final = Keys("RUN")
 #: What the world process (and its render workers) publishes: the sensor streams a replay
-#: feeds to fresh agents and a fresh server.  Acks, render requests and every agent or
-#: server output are not in it.
-_WORLD_SHAPES: Final = frozenset({("world", "tick"), ("world", "status"), ("robot", "*", "camera", "*"),
-                                  ("robot", "*", "encoders"), ("robot", "*", "truth")})
+#: feeds to fresh agents and a fresh server (tick, world status, images, encoders, truth).
+#: Acks, render requests, world commands and every agent or server output are not in it.
+_WORLD_STREAMS: Final = frozenset(
+    spec for spec in wire.KEYS
+    if spec.pattern(_WORLD) in {_WORLD.tick(), _WORLD.world_status(), _WORLD.images(), _WORLD.encoders(),
+                                _WORLD.truth()})
 
 
-def _tail(key: str) -> tuple[str, ...] | None:
-    parts = key.split("/")
-    if len(parts) < 3 or parts[0] != ROOT:
+@lru_cache(maxsize=8192)  # a run has a few keys per robot, looked up for every message
+def spec_of(key: str) -> wire.KeySpec | None:
+    """The :class:`~tagswarm.protocol.wire.KeySpec` (message type, QoS, sender, readers) of
+    a concrete tagswarm key of any run, or None for a foreign or unknown key."""
+    run = run_of(key)
+    if run is None:
         return None
-    return tuple(parts[2:])
-
-
-def _shape_of(key: str) -> tuple[str, ...] | None:
-    tail = _tail(key)
-    if tail is None:
+    try:
+        keys = Keys(run)
+    except KeyNameError:
         return None
-    for shape, _ in _SHAPES:
-        if len(shape) == len(tail) and all(s == "*" or s == t for s, t in zip(shape, tail, strict=True)):
-            return shape
-    return None
+    return wire.spec_for_key(keys, key)
 
 
 def message_type_for_key(key: str) -> type[m.Msg] | None:
-    """The tagswarm message type a key carries (by its shape, see :mod:`tagswarm.protocol.keys`), or None."""
-    shape = _shape_of(key)
-    return None if shape is None else dict(_SHAPES)[shape]
+    """The tagswarm message type a key carries (from :mod:`tagswarm.protocol.wire`), or None."""
+    spec = spec_of(key)
+    return None if spec is None else spec.message
 
 
 def is_world_stream(key: str) -> bool:
     """True for the world's sensor streams: tick, world status, images, encoders, truth."""
-    return _shape_of(key) in _WORLD_SHAPES
+    return spec_of(key) in _WORLD_STREAMS
 
 
 def is_ack(key: str) -> bool:
     """True for a lockstep acknowledgement key (``.../world/ack/<role>/<id>``)."""
-    return _shape_of(key) == ("world", "ack", "*", "*")
+    return message_type_for_key(key) is m.TickAck
 
 
 def is_tick(key: str) -> bool:
-    return _shape_of(key) == ("world", "tick")
+    return message_type_for_key(key) is m.Tick
 
 
 def run_of(key: str) -> str | None:
@@ -149,10 +139,57 @@ def keyexpr_matches(pattern: str, key: str) -> bool:
     return match(0, 0)
 
 
+@cache
+def _wire_defs() -> dict[str, Any]:
+    return dict(wireschema.schema_dict()["$defs"])
+
+
+def _refs(node: Any) -> Iterator[str]:
+    if isinstance(node, dict):
+        ref = node.get("$ref")
+        if isinstance(ref, str) and ref.startswith("#/$defs/"):
+            yield ref.removeprefix("#/$defs/")
+        for v in node.values():
+            yield from _refs(v)
+    elif isinstance(node, list):
+        for v in node:
+            yield from _refs(v)
+
+
+@cache
 def json_schema(cls: type[m.Msg]) -> bytes:
-    """The msgspec JSON schema of one message type (bytes fields are base64 strings in
-    JSON; on the wire they are msgpack bin)."""
-    return json.dumps(msgspec.json.schema(cls), sort_keys=True).encode()
+    """The JSON Schema (draft 2020-12) of one message type in its msgpack form, the one
+    ``docs/messages.schema.json`` holds (:mod:`tagswarm.wireschema`): a map with string
+    keys, ``bytes`` fields as msgpack bin (``"format": "binary"``, not base64 strings),
+    self-contained (only the definitions it needs).  Recordings made before this wrote
+    msgspec's JSON form (base64 strings); readers never need the schema to replay."""
+    defs = _wire_defs()
+    needed, todo = set(), [cls.__name__]
+    while todo:
+        name = todo.pop()
+        if name not in needed:
+            needed.add(name)
+            todo.extend(_refs(defs[name]))
+    schema = {
+        "$schema": SCHEMA_DIALECT,
+        "title": f"tagswarm.{cls.__name__} (msgpack form)",
+        "$ref": f"#/$defs/{cls.__name__}",
+        "$defs": {name: defs[name] for name in sorted(needed)},
+        "x-zenoh-encoding": wire.encoding_of(cls),
+    }
+    return json.dumps(schema, sort_keys=True).encode()
+
+
+def channel_metadata(key: str) -> dict[str, str]:
+    """The metadata of the raw channel of ``key``: its Zenoh key, message type, Zenoh
+    encoding, QoS, sender and readers (from :mod:`tagswarm.protocol.wire`; empty strings
+    for a key the wire does not know)."""
+    spec = spec_of(key)
+    cls = None if spec is None else spec.message
+    return {"zenoh_key": key, "tagswarm_type": "" if cls is None else cls.__name__,
+            "zenoh_encoding": "" if cls is None else wire.encoding_of(cls),
+            "qos": "" if spec is None else spec.qos, "sender": "" if spec is None else spec.sender,
+            "readers": "" if spec is None else spec.receivers}
 
 
 # --------------------------------------------------------------------------- writing
@@ -182,12 +219,12 @@ class McapSink:
         return sid
 
     def raw_channel(self, key: str) -> int:
-        """The channel of Zenoh key ``key`` (msgpack payloads, JSON schema of its type)."""
+        """The channel of Zenoh key ``key`` (msgpack payloads, the msgpack-form JSON schema of its type)."""
         cid = self._channels.get(key)
         if cid is None:
             cls = message_type_for_key(key)
             sid = 0 if cls is None else self._schema(f"tagswarm.{cls.__name__}", SCHEMA_ENCODING, json_schema(cls))
-            meta = {"zenoh_key": key, "tagswarm_type": "" if cls is None else cls.__name__}
+            meta = channel_metadata(key)
             cid = self._channels[key] = self._writer.register_channel(key, RAW_ENCODING, sid, meta)
         return cid
 

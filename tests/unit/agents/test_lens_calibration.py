@@ -79,7 +79,8 @@ def test_calibration_error_is_seeded_per_robot_and_camera() -> None:
             for rid in range(300) for name in ("front", "back")]
     cals = [perturbed(c, err, seed=4) for c in base]
     again = [perturbed(c, err, seed=4) for c in base[:10]]
-    assert all(np.array_equal(a.K, b.K) and np.array_equal(a.T_base_cam, b.T_base_cam) for a, b in zip(again, cals))
+    for a, b in zip(again, cals[:10], strict=True):
+        assert np.array_equal(a.K, b.K) and np.array_equal(a.T_base_cam, b.T_base_cam)
     assert not np.array_equal(cals[0].K, cals[1].K) and not np.array_equal(cals[0].K, cals[2].K)
     assert not np.array_equal(perturbed(base[0], err, seed=5).K, cals[0].K)
     focal = np.array([c.K[0, 0] / 300.0 - 1 for c in cals])

@@ -62,14 +62,15 @@ def scene_run(up: Callable[..., Path], work: Path, scene: str, duration: float, 
         "time_localised_min_robot": min((v["time_localised"] for v in per_robot.values()
                                          if v["time_localised"] is not None), default=None),
         "relocalisations": sw.get("relocalisations"), "kidnaps": sw.get("kidnaps"), "contacts": sw.get("contacts"),
-        "nees": fused.get("nees"), "searches": sw.get("searches"), "rtf": m["cost"].get("real_time_factor"),
+        "nees": fused.get("nees"), "nees_nominal": fused.get("nees_nominal"),
+        "searches": sw.get("searches"), "rtf": m["cost"].get("real_time_factor"),
         "per_robot": per_robot,
     }
 
 
 def table_rows(results: list[dict[str, Any]]) -> list[list[str]]:
     """README-style rows: scene, robots, s, swarm RMSE, worst robot RMSE, worst final, time localised (swarm / worst
-    robot), re-localisations, kidnap recovery, robot-robot contacts, NEES median."""
+    robot), re-localisations, kidnap recovery, robot-robot contacts, NEES mean (outside kidnaps)."""
     def cm(v: float | None) -> str:
         return "-" if v is None else f"{100 * v:.1f}"
 
@@ -79,7 +80,7 @@ def table_rows(results: list[dict[str, Any]]) -> list[list[str]]:
         rec = "-" if not kid.get("count") else f"{kid.get('recovered')}/{kid.get('count')}, max " \
               f"{kid.get('max_time_to_relocalise_s') or float('nan'):.1f} s"
         tl, tlm = r.get("time_localised"), r.get("time_localised_min_robot")
-        nees = (r.get("nees") or {}).get("median")
+        nees = (r.get("nees_nominal") or r.get("nees") or {}).get("mean")
         rows.append([r["scene"], str(r["robots"]), f"{r['duration_s']:.0f}", cm(r["fused_ate_rmse_m"]),
                      cm(r["worst_robot_rmse_m"]), cm(r["worst_final_m"]),
                      "-" if tl is None else f"{100 * tl:.1f} / {100 * (tlm or 0):.1f} %",
@@ -90,7 +91,7 @@ def table_rows(results: list[dict[str, Any]]) -> list[list[str]]:
 
 
 HEADER = ["scene", "robots", "s", "swarm RMSE cm", "worst robot RMSE cm", "worst final cm", "time localised",
-          "re-loc.", "kidnaps", "robot contacts", "NEES median"]
+          "re-loc.", "kidnaps", "robot contacts", "NEES mean"]
 
 
 def main() -> int:

@@ -93,6 +93,8 @@ the true initial pose, so its error is pure drift).
     axes, see :mod:`tagswarm.evaluation.covframe`); 1 for a consistent estimator, above 1 an
     over-confident one.  Samples whose block is not positive definite are
     skipped.  ``null`` when no covariance was recorded.
+  - ``fused.nees_nominal``: the same without each kidnapped robot's samples from the
+    kidnap until it is localised again (a kidnap is outside the fusion's model).
   - ``relocalisations``: number of re-localisation events (see the top-level list).
   - ``kidnaps``: ``{"count", "recovered"`` (kidnaps with a
     ``time_to_relocalise_s``), ``"mean_time_to_relocalise_s"``,

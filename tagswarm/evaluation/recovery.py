@@ -124,11 +124,13 @@ def _yaw(traj: PoseTrajectory3D) -> F64:
     return np.asarray(np.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z)), float)
 
 
-def nees_samples(track: Track, cov: CovTrack | None, max_diff_s: float = ASSOC_MAX_DIFF_S) -> F64 | None:
+def nees_samples(track: Track, cov: CovTrack | None, max_diff_s: float = ASSOC_MAX_DIFF_S,
+                 exclude: Sequence[tuple[float, float]] = ()) -> F64 | None:
     """e^T P^-1 e / 2 for every sample of a fused ``track`` with a covariance within
     ``max_diff_s`` of its stamp: e the map-frame position error, P the 2x2 position
     block of that covariance rotated into the map frame by the estimate's yaw.  A
-    covariance that is not positive definite is skipped.  ``None`` without covariances."""
+    covariance that is not positive definite is skipped, and so is a sample inside one
+    of the ``exclude`` intervals ``(t0_s, t1_s)``.  ``None`` without covariances."""
     if cov is None or cov.stamp_s.size == 0:
         return None
     s = track.stamps_s
@@ -140,7 +142,7 @@ def nees_samples(track: Track, cov: CovTrack | None, max_diff_s: float = ASSOC_M
     yaw = _yaw(track.est)
     out = []
     for i, c in enumerate(pick):
-        if abs(cov.stamp_s[c] - s[i]) > max_diff_s:
+        if abs(cov.stamp_s[c] - s[i]) > max_diff_s or any(t0 <= s[i] <= t1 for t0, t1 in exclude):
             continue
         sxx, sxy, syy = position_cov_in_map(cov.cov[c].ravel(), float(yaw[i]))
         det = sxx * syy - sxy * sxy
@@ -289,17 +291,24 @@ def recovery_metrics(run: RunData, tracks: dict[tuple[int, str], Track], robots_
                 fused_signals[k] = sig
         swarm[kind]["time_localised"] = time_localised(signals)
 
-    pooled: list[F64] = []
-    for k in run.robots:
-        tr = tracks.get((k, "fused"))
-        values = nees_samples(tr, run.fused_cov.get(k)) if tr is not None else None
-        robots_out[str(k)]["fused"]["nees"] = nees_stats(values)
-        if values is not None:
-            pooled.append(values)
-    swarm["fused"]["nees"] = nees_stats(np.concatenate(pooled)) if pooled else None
-
     relocs = relocalisation_events([e for e in run.relocalisations if e.robot in run.robots], tracks)
     kidnaps = kidnap_records(run, kidnaps_of(run, warnings), fused_signals, run.relocalisations)
+
+    # NEES judges the covariance against the errors the fusion models; a kidnap is outside that model
+    # (the robot is carried off, its wheels never turn), so "nees_nominal" leaves out each kidnapped
+    # robot from the kidnap until it is localised again (or the end of the run)
+    pooled: dict[str, list[F64]] = {"nees": [], "nees_nominal": []}
+    for k in run.robots:
+        tr = tracks.get((k, "fused"))
+        windows = [(e["t_s"], math.inf if e["time_to_relocalise_s"] is None else e["t_s"] + e["time_to_relocalise_s"])
+                   for e in kidnaps if e["robot"] == k]
+        for key, exclude in (("nees", []), ("nees_nominal", windows)):
+            values = nees_samples(tr, run.fused_cov.get(k), exclude=exclude) if tr is not None else None
+            robots_out[str(k)]["fused"][key] = nees_stats(values)
+            if values is not None:
+                pooled[key].append(values)
+    for key, chunks in pooled.items():
+        swarm["fused"][key] = nees_stats(np.concatenate(chunks)) if chunks else None
     swarm_contacts, robot_contacts = contacts(run)
     for k in run.robots:
         r = robots_out[str(k)]

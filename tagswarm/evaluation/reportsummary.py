@@ -38,7 +38,7 @@ def _pct(value: Any) -> str:
 
 
 def _nees(block: dict[str, Any] | None) -> str:
-    n = (block or {}).get("nees")
+    n = (block or {}).get("nees_nominal") or (block or {}).get("nees")
     return f"{n['mean']:.2f} / {n['median']:.2f}" if n else "—"
 
 
@@ -47,7 +47,7 @@ def summary_tables(metrics: dict[str, Any]) -> tuple[Table, Table, Table]:
     row.  ATE and RPE are RMSEs in metres ("map" = unaligned in the map frame,
     "aligned" = after the swarm's shared SE(2) alignment; RPE in m per m travelled);
     "time localised" is the share of time with fused error under
-    ``settings.localised_m``, NEES the fused position's mean / median."""
+    ``settings.localised_m``, NEES the fused position's mean / median outside kidnaps."""
     acc = Table(title="accuracy: RMSE in m (RPE: m per m travelled)", box=box.SIMPLE_HEAD)
     loc = Table(title="localisation and recovery", box=box.SIMPLE_HEAD)
     beh = Table(title="behaviour and cost", box=box.SIMPLE_HEAD)

@@ -296,3 +296,20 @@ def test_recorder_writes_what_the_reader_reads(tmp_path: Path) -> None:
     assert ct is not None and ct.stamp_s.tolist() == [0.0, 0.1, 0.2]
     assert ct.cov[2].ravel().tolist() == list(cov)
     assert run.fused_cov[0] is None  # a header and no row
+
+
+def test_nominal_nees_leaves_out_a_kidnapped_robot_until_it_is_found_again(tmp_path: Path) -> None:
+    run = kidnap_run(tmp_path, scenario=scheduled((5.0, 1, "teleport"), (8.5, 2, "push")))
+    cov = np.diag([0.05**2, 0.05**2, 0.01])
+    for k in (1, 2):
+        write_cov(run, k, T10, cov)
+    m = compute_metrics(run)
+    r1, r2 = m["robots"]["1"]["fused"], m["robots"]["2"]["fused"]
+    # robot 1: error 0 until 5.0 s, 1 m (NEES 200) from 5.1 to 6.4 s, 5 cm (NEES 0.5) from 6.5 s on;
+    # found again at 6.5 s, so only 5.0 .. 6.5 s are left out
+    assert r1["nees"]["count"] == 101 and r1["nees"]["mean"] > 20
+    assert r1["nees_nominal"]["count"] == 101 - 16
+    assert r1["nees_nominal"]["mean"] == pytest.approx(0.5 * 35 / 85)  # 0 .. 4.9 s at 0, 6.6 .. 10 s at 0.5
+    # robot 2 is never found again: everything from its kidnap on is left out
+    assert r2["nees_nominal"]["count"] == 85 and r2["nees_nominal"]["mean"] == 0.0
+    assert m["swarm"]["fused"]["nees_nominal"]["count"] == 85 + 85

@@ -4,7 +4,8 @@ the paper scenario (lockstep, seed 0, 20 s) with the example controller
 example's circle (not the built-in patrol) while the server localises it like the
 built-in agents.  In the same run robot 1's controller raises on every cycle: its agent
 logs that once, stands the robot still and keeps serving.  A controller that drives
-robot 3 straight at robot 0 is stopped short of it by the collision filter.  A broken module stops
+robot 3 straight at robot 0 (and asks for camera frames) is stopped short of it by the
+collision filter.  A broken module stops
 ``tagswarm up`` and ``tagswarm-agent`` at start with exit code 2 and one line."""
 
 from __future__ import annotations
@@ -46,11 +47,21 @@ def make_controller(config):
 
 
 STRAIGHT_SOURCE = """
-from tagswarm.agents.controller import Controller, Twist
+from tagswarm.agents.controller import Controller, Twist, gray
 
 
 class Straight(Controller):
+    wants_images = True
+    mode = "blind"
+
     def step(self, inputs):
+        # the mode (modes.csv) tells the test what the controller was given: camera frames, then
+        # robot 0 seen ahead (x forward, y left in this robot's frame)
+        if self.mode == "blind" and any(gray(img).shape == (240, 320) for img in inputs.images.values()):
+            self.mode = "seeing"
+        if self.mode == "seeing" and any(o.target_kind == "robot" and o.target_id == 0 and o.x_m > 0.3
+                                         and abs(o.y_m) < 0.5 * o.x_m for o in inputs.observations):
+            self.mode = "sees-robot-0"
         return Twist(0.25, 0.0)  # robot 3 starts facing robot 0, 2.7 m away: contact after about 9 s
 
 
@@ -156,6 +167,9 @@ def test_collision_avoidance_filters_a_controller_driving_into_a_robot(tmp_path:
     assert metrics["swarm"]["contacts"]["robot_robot"] == 0
     counters = json.loads((out / "run.json").read_text())["counters"][f"agent/{ROBOT}"]
     assert counters["controller_filtered"] > 0 and counters["controller_errors"] == 0
+    with open(out / "modes.csv") as fh:
+        modes = [row["mode"] for row in csv.DictReader(fh) if int(row["robot"]) == ROBOT]
+    assert modes[-1] == "sees-robot-0", modes  # it got its camera frames and its observations
 
 
 def test_a_broken_module_exits_2_with_one_line(tmp_path: Path) -> None:

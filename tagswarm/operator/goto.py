@@ -3,11 +3,14 @@
 Joins the network with the same flags and ``TAGSWARM_*`` variables as every
 process, waits (up to ``--timeout``) until the agent's liveliness token
 ``tagswarm/<run>/alive/agent/ROBOT`` is visible, so that its goal subscriber is
-known (agents subscribe before they declare the token), then publishes one
-:class:`tagswarm.protocol.messages.Goal` on ``tagswarm/<run>/robot/ROBOT/goal`` and
+known (agents subscribe before they declare the token), then, within the same
+``--timeout``, until this session knows a subscriber of
+``tagswarm/<run>/robot/ROBOT/goal`` (Zenoh matching status: a put before that
+would be lost), publishes one :class:`tagswarm.protocol.messages.Goal` there and
 exits 0.  The goal is stamped with the simulation time of the newest world
 tick, if the world is ticking.  Exit 1 (one line) when the agent is not alive;
-exit 2 (one line) for bad arguments, e.g. a non-finite X or Y.
+exit 2 (one line) for bad arguments, e.g. a non-finite X or Y, or when nobody
+subscribes to the goal key within ``--timeout``.
 """
 
 from __future__ import annotations
@@ -15,9 +18,10 @@ from __future__ import annotations
 import argparse
 import math
 import sys
+import time
 from collections.abc import Sequence
 
-from tagswarm.operator.reach import MAX_ROBOT_ID, TICK_WAIT_S, next_tick, wait_alive
+from tagswarm.operator.reach import MAX_ROBOT_ID, TICK_WAIT_S, next_tick, publish_once, wait_alive
 from tagswarm.protocol import codec
 from tagswarm.protocol import messages as m
 from tagswarm.protocol.bus import open_bus
@@ -36,7 +40,8 @@ def parser() -> OneLineParser:
     p.add_argument("--tolerance", type=float, default=0.1, metavar="M",
                    help="the robot stops within this distance of the goal (default 0.1)")
     p.add_argument("--timeout", type=float, default=10.0, metavar="SECONDS",
-                   help="how long to wait for the agent's liveliness token (default 10)")
+                   help="how long to wait for the agent's liveliness token and a subscriber of the goal key, "
+                   "in all (default 10)")
     add_common_args(p)
     return p
 
@@ -67,13 +72,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         participant = f"agent/{args.robot}"
         alive_key = keys.alive(participant)
         with open_bus(inv.bus()) as bus:
+            deadline = time.monotonic() + args.timeout
             if not wait_alive(bus, alive_key, args.timeout):
                 sys.stderr.write(f"{PROG}: error: {participant} is not alive on run {run!r} "
                                  f"(no liveliness token {alive_key} after {args.timeout:g} s)\n")
                 return 1
             tick = next_tick(bus, keys, TICK_WAIT_S, lambda t: t.stamp_ns > 0)  # stamped like the world's time
             goal = make_goal(args.robot, args.x, args.y, args.tolerance, tick.stamp_ns if tick is not None else 0)
-            bus.put(keys.goal(args.robot), codec.encode(goal))
+            publish_once(bus, keys.goal(args.robot), codec.encode(goal), max(0.0, deadline - time.monotonic()))
             # a round trip on the same link before closing the session, so the goal is on its way
             bus.alive_now(alive_key, 1.0)
         print(f"goal ({goal.x_m:.2f}, {goal.y_m:.2f}) ±{goal.tolerance_m:g} m sent to {participant} "

@@ -11,8 +11,10 @@ encoders and odometry do not see the move: a kidnapped robot.
 Joins the network with the same flags and ``TAGSWARM_*`` variables as every
 process, waits (up to ``--timeout``) until the world's liveliness token
 ``tagswarm/<run>/alive/world/0`` is visible (the world subscribes before it
-declares it), publishes one :class:`tagswarm.protocol.messages.WorldCommand` on
-``tagswarm/<run>/world/command`` and exits 0.  The world applies it at the
+declares it) and, within the same ``--timeout``, until this session knows a
+subscriber of ``tagswarm/<run>/world/command`` (Zenoh matching status: a put
+before that would be lost), publishes one
+:class:`tagswarm.protocol.messages.WorldCommand` there and exits 0.  The world applies it at the
 first step whose simulation time is >= ``--at`` seconds (default: its next
 step).  ``--at`` is rounded up to a whole world tick, so a lockstep run with the
 same ``--at`` is repeatable: the tick length comes from the world's next tick,
@@ -22,7 +24,8 @@ participant), from ``clock.tick_hz`` of the scenario given here (``--scenario``,
 world refuses (and counts as ``world_command_rejected`` in its status, with a
 log line) a robot it does not have, a pose outside the arena walls or
 overlapping a wall, obstacle or another robot.  Exit 1 (one line) when the
-world is not alive; exit 2 (one line) for bad arguments.
+world is not alive; exit 2 (one line) for bad arguments or when nobody subscribes
+to the command key within ``--timeout``.
 """
 
 from __future__ import annotations
@@ -30,9 +33,10 @@ from __future__ import annotations
 import argparse
 import math
 import sys
+import time
 from collections.abc import Sequence
 
-from tagswarm.operator.reach import MAX_ROBOT_ID, TICK_WAIT_S, next_tick, wait_alive
+from tagswarm.operator.reach import MAX_ROBOT_ID, TICK_WAIT_S, next_tick, publish_once, wait_alive
 from tagswarm.protocol import codec
 from tagswarm.protocol import messages as m
 from tagswarm.protocol.bus import open_bus
@@ -60,7 +64,8 @@ def parser() -> OneLineParser:
     p.add_argument("--at", type=float, default=None, metavar="SECONDS",
                    help="simulation time to apply it at (default: the world's next step)")
     p.add_argument("--timeout", type=float, default=10.0, metavar="SECONDS",
-                   help="how long to wait for the world's liveliness token (default 10)")
+                   help="how long to wait for the world's liveliness token and a subscriber of the command "
+                   "key, in all (default 10)")
     add_common_args(p)
     return p
 
@@ -107,6 +112,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         scenario_dt_ns = round(1e9 / inv.scenario().clock.tick_hz) if args.at is not None else None
         alive_key = keys.alive("world/0")
         with open_bus(inv.bus()) as bus:
+            deadline = time.monotonic() + args.timeout
             if not wait_alive(bus, alive_key, args.timeout):
                 sys.stderr.write(f"{PROG}: error: the world is not alive on run {run!r} "
                                  f"(no liveliness token {alive_key} after {args.timeout:g} s)\n")
@@ -116,7 +122,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                 tick = next_tick(bus, keys, TICK_WAIT_S)
                 stamp = stamp_for(args.at, (tick.dt_ns if tick is not None else None) or scenario_dt_ns)
             cmd = make_command(args.robot, args.x, args.y, args.yaw, args.push, stamp)
-            bus.put(keys.world_command(), codec.encode(cmd))
+            publish_once(bus, keys.world_command(), codec.encode(cmd), max(0.0, deadline - time.monotonic()))
             # a round trip on the same link before closing the session, so the command is on its way
             bus.alive_now(alive_key, 1.0)
         when = "at the world's next step" if stamp == 0 else f"at t={stamp / 1e9:.3f} s"

@@ -1,14 +1,28 @@
 """Reaching a running system from an operator command: wait for a participant's liveliness
 token, read the next world tick (the simulation time and tick length a command is stamped
-with).  Undecodable ticks are skipped, never raised."""
+with), wait until the command's key has a subscriber, publish once.  Undecodable ticks are
+skipped, never raised.
+
+Why wait for a subscriber: a command publishes one message and exits.  A Zenoh put goes
+only to the subscribers this session already knows of, and a subscription is learnt
+asynchronously after the session opens (and after the liveliness token the command waited
+for: another process, such as a recorder that joined a moment ago, may subscribe through a
+link that is still being set up).  A put before that is silently lost.  The publisher's
+*matching status* (Zenoh 1.x) says when the session knows at least one matching
+subscriber, so :func:`publish_once` waits for it, publishes, and leaves the session to be
+closed by ``open_bus`` (closing drains Zenoh's transmission queues).
+"""
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Callable
+from typing import Any
 
 from tagswarm.protocol import codec
 from tagswarm.protocol import messages as m
 from tagswarm.protocol.bus import Bus
+from tagswarm.protocol.errors import UsageError
 from tagswarm.protocol.keys import Keys
 
 MAX_ROBOT_ID = 100_000  # tagswarm.protocol.messages.RobotId
@@ -48,3 +62,37 @@ def next_tick(bus: Bus, keys: Keys, timeout_s: float,
 
     bus.wait_for(got, timeout_s)
     return found
+
+
+class NoSubscriberError(UsageError):
+    """Nobody subscribes to a command's key: exit 2, one line."""
+
+
+def wait_matched(bus: Bus, key: str, timeout_s: float) -> bool:
+    """True once this session knows of a subscriber matching ``key`` (any process, this one
+    included), False after ``timeout_s`` wall seconds.  Uses a probe publisher's matching
+    listener (no polling); the probe is undeclared before returning, which does not make
+    the session forget the subscribers it learnt."""
+    # protocol/bus.py has no matching-status call (yet): the session is reached directly
+    session = bus._session
+    matched = threading.Event()
+    probe = session.declare_publisher(key)
+    try:
+        listener = probe.declare_matching_listener(lambda status: matched.set() if status.matching else None)
+        try:
+            # a MatchingStatus (zenoh 1.10's stub says bool, and any object is truthy)
+            now: Any = probe.matching_status
+            return bool(now.matching) or matched.wait(timeout_s)
+        finally:
+            listener.undeclare()
+    finally:
+        probe.undeclare()
+
+
+def publish_once(bus: Bus, key: str, payload: bytes, timeout_s: float) -> None:
+    """Publish ``payload`` on ``key`` once a subscriber is known (see the module docstring);
+    :class:`NoSubscriberError` if none is within ``timeout_s`` wall seconds."""
+    if not wait_matched(bus, key, timeout_s):
+        raise NoSubscriberError(f"nobody subscribes to {key} (waited {timeout_s:g} s): "
+                                "is the process that reads it running on this run and network?")
+    bus.put(key, payload)

@@ -106,12 +106,22 @@ def undistort(pixels: NDArray[np.float64], model: str, K: NDArray[np.float64], D
 class RenderPlan:
     """How to render one camera: the pinhole ``render_cam`` (a Camera of the render's size and
     field of view, same mount) and the ``cv2.remap`` maps from it to the lens's image
-    (None for a pinhole lens: the render is the image)."""
+    (None for a pinhole lens: the render is the image; fixed point, and ``float_maps`` the
+    same in float for motion blur)."""
 
     lens: Lens
     render_cam: Camera
     K_render: NDArray[np.float64]
     maps: tuple[Any, Any] | None = field(default=None, repr=False)
+    float_maps: tuple[NDArray[np.float32], NDArray[np.float32]] | None = field(default=None, repr=False)
+
+    def sample_maps(self) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+        """Where each output pixel samples the render (float (H, W) maps; the pixel grid for a pinhole)."""
+        if self.float_maps is None:
+            gu, gv = np.meshgrid(np.arange(self.render_cam.width, dtype=np.float32),
+                                 np.arange(self.render_cam.height, dtype=np.float32))
+            self.float_maps = (gu, gv)
+        return self.float_maps
 
     def apply(self, render: NDArray[Any], interpolation: int = cv2.INTER_LINEAR) -> NDArray[Any]:
         """The lens's image of a pinhole ``render`` (H_r, W_r) of :attr:`render_cam`."""
@@ -145,4 +155,4 @@ def plan(cam: Camera, preset: str) -> RenderPlan:
     map_x = (fx * xy[:, 0] + cx).reshape(cam.height, cam.width).astype(np.float32)
     map_y = (fy * xy[:, 1] + cy).reshape(cam.height, cam.width).astype(np.float32)
     fixed = cv2.convertMaps(map_x, map_y, cv2.CV_16SC2)  # fixed point: ~2x faster remap, 1/32 px steps
-    return RenderPlan(lens, render_cam, k_r, (fixed[0], fixed[1]))
+    return RenderPlan(lens, render_cam, k_r, (fixed[0], fixed[1]), (map_x, map_y))

@@ -31,7 +31,17 @@ from tagswarm.world import assets
 from tagswarm.world._pybullet import pb
 from tagswarm.world.camera import mount_transform, vfov_deg
 from tagswarm.world.lens import Lens, RenderPlan, lens_for, plan
-from tagswarm.world.sensor import camera_twist, develop, frame_rng, linear_depth, motion_blur, vignetting_gain
+from tagswarm.world.sensor import (
+    NoiseBank,
+    camera_twist,
+    develop,
+    expose,
+    exposure_maps,
+    frame_rng,
+    linear_depth,
+    tone,
+    vignetting_gain,
+)
 
 WALL_RGBA = (0.55, 0.55, 0.6, 1.0)
 OBSTACLE_RGBA = (0.45, 0.35, 0.3, 1.0)
@@ -56,7 +66,8 @@ class Renderer:
         self._sensor = scenario.camera.resolved()
         self._effects = scenario.camera.has_effects
         self._plans: dict[str, RenderPlan] = {}
-        self._gain: dict[str, NDArray[np.float32] | None] = {}
+        self._tone: dict[str, tuple[NDArray[np.float32], float]] = {}
+        self._banks: dict[str, NoiseBank] = {}
         self._poses: dict[int, Mat] = {}
         # per robot: (stamp, T_world_base) of the two newest instants this renderer developed a frame at
         self._track: dict[int, tuple[tuple[int, Mat], tuple[int, Mat] | None]] = {}
@@ -190,18 +201,22 @@ class Renderer:
         """The finished frame: motion blur on the pinhole render, the lens, then vignetting,
         contrast/brightness and noise seeded by (scenario seed, robot, camera, tick)."""
         p = self.plan(cam)
-        img = gray.astype(np.float32)
-        if depth is not None:
-            twist = self._twist(robot_id, cam, base_pose, stamp_ns)
-            img = motion_blur(img, depth, p.K_render, twist, float(self._sensor.exposure_ms or 0.0) * 1e-3)
-        else:
-            self._twist(robot_id, cam, base_pose, stamp_ns)
-        img = np.asarray(p.apply(img), np.float32)
-        if cam.name not in self._gain:
+        twist = self._twist(robot_id, cam, base_pose, stamp_ns)
+        maps = None if depth is None else exposure_maps(*p.sample_maps(), depth, p.K_render, twist,
+                                                         float(self._sensor.exposure_ms or 0.0) * 1e-3)
+        # the blur's sub-exposures sample the render through the lens directly: one resampling in all
+        img = np.asarray(p.apply(gray.astype(np.float32)), np.float32) if maps is None \
+            else expose(gray.astype(np.float32), maps)
+        toned = self._tone.get(cam.name)
+        if toned is None:
             v = self._sensor.vignetting or 0.0
-            self._gain[cam.name] = vignetting_gain(cam.width, cam.height, p.lens.K, v) if v > 0 else None
+            gain = vignetting_gain(cam.width, cam.height, p.lens.K, v) if v > 0 else None
+            toned = self._tone[cam.name] = tone(self._sensor, gain, (cam.height, cam.width))
+        bank = self._banks.get(cam.name)
+        if bank is None:
+            bank = self._banks[cam.name] = NoiseBank(self.scenario.seed, cam.name, cam.width * cam.height)
         rng = frame_rng(self.scenario.seed, robot_id, cam.name, step)
-        return develop(img, self._sensor, rng, self._gain[cam.name])
+        return develop(img, self._sensor, rng, toned=toned, bank=bank)
 
     def close(self) -> None:
         """Disconnect the pybullet client and remove temporary assets."""

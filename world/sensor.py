@@ -21,6 +21,9 @@ from numpy.typing import NDArray
 from tagswarm.protocol.geometry import Mat
 from tagswarm.protocol.scenario import CameraSensor
 
+#: a camera's noise bank holds this many frames' worth of normal samples (see NoiseBank)
+BANK_FRAMES: Final = 8
+_BANK_STREAM: Final = 0xBA4C
 #: at most this many sub-exposures are averaged for a motion blur (longer streaks are sampled sparser)
 MAX_BLUR_SAMPLES: Final = 16
 #: camera motion between two frames beyond these rates is a jump (teleport, restart), not motion
@@ -57,48 +60,83 @@ def camera_twist(t_wc_prev: Mat, t_wc_now: Mat, dt_s: float) -> NDArray[np.float
     return np.concatenate([v, w])
 
 
-def blur_flow(depth_m: F32, K: Mat, twist: NDArray[np.float64], tau_s: float) -> tuple[F32, F32]:
-    """The image motion (du, dv) (H, W) of each pixel's scene point ``tau_s`` seconds later, seen
-    by a pinhole ``K`` moving with ``twist`` (optical frame)."""
-    h, w = depth_m.shape
-    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
-    xn = ((np.arange(w, dtype=np.float32) - np.float32(cx)) / np.float32(fx))[None, :]
-    yn = ((np.arange(h, dtype=np.float32) - np.float32(cy)) / np.float32(fy))[:, None]
+#: the image motion is computed on a grid this many pixels apart and interpolated (it is smooth but
+#: at depth edges, where a streak's length changes by a fraction of a pixel)
+FLOW_GRID_PX: Final = 4
+_GRIDS: dict[tuple[int, int], tuple[F32, F32]] = {}
+
+
+def _pixel_grid(h: int, w: int) -> tuple[F32, F32]:
+    """(u, v) coordinates of every pixel of an (h, w) image (cached per size)."""
+    g = _GRIDS.get((h, w))
+    if g is None:
+        gu, gv = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
+        g = _GRIDS[(h, w)] = (gu, gv)
+    return g
+
+
+def blur_flow(xn: F32, yn: F32, depth_m: F32, twist: NDArray[np.float64], tau_s: float) -> tuple[F32, F32]:
+    """The motion (dxn, dyn) in normalised image coordinates of the scene points seen at
+    (``xn``, ``yn``) at depth ``depth_m`` (broadcastable arrays) ``tau_s`` seconds later, by a
+    camera moving with ``twist`` (optical frame)."""
     r = _rodrigues(twist[3:] * tau_s).T.astype(np.float32)  # points move opposite to the camera
     t = (twist[:3] * tau_s).astype(np.float32)
     inv_z = 1.0 / np.maximum(depth_m, np.float32(1e-3))
     # (R (X - t)) / z with X = z (xn, yn, 1): rotation terms need no depth, translation terms 1/z
-    tx = r[0] @ t
-    ty = r[1] @ t
-    tz = r[2] @ t
+    tx, ty, tz = r[0] @ t, r[1] @ t, r[2] @ t
     x2 = r[0, 0] * xn + r[0, 1] * yn + r[0, 2] - tx * inv_z
     y2 = r[1, 0] * xn + r[1, 1] * yn + r[1, 2] - ty * inv_z
     z2 = np.maximum(r[2, 0] * xn + r[2, 1] * yn + r[2, 2] - tz * inv_z, np.float32(1e-3))
-    return (np.float32(fx) * (x2 / z2 - xn)).astype(np.float32), (np.float32(fy) * (y2 / z2 - yn)).astype(np.float32)
+    return np.asarray(x2 / z2 - xn, np.float32), np.asarray(y2 / z2 - yn, np.float32)
 
 
-def motion_blur(img: F32, depth_m: F32, K: Mat, twist: NDArray[np.float64] | None, exposure_s: float) -> F32:
-    """``img`` (H, W) of a pinhole ``K`` averaged over an exposure of ``exposure_s`` centred on
-    its instant, the camera moving with ``twist``: each sub-exposure is the frame warped by the
-    image motion of its time (linear in time over the exposure; depth of the centre frame, so
-    occlusions changing within the exposure are ignored).  As many sub-exposures as the streak
-    is long in pixels (at most :data:`MAX_BLUR_SAMPLES`)."""
+def exposure_maps(map_x: F32, map_y: F32, depth_m: F32, K: Mat, twist: NDArray[np.float64] | None,
+                  exposure_s: float) -> list[tuple[F32, F32]] | None:
+    """Sampling maps of the sub-exposures of one frame: the output pixel q of sub-exposure i shows
+    the pinhole render (intrinsics ``K``, depth ``depth_m``) at ``map(q) - a_i flow(map(q))``,
+    with ``map`` the lens's maps into the render (float (H, W); the pixel grid for a pinhole),
+    ``flow`` the image motion over half the exposure of a camera moving with ``twist`` and a_i
+    spread over -1..1.  The motion is linear in time over the exposure and computed on a
+    :data:`FLOW_GRID_PX` grid (it is smooth but at depth edges); the depth is the centre
+    frame's, so occlusions changing within the exposure are ignored.  As many sub-exposures as
+    the streak is long in pixels (at most :data:`MAX_BLUR_SAMPLES`); None when it is under 2."""
     if twist is None or exposure_s <= 0:
-        return img
-    du, dv = blur_flow(depth_m, K, twist, exposure_s / 2.0)
+        return None
+    g = FLOW_GRID_PX
+    mx, my = map_x[::g, ::g], map_y[::g, ::g]
+    hd, wd = depth_m.shape
+    d = depth_m[np.clip(np.rint(my).astype(np.intp), 0, hd - 1), np.clip(np.rint(mx).astype(np.intp), 0, wd - 1)]
+    fx, fy, cx, cy = (np.float32(v) for v in (K[0, 0], K[1, 1], K[0, 2], K[1, 2]))
+    dx, dy = blur_flow((mx - cx) / fx, (my - cy) / fy, d, twist, exposure_s / 2.0)
+    du, dv = dx * fx, dy * fy
     streak = 2.0 * float(np.sqrt((du * du + dv * dv).max()))
     n = min(MAX_BLUR_SAMPLES, math.ceil(streak))
     if n < 2:
-        return img
-    h, w = img.shape
-    gu, gv = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
-    acc = np.zeros_like(img)
+        return None
+    h, w = map_x.shape
+    du = np.asarray(cv2.resize(du, (w, h), interpolation=cv2.INTER_LINEAR), np.float32)
+    dv = np.asarray(cv2.resize(dv, (w, h), interpolation=cv2.INTER_LINEAR), np.float32)
+    out = []
     for i in range(n):
-        a = np.float32(2.0 * ((i + 0.5) / n - 0.5))  # -1 .. 1 over the exposure
-        # backward warp: the sub-exposure at pixel q shows what the centre frame has at q - flow(q)
-        acc += np.asarray(cv2.remap(img, gu - a * du, gv - a * dv, cv2.INTER_LINEAR,
-                                    borderMode=cv2.BORDER_REPLICATE), np.float32)
-    return acc / np.float32(n)
+        a = np.float32(2.0 * ((i + 0.5) / n - 0.5))
+        out.append((map_x - a * du, map_y - a * dv))
+    return out
+
+
+def expose(render: F32, maps: list[tuple[F32, F32]]) -> F32:
+    """The mean of the sub-exposures sampled from ``render`` through ``maps`` (:func:`exposure_maps`)."""
+    acc = np.zeros(maps[0][0].shape, np.float32)
+    for mx, my in maps:
+        acc += np.asarray(cv2.remap(render, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE), np.float32)
+    return acc / np.float32(len(maps))
+
+
+def motion_blur(img: F32, depth_m: F32, K: Mat, twist: NDArray[np.float64] | None, exposure_s: float) -> F32:
+    """A pinhole frame ``img`` (H, W, intrinsics ``K``) exposed for ``exposure_s`` by a camera
+    moving with ``twist``: :func:`exposure_maps` through the identity."""
+    gu, gv = _pixel_grid(*img.shape)
+    maps = exposure_maps(gu, gv, depth_m, K, twist, exposure_s)
+    return img if maps is None else expose(img, maps)
 
 
 def vignetting_gain(width: int, height: int, K: Mat, strength: float) -> F32:
@@ -111,19 +149,50 @@ def vignetting_gain(width: int, height: int, K: Mat, strength: float) -> F32:
     return np.asarray(1.0 - strength * r2 / corner2, np.float32)
 
 
-def develop(img: F32, cfg: CameraSensor, rng: np.random.Generator, gain: F32 | None = None) -> NDArray[np.uint8]:
-    """The 8-bit frame of a light image ``img`` (H, W, DN): vignetting ``gain``, contrast about
-    mid-grey and brightness, shot noise (signal / ``electrons_per_dn`` DN^2), read noise (Gaussian, DN),
-    rounded and clipped.  ``cfg`` is a resolved ``[camera]`` section."""
-    out = img if gain is None else img * gain
+def tone(cfg: CameraSensor, gain: F32 | None, shape: tuple[int, int]) -> tuple[F32, float]:
+    """(scale (H, W), offset) with ``scale * light + offset`` the frame before noise: vignetting
+    ``gain``, contrast about mid-grey 128 and brightness, in one multiply-add."""
     contrast = 1.0 if cfg.contrast is None else cfg.contrast
-    out = (out - 128.0) * contrast + 128.0 + (cfg.brightness_dn or 0.0)
-    out = np.clip(out, 0.0, 255.0)
+    scale = np.full(shape, contrast, np.float32) if gain is None else np.asarray(gain * np.float32(contrast),
+                                                                                  np.float32)
+    return scale, 128.0 * (1.0 - contrast) + (cfg.brightness_dn or 0.0)
+
+
+def normals(rng: np.random.Generator, shape: tuple[int, ...]) -> F32:
+    """Fresh standard normal samples."""
+    return rng.standard_normal(shape, dtype=np.float32)
+
+
+class NoiseBank:
+    """Standard normal samples for one camera's frames, drawn once (seeded): a frame takes
+    :data:`BANK_FRAMES` frames' worth at a random offset (its own seeded generator), because
+    drawing a frame's ~10^5 fresh normals costs about as much as rendering it.  Each pixel's
+    noise is still N(0, 1) and independent of its neighbours; two frames' noise fields are the
+    same sequence at offsets a random distance apart, which no detector can exploit."""
+
+    def __init__(self, seed: int, camera: str, size: int) -> None:
+        self.samples = np.random.default_rng([seed, zlib.crc32(camera.encode()), _BANK_STREAM]).standard_normal(
+            size * BANK_FRAMES, dtype=np.float32)
+
+    def draw(self, rng: np.random.Generator, shape: tuple[int, ...]) -> F32:
+        n = int(np.prod(shape))
+        off = int(rng.integers(0, len(self.samples) - n + 1))
+        return self.samples[off:off + n].reshape(shape)
+
+
+def develop(img: F32, cfg: CameraSensor, rng: np.random.Generator, gain: F32 | None = None,
+            toned: tuple[F32, float] | None = None, bank: NoiseBank | None = None) -> NDArray[np.uint8]:
+    """The 8-bit frame of a light image ``img`` (H, W, DN): vignetting ``gain``, contrast about
+    mid-grey and brightness (or their precomputed :func:`tone`), shot noise (variance signal /
+    ``electrons_per_dn``, DN^2) and read noise (Gaussian, DN), rounded and clipped.  ``cfg`` is
+    a resolved ``[camera]`` section."""
+    scale, offset = toned if toned is not None else tone(cfg, gain, img.shape)  # type: ignore[arg-type]
+    out = np.clip(img * scale + np.float32(offset), 0.0, 255.0)
     read2 = float(cfg.read_noise_dn or 0.0) ** 2
     if cfg.electrons_per_dn or read2:
         # shot noise as its Gaussian limit (>= 20 electrons per DN is far beyond where Poisson differs),
-        # one draw with read noise: variance signal / (e/DN) + read^2 (DN^2)
-        var = out * np.float32(1.0 / cfg.electrons_per_dn) + np.float32(read2) if cfg.electrons_per_dn \
-            else np.float32(read2)
-        out = out + np.sqrt(var) * rng.standard_normal(out.shape, dtype=np.float32)
+        # one draw with read noise; sigma looked up per whole DN of the signal
+        e = float(cfg.electrons_per_dn or 0.0)
+        sigma = np.sqrt(np.arange(256, dtype=np.float32) * np.float32(1.0 / e if e else 0.0) + np.float32(read2))
+        out += sigma[out.astype(np.uint8)] * (normals(rng, out.shape) if bank is None else bank.draw(rng, out.shape))
     return np.asarray(np.clip(np.rint(out), 0, 255), np.uint8)

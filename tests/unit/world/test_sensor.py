@@ -12,7 +12,7 @@ import pytest
 from tagswarm.protocol.geometry import se2_matrix
 from tagswarm.protocol.scenario import CameraSensor, load_scenario
 from tagswarm.world.render import Renderer, image_message
-from tagswarm.world.sensor import develop, frame_rng, motion_blur, vignetting_gain
+from tagswarm.world.sensor import NoiseBank, develop, frame_rng, motion_blur, vignetting_gain
 
 #: sha256 of the frame below, rendered by the code before lenses existed (commit 0c8436c)
 IDEAL_SHA256 = "50cd5db4606262aa6eb5e1ead9cf1ed970e299cee13617f5fdbf6111a42eab20"
@@ -104,3 +104,16 @@ def test_seed_gives_identical_images() -> None:
     c = _frame(ov, steps=1, seed_step=2)
     d = _frame(ov, steps=1, seed_step=2)
     assert c == d
+
+
+def test_noise_bank_statistics() -> None:
+    """The bank's frames: N(0, 1) per pixel, uncorrelated neighbours, new noise every tick."""
+    bank = NoiseBank(1, "front", 320 * 240)
+    a = bank.draw(frame_rng(1, 0, "front", 10), (240, 320))
+    b = bank.draw(frame_rng(1, 0, "front", 11), (240, 320))
+    assert abs(float(a.mean())) < 0.02 and abs(float(a.std()) - 1.0) < 0.02
+    assert abs(float(np.corrcoef(a[:, 1:].ravel(), a[:, :-1].ravel())[0, 1])) < 0.02
+    assert abs(float(np.corrcoef(a.ravel(), b.ravel())[0, 1])) < 0.02
+    cfg = CameraSensor(read_noise_dn=1.5, electrons_per_dn=20.0).resolved()
+    out = develop(np.full((240, 320), 100.0, np.float32), cfg, frame_rng(1, 0, "front", 3), bank=bank)
+    assert abs(float(out.std()) - math.sqrt(100 / 20 + 1.5**2)) < 0.1

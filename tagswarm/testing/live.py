@@ -16,6 +16,7 @@ from __future__ import annotations
 import math
 import os
 import signal
+import sys
 import time
 from collections.abc import Callable
 from contextlib import ExitStack
@@ -116,7 +117,8 @@ class LiveSwarm:
         argv = command(name, common, (*self.spec.extra(name), *extra), self._faults[name])
         n = sum(1 for c in self._history if c.name == name)
         log = self.run_dir / "logs" / f"{log_name(name)}{'' if n == 0 else f'.{n}'}.log"
-        child = Child(name, argv, log, child_env(os.environ))
+        own_module = self.spec.agent_module(name) is not None
+        child = Child(name, argv, log, child_env(os.environ, sys.path if own_module else None))
         self._children[name] = child
         self._history.append(child)
         return child.proc

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import re
 import sys
 from collections.abc import Mapping, Sequence
@@ -202,11 +203,15 @@ class SwarmSpec:
         """The fault layer process ``name`` starts with (a per-process one wins)."""
         return dict(self.net).get(name, self.net_all)
 
+    def agent_module(self, name: str) -> str | None:
+        """The controller module process ``name`` runs, if it is an agent given one."""
+        m = _AGENT.fullmatch(name)
+        return dict(self.agent_modules).get(int(m.group(1))) if m else None
+
     def extra(self, name: str) -> tuple[str, ...]:
         """Flags the test asked for on ``name``'s command line, ``--agent-module`` included."""
         out = dict(self.extra_args).get(name, ())
-        m = _AGENT.fullmatch(name)
-        module = dict(self.agent_modules).get(int(m.group(1))) if m else None
+        module = self.agent_module(name)
         return (*out, "--agent-module", module) if module else out
 
 
@@ -248,10 +253,16 @@ def command(name: str, common: Sequence[str], extra: Sequence[str] = (), fault: 
     return [*head, *common, *(fault.flags() if fault is not None else ()), *extra]
 
 
-def child_env(environ: Mapping[str, str]) -> dict[str, str]:
+def child_env(environ: Mapping[str, str], import_path: Sequence[str] | None = None) -> dict[str, str]:
     """The children's environment: ours without ``TAGSWARM_*`` (a run is configured by its flags
-    alone, so a variable set for the developer's own runs cannot leak into a test), unbuffered."""
+    alone, so a variable set for the developer's own runs cannot leak into a test), unbuffered.
+    ``import_path`` (the test's ``sys.path``, for an agent running the test's own controller
+    module) is appended to ``PYTHONPATH``: what the test can import, that agent can."""
     env = {k: v for k, v in environ.items() if not k.startswith("TAGSWARM_")}
     env["PYTHONUNBUFFERED"] = "1"
+    if import_path is not None:
+        extra = [p for p in import_path if p and Path(p).is_dir()]
+        env["PYTHONPATH"] = os.pathsep.join(dict.fromkeys([*env.get("PYTHONPATH", "").split(os.pathsep), *extra])
+                                            ).strip(os.pathsep)
     return env
 

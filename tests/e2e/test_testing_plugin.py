@@ -2,8 +2,9 @@
 directory outside the repository, no conftest, run by ``python -m pytest`` in a subprocess
 with only the installed package.
 
-- a finished run (every robot localised within 10 cm at the end) and a live handle (map,
-  subscription, goal, teleport, kill, restart with network faults, freeze) pass;
+- a finished run (every robot localised within 10 cm at the end), a run with the user's own
+  controller module on one robot (``agent_modules``), and a live handle (map, subscription,
+  goal, teleport, kill, restart with network faults, freeze) pass;
 - two such pytest processes at once do not mix: different run ids, each run's metrics and
   counters name only its own robots;
 - no process of a swarm survives a test that fails, one that pytest-timeout stops (its
@@ -59,6 +60,14 @@ def test_a_finished_run_localises_every_robot(swarm):
                                "errors": errors}}))
 
 
+def test_my_own_controller_drives_robot_1(swarm):
+    run = swarm(robots=2, duration_s=6, agent_modules={{1: "my_controller"}})  # next to this file
+    start = run.truth(1)[0]
+    assert max(math.dist(row[1:3], start[1:3]) for row in run.truth(1)) < 0.02  # held, did not patrol
+    assert "held" in (run.run_dir / "modes.csv").read_text()
+    assert run.final_error(1) < 0.10  # localised by the server like the built-in agent
+
+
 def test_a_live_swarm(swarm):
     with swarm.start(robots=3, duration_s=16) as s:
         odo = s.subscribe("robot/1/odometry")
@@ -90,6 +99,22 @@ def test_a_live_swarm(swarm):
     assert run.exit_codes == {{"server": 0, "agent/0": 0, "agent/1": 0, "agent/2": 0, "world": 0}}
     assert run.metrics["run"]["robots"] == [0, 1, 2]
     assert run.final_error(0) < 0.10 and run.final_error(1) < 0.10
+'''
+
+#: a controller in the user's project (tagswarm.agents.controller's contract): robot 1 stands still
+USER_CONTROLLER = '''
+from tagswarm.agents.controller import Controller, Twist
+
+
+class Hold(Controller):
+    mode = "held"
+
+    def step(self, inputs):
+        return Twist(v_m_s=0.0, w_rad_s=0.0)
+
+
+def make_controller(config):
+    return Hold()
 '''
 
 #: a swarm is up (its run id written to $TSW_READY), then the test fails, hangs or is interrupted
@@ -158,6 +183,7 @@ def test_a_user_test_file_passes_outside_the_repo_and_two_run_in_parallel_withou
     for robots in (2, 3):
         folder = _outside(tmp_path_factory, f"user{robots}")
         (folder / "test_my_swarm.py").write_text(USER_TESTS.format(repo=str(REPO)))
+        (folder / "my_controller.py").write_text(USER_CONTROLLER)
         started[robots] = time.monotonic()
         procs[robots] = (_pytest(folder, "test_my_swarm.py", TSW_OUT=str(folder / "out.json"),
                                  TSW_ROBOTS=str(robots)), folder)
@@ -166,7 +192,7 @@ def test_a_user_test_file_passes_outside_the_repo_and_two_run_in_parallel_withou
     for robots, (proc, folder) in procs.items():
         out, _ = proc.communicate(timeout=900)
         ended[robots] = time.monotonic()
-        assert proc.returncode == 0 and "3 passed" in out, out[-6000:]
+        assert proc.returncode == 0 and "4 passed" in out, out[-6000:]
         results[robots] = json.loads((folder / "out.json").read_text())
     print(json.dumps({"results": results, "wall_s": {r: ended[r] - started[r] for r in procs}}, indent=1))
     # both pytest processes ran at the same time (each took minutes, they started together)

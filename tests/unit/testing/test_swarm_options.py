@@ -119,3 +119,12 @@ def test_process_names_and_log_names() -> None:
 def test_children_get_no_tagswarm_variables() -> None:
     env = child_env({"PATH": "/bin", "TAGSWARM_RUN": "mine", "TAGSWARM_NET_LOSS": "0.5"})
     assert env == {"PATH": "/bin", "PYTHONUNBUFFERED": "1"}
+
+
+def test_an_agent_with_the_tests_own_controller_can_import_what_the_test_can(tmp_path: Path) -> None:
+    env = child_env({"PYTHONPATH": "/opt/lib"}, ["", str(tmp_path), "/no/such/dir", str(tmp_path)])
+    assert env["PYTHONPATH"] == f"/opt/lib:{tmp_path}"
+    assert "PYTHONPATH" not in child_env({})
+    spec = SwarmSpec.make(robots=2, agent_modules={1: "ctl"})
+    assert (spec.agent_module("agent/1"), spec.agent_module("agent/0"), spec.agent_module("world")) == ("ctl", None,
+                                                                                                     None)

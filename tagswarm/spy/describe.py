@@ -95,10 +95,17 @@ def decode(payload: bytes) -> m.Msg | codec.DecodeError:
         return codec.DecodeError("malformed", f"{type(exc).__name__}: {exc}")
 
 
-def echo_line(key: str, size: int, decoded: m.Msg | codec.DecodeError) -> str:
-    """One JSON line for ``--echo``."""
+def echo_line(key: str, size: int, decoded: m.Msg | codec.DecodeError, encoding: str | None = None,
+              mismatch: bool = False) -> str:
+    """One JSON line for ``--echo``; ``encoding`` (the sample's Zenoh encoding) is included
+    when known, and ``"encoding_mismatch": true`` when it does not match the message."""
+    doc: dict[str, Any] = {"key": key, "size": size}
+    if encoding is not None:
+        doc["encoding"] = encoding
+        if mismatch:
+            doc["encoding_mismatch"] = True
     if isinstance(decoded, codec.DecodeError):
-        doc: dict[str, Any] = {"key": key, "size": size, "error": {"kind": decoded.kind, "detail": decoded.detail}}
+        doc["error"] = {"kind": decoded.kind, "detail": decoded.detail}
     else:
-        doc = {"key": key, "size": size, "msg": message_json(decoded)}
+        doc["msg"] = message_json(decoded)
     return msgspec.json.encode(doc).decode()

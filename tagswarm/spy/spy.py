@@ -5,9 +5,12 @@ process (``--connect``, ``--zenoh-mode``, ``--run`` ...) as a passive
 subscriber (it declares no liveliness token, so it never joins a lockstep) and
 shows, per key: the message type (every payload is decoded once with
 :func:`tagswarm.protocol.codec.decode_any`; undecodable ones are shown as
-``undecodable:<kind>``, never raised), the rate, the bandwidth, the simulation
-time and a short view of the newest message (images are summarised as
-``320x240 mono8 robot 1 front``, never dumped).  Liveliness tokens matching
+``undecodable:<kind>``, never raised), the Zenoh encoding of the newest sample
+(``application/msgpack;<MessageType>`` for every tagswarm publication), how many
+samples had an encoding that does not match their message (BAD_ENC; the total
+is in the title), the rate, the bandwidth, the simulation time and a short view
+of the newest message (images are summarised as ``320x240 mono8 robot 1 front``,
+never dumped).  Liveliness tokens matching
 KEYEXPR (``tagswarm/<run>/alive/...``) are listed below the table.
 
 Modes:
@@ -16,9 +19,11 @@ Modes:
   ``--window`` seconds when stdout is not a terminal.
 - ``--once [--window S]``: sample for S seconds (default 2), print one snapshot
   (plain text unless stdout is a terminal) and exit 0.
-- ``--echo``: print every message as one JSON line (``{"key", "size", "msg"}``,
-  bytes fields replaced by a summary; ``{"key", "size", "error"}`` for an
-  undecodable payload; ``{"key", "alive"}`` for a liveliness change).  With
+- ``--echo``: print every message as one JSON line (``{"key", "size",
+  "encoding", "msg"}``, bytes fields replaced by a summary, plus
+  ``"encoding_mismatch": true`` when the encoding does not match the message;
+  ``{"key", "size", "encoding", "error"}`` for an undecodable payload;
+  ``{"key", "alive"}`` for a liveliness change).  With
   ``--once`` it stops after the window.
 """
 
@@ -31,14 +36,14 @@ import sys
 import threading
 import time
 from collections.abc import Callable, Sequence
-from typing import TextIO
+from typing import Any, TextIO
 
 import msgspec
 from rich.console import Console
 from rich.live import Live
 from rich.table import Table
 
-from tagswarm.protocol.bus import Bus, open_bus
+from tagswarm.protocol.bus import Bus, Inbox, open_bus
 from tagswarm.protocol.keys import Keys
 from tagswarm.runtime.config import ConfigError, Invocation, OneLineParser, add_common_args
 from tagswarm.runtime.process import install_stop_signals, run_main, setup_logging
@@ -46,17 +51,42 @@ from tagswarm.spy.describe import decode, echo_line, image_summary, message_json
 
 # (not in the docstring: it is the --help text) message views live in tagswarm.spy.describe,
 # statistics and snapshots in tagswarm.spy.traffic; their public names are re-exported here
-from tagswarm.spy.traffic import LAST_WIDTH, KeyStats, Row, Traffic, human_rate, plain_snapshot, rich_snapshot
+from tagswarm.spy.traffic import (
+    LAST_WIDTH,
+    KeyStats,
+    Row,
+    Traffic,
+    encoding_mismatch,
+    human_rate,
+    plain_snapshot,
+    rich_snapshot,
+)
 
 __all__ = [
     "INBOX_CAPACITY", "LAST_WIDTH", "PROG", "KeyStats", "Row", "Spy", "Traffic", "decode", "echo_line",
-    "human_rate", "image_summary", "main", "message_json", "parser", "plain_snapshot", "rich_snapshot",
-    "run_spy", "summarise", "type_name",
+    "encoding_mismatch", "human_rate", "image_summary", "main", "message_json", "parser", "plain_snapshot",
+    "rich_snapshot", "run_spy", "subscribe_encoded", "summarise", "type_name",
 ]
 
 PROG = "tagswarm spy"
 #: Items an unread subscription may hold before the oldest are dropped (and counted).
 INBOX_CAPACITY = 20_000
+
+
+def subscribe_encoded(bus: Any, keyexpr: str, capacity: int) -> tuple[Inbox[tuple[str, bytes]], Any]:
+    """An inbox of ``(Zenoh encoding, payload)`` per sample on ``keyexpr``, and the handle
+    that keeps the subscription alive.  :meth:`Bus.subscribe` hands payloads only, so the
+    subscriber is declared on the bus's session here (its callback only enqueues); a bus
+    with a ``subscribe_encoded(keyexpr, capacity=...)`` method (tests' fakes) is used as is."""
+    own = getattr(bus, "subscribe_encoded", None)
+    if own is not None:
+        return own(keyexpr, capacity=capacity), None
+    inbox: Inbox[tuple[str, bytes]] = Inbox(threading.Condition(), newest_only=False, capacity=capacity)
+
+    def on_sample(sample: Any) -> None:
+        inbox.put(str(sample.key_expr), (str(sample.encoding), sample.payload.to_bytes()))
+
+    return inbox, bus._session.declare_subscriber(keyexpr, on_sample)
 
 
 class Spy:
@@ -67,7 +97,7 @@ class Spy:
         self.clock = clock
         self.traffic = Traffic(window_s, clock())
         try:
-            self.inbox = bus.subscribe(keyexpr, capacity=INBOX_CAPACITY)
+            self.inbox, self._subscription = subscribe_encoded(bus, keyexpr, INBOX_CAPACITY)
             self.alive_in = bus.watch_liveliness(keyexpr) if alive else None
         except Exception as exc:  # zenoh rejects malformed key expressions when declaring
             reason = " ".join(str(exc).split()).split(" at /", 1)[0]  # drop zenoh's Rust source location
@@ -86,9 +116,11 @@ class Spy:
                 if echo is not None:
                     echo(msgspec.json.encode({"key": change.key, "alive": change.value}).decode())
         for item in self.inbox.drain():
-            decoded = self.traffic.add(item.key, item.value, now)
+            encoding, payload = item.value
+            decoded = self.traffic.add(item.key, payload, now, encoding)
             if echo is not None:
-                echo(echo_line(item.key, len(item.value), decoded))
+                echo(echo_line(item.key, len(payload), decoded, encoding,
+                               encoding_mismatch(encoding, payload, decoded)))
 
 
 def parser() -> OneLineParser:
@@ -122,7 +154,8 @@ def run_spy(spy: Spy, *, keyexpr: str, once: bool, window_s: float, echo: bool, 
     def title() -> str:
         now = spy.clock()
         return (f"tagswarm spy  {keyexpr}  {now - t0:.1f} s  {len(spy.traffic.keys)} key(s)  "
-                f"{spy.traffic.total} msg(s)" + (f"  dropped {spy.dropped}" if spy.dropped else ""))
+                f"{spy.traffic.total} msg(s)  {spy.traffic.mismatched} encoding mismatch(es)"
+                + (f"  dropped {spy.dropped}" if spy.dropped else ""))
 
     strip = keyexpr[:-2] if keyexpr.endswith("/**") else ""  # "tagswarm/<run>/" for the default
 

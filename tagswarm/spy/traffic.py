@@ -1,9 +1,11 @@
 """Per-key traffic statistics of ``tagswarm spy`` and their snapshots (plain text or
 a rich table).
 
-Pure code: :class:`Traffic` is fed payloads and a clock (seconds, monotonic) by
-:class:`tagswarm.spy.spy.Spy` or a test; rates are messages per second and bandwidth
-bytes per second over the last ``window_s`` seconds.
+Pure code: :class:`Traffic` is fed payloads, their Zenoh encodings and a clock (seconds,
+monotonic) by :class:`tagswarm.spy.spy.Spy` or a test; rates are messages per second and
+bandwidth bytes per second over the last ``window_s`` seconds.  Each key shows the newest
+sample's encoding and how many of its samples had an encoding that does not match the
+message (:func:`encoding_mismatch`).
 """
 
 from __future__ import annotations
@@ -14,7 +16,7 @@ from dataclasses import dataclass, field
 from rich.table import Table
 from rich.text import Text
 
-from tagswarm.protocol import codec
+from tagswarm.protocol import codec, wire
 from tagswarm.protocol import messages as m
 from tagswarm.spy.describe import decode, summarise, type_name
 
@@ -33,6 +35,8 @@ class KeyStats:
     undecodable: int = 0
     last: str = ""
     stamp_ns: int | None = None
+    encoding: str = ""  # of the newest sample; "" = not known (a bus that does not hand it)
+    mismatched: int = 0  # samples whose encoding does not match their message
     recent: deque[tuple[float, int]] = field(default_factory=deque)
 
     def trim(self, now: float, window_s: float) -> None:
@@ -51,6 +55,21 @@ class Row:
     bytes_per_s: float
     stamp_s: float | None
     last: str
+    encoding: str = ""
+    mismatched: int = 0
+
+
+def encoding_mismatch(encoding: str, payload: bytes, decoded: m.Msg | codec.DecodeError) -> bool:
+    """Whether a sample's Zenoh ``encoding`` disagrees with its payload: a message must carry
+    ``application/msgpack;<its type>`` (:mod:`tagswarm.protocol.wire`); an undecodable
+    payload must not name another type than the one its ``type`` entry claims (a
+    ``WheelCommand`` with a NaN still is one), and one that claims none must not name any
+    (garbage goes out as ``zenoh/bytes``).  A missing encoding (``zenoh/bytes`` on a
+    message, from an older sender or recording) counts as a mismatch."""
+    claimed = wire.type_of_encoding(encoding)
+    if isinstance(decoded, codec.DecodeError):
+        return claimed is not wire.message_type_of(payload)
+    return claimed is not type(decoded)
 
 
 class Traffic:
@@ -64,8 +83,10 @@ class Traffic:
         self.keys: dict[str, KeyStats] = {}
         self.alive: set[str] = set()
         self.total = 0
+        self.mismatched = 0
 
-    def add(self, key: str, payload: bytes, now: float) -> m.Msg | codec.DecodeError:
+    def add(self, key: str, payload: bytes, now: float, encoding: str | None = None) -> m.Msg | codec.DecodeError:
+        """Count one sample; ``encoding`` is its Zenoh encoding (None: not known, not checked)."""
         decoded = decode(payload)
         st = self.keys.get(key)
         if st is None:
@@ -83,6 +104,11 @@ class Traffic:
             st.kind = type_name(decoded)
             st.last = summarise(decoded)
             st.stamp_ns = decoded.stamp_ns
+        if encoding is not None:
+            st.encoding = encoding
+            if encoding_mismatch(encoding, payload, decoded):
+                st.mismatched += 1
+                self.mismatched += 1
         return decoded
 
     def liveliness(self, key: str, alive: bool) -> None:
@@ -102,7 +128,7 @@ class Traffic:
             n = len(st.recent)
             size = sum(s for _, s in st.recent)
             out.append(Row(key, st.kind, st.count, n / span, size / span,
-                           None if st.stamp_ns is None else st.stamp_ns / 1e9, st.last))
+                           None if st.stamp_ns is None else st.stamp_ns / 1e9, st.last, st.encoding, st.mismatched))
         return out
 
 
@@ -120,16 +146,28 @@ def _clip(text: str, width: int) -> str:
     return text if len(text) <= width else text[: width - 1] + "…"
 
 
+def _no_space(text: str) -> str:
+    return "_".join(text.split())  # an encoding is data from the network: keep the columns splittable
+
+
+def short_encoding(encoding: str) -> str:
+    """``msgpack;Tick`` for ``application/msgpack;Tick`` (the table's narrow column)."""
+    return encoding.removeprefix("application/")
+
+
 def plain_snapshot(rows: list[Row], alive: set[str], title: str) -> str:
     """Whitespace-aligned text: ``# title``, a header, one row per key (only the last
-    column, LAST, may contain spaces), then ``alive <key>`` lines."""
-    head = ("KEY", "TYPE", "MSGS", "RATE_HZ", "BANDWIDTH", "SIM_T_S", "LAST")
-    cells = [(r.key, r.kind, str(r.count), f"{r.rate_hz:.2f}", human_rate(r.bytes_per_s),
-              "-" if r.stamp_s is None else f"{r.stamp_s:.3f}", _clip(r.last, LAST_WIDTH)) for r in rows]
+    column, LAST, may contain spaces), then ``alive <key>`` lines.  ENCODING is the newest
+    sample's Zenoh encoding (``-``: not known), BAD_ENC the samples whose encoding did not
+    match their message."""
+    head = ("KEY", "TYPE", "ENCODING", "MSGS", "BAD_ENC", "RATE_HZ", "BANDWIDTH", "SIM_T_S", "LAST")
+    cells = [(r.key, r.kind, _no_space(r.encoding) or "-", str(r.count), str(r.mismatched), f"{r.rate_hz:.2f}",
+              human_rate(r.bytes_per_s), "-" if r.stamp_s is None else f"{r.stamp_s:.3f}", _clip(r.last, LAST_WIDTH))
+             for r in rows]
     widths = [max(len(c[i]) for c in [head, *cells]) for i in range(len(head) - 1)]
     lines = [f"# {title}"]
     for c in [head, *cells]:
-        fixed = [v.ljust(w) if i < 2 else v.rjust(w) for i, (v, w) in enumerate(zip(c[:-1], widths, strict=True))]
+        fixed = [v.ljust(w) if i < 3 else v.rjust(w) for i, (v, w) in enumerate(zip(c[:-1], widths, strict=True))]
         lines.append("  ".join([*fixed, c[-1]]))
     lines.append(f"# alive: {len(alive)} liveliness token(s)")
     lines += [f"alive  {k}" for k in sorted(alive)]
@@ -147,15 +185,19 @@ def rich_snapshot(rows: list[Row], alive: set[str], title: str, caption: str = "
     # on a narrow terminal the key folds and the newest-message view wraps, never the numbers
     t.add_column("key", style="cyan", overflow="fold", min_width=12)
     t.add_column("type", no_wrap=True, overflow="ellipsis", min_width=6)
-    for name in ("msgs", "Hz", "bandwidth", "t [s]"):
+    t.add_column("encoding", no_wrap=True, overflow="ellipsis", min_width=8)
+    for name in ("msgs", "bad enc", "Hz", "bandwidth", "t [s]"):
         t.add_column(Text(name), justify="right", no_wrap=True, min_width=len(name))
     t.add_column("last", overflow="ellipsis", max_width=LAST_WIDTH, min_width=8)
     for r in rows:  # Text cells: keys and payload details are data, never rich markup
         kind = Text(r.kind, style="red" if r.kind.startswith("undecodable") else "")
-        t.add_row(Text(short(r.key)), kind, str(r.count), f"{r.rate_hz:.1f}", human_rate(r.bytes_per_s),
-                  "-" if r.stamp_s is None else f"{r.stamp_s:.2f}", Text(r.last))
+        bad = "red" if r.mismatched else ""
+        enc = Text(short_encoding(r.encoding) or "-", style=bad)
+        t.add_row(Text(short(r.key)), kind, enc, str(r.count), Text(str(r.mismatched), style=bad),
+                  f"{r.rate_hz:.1f}", human_rate(r.bytes_per_s), "-" if r.stamp_s is None else f"{r.stamp_s:.2f}",
+                  Text(r.last))
     if alive:
         t.add_section()
         for k in sorted(alive):
-            t.add_row(Text(short(k)), Text("alive", style="green"), "", "", "", "", "liveliness token")
+            t.add_row(Text(short(k)), Text("alive", style="green"), "", "", "", "", "", "", "liveliness token")
     return t

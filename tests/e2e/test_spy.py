@@ -326,10 +326,10 @@ class _FakeBus:
 
     def __init__(self) -> None:
         wake = threading.Condition()
-        self.data: Inbox[bytes] = Inbox(wake, newest_only=False, capacity=100)
+        self.data: Inbox[tuple[str, bytes]] = Inbox(wake, newest_only=False, capacity=100)  # (encoding, payload)
         self.alive: Inbox[bool] = Inbox(wake, newest_only=False, capacity=100)
 
-    def subscribe(self, key: str, **_: object) -> Inbox[bytes]:
+    def subscribe_encoded(self, key: str, **_: object) -> Inbox[tuple[str, bytes]]:
         return self.data
 
     def watch_liveliness(self, key: str) -> Inbox[bool]:
@@ -340,8 +340,8 @@ def test_terminal_output_is_a_rich_table_and_data_is_never_markup(monkeypatch: p
     monkeypatch.setenv("COLUMNS", "160")
     bus = _FakeBus()
     s = spy.Spy(bus, "tagswarm/r/**", 1.0)  # type: ignore[arg-type]
-    bus.data.put("tagswarm/r/[bold]odd", b"\xc1 [red]not markup[/]")
-    bus.data.put("tagswarm/r/robot/1/camera/front", codec.encode(_image()))
+    bus.data.put("tagswarm/r/[bold]odd", ("zenoh/bytes", b"\xc1 [red]not markup[/]"))
+    bus.data.put("tagswarm/r/robot/1/camera/front", ("application/msgpack;CameraImage", codec.encode(_image())))
     bus.alive.put("tagswarm/r/alive/agent/1", True)
     out = _Tty()
     assert spy.run_spy(s, keyexpr="tagswarm/r/**", once=True, window_s=0.3, echo=False, plain=False,
@@ -361,7 +361,7 @@ def test_live_mode_refreshes_until_stopped() -> None:
 
     def feed() -> None:
         for _ in range(10):
-            bus.data.put("tagswarm/r/world/tick", tick)
+            bus.data.put("tagswarm/r/world/tick", ("application/msgpack;Tick", tick))
             time.sleep(0.05)
         time.sleep(0.3)
         stop.set()

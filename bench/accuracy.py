@@ -282,6 +282,11 @@ def _parallel(jobs: int, fns: list[Any]) -> list[Any]:
 
 
 NO_RELOCALISATION = "agent.fix_threshold=100000000"
+DISTORTED = ('robot.cameras=[{name="front", x_m=0.15, z_m=0.6, pitch_deg=-15.0, lens="brown_conrady", '
+             'distortion=[-0.28, 0.09, 0.0005, -0.0003, -0.012]}]')
+CALIBRATION_ERROR = ["camera.calibration_error.focal_rel=0.01", "camera.calibration_error.center_px=2.0",
+                     "camera.calibration_error.distortion_rel=0.05", "camera.calibration_error.extrinsic_deg=0.5",
+                     "camera.calibration_error.extrinsic_m=0.005"]
 # name -> (scenario, overrides); each is compared with its scenario's plain run of the same length.  Active
 # re-localisation rarely triggers in the paper's scenario (the patrols stay in the origin's view), so it is
 # also ablated where every robot moves and drifts
@@ -292,6 +297,19 @@ ABLATIONS: dict[str, tuple[str, list[str]]] = {
     "paper_no_relocalisation": ("paper", [NO_RELOCALISATION]),
     "allmoving": ("allmoving", []),
     "allmoving_no_relocalisation": ("allmoving", [NO_RELOCALISATION]),
+    **{f"camera_{k}": ("paper", v) for k, v in {
+        # the realistic camera's effects one at a time on the ideal one (docs/camera.md)
+        "noise": ["camera.read_noise_dn=1.0", "camera.electrons_per_dn=20.0"],
+        "blur": ["camera.exposure_ms=8.0"],
+        "distortion": [DISTORTED],
+        "calibration_error": ["camera.preset=realistic", *CALIBRATION_ERROR],
+    }.items()},
+}
+#: the realistic camera, and the realistic camera handed a calibration with typical errors
+CAMERA_ROWS: dict[str, tuple[str, list[str]]] = {
+    "paper": ("paper", []),
+    "paper-realistic": ("paper-realistic", []),
+    "camera_calibration_error": ABLATIONS["camera_calibration_error"],
 }
 
 
@@ -309,10 +327,15 @@ def main() -> int:
     p.add_argument("--quick", action="store_true", help="8 (+3 single-tag) trials, 20 s, 1 seed, 20 s ablations")
     p.add_argument("--skip-ablations", action="store_true")
     p.add_argument("--skip-scenes", action="store_true")
+    p.add_argument("--camera-only", action="store_true",
+                   help="only the camera rows (paper vs paper-realistic vs a calibration error, --ablation-duration "
+                        "each) to bench/results/accuracy_camera.json")
     p.add_argument("--out", type=Path, default=None,
                    help="JSON to write (default bench/results/accuracy.json, accuracy_quick.json with --quick); "
                         "plots go beside it")
     a = p.parse_args()
+    if a.camera_only:
+        return camera_only(a.ablation_duration, a.jobs, a.out or ROOT / "bench" / "results" / "accuracy_camera.json")
     if a.out is None:
         a.out = ROOT / "bench" / "results" / ("accuracy_quick.json" if a.quick else "accuracy.json")
     if a.quick:
@@ -338,7 +361,7 @@ def main() -> int:
             tag = "single" if extra else ""
             runs += [(1.0, (label, seed), lambda s=seed, e=extra, t=tag: static_trial(s, work, *e, tag=t))
                      for seed in range(n)]
-        dyn_jobs = [(sc, seed) for sc in ("paper", "allmoving", "leapfrog", "landmarks")
+        dyn_jobs = [(sc, seed) for sc in ("paper", "allmoving", "leapfrog", "landmarks", "paper-realistic")
                     for seed in range(a.seeds if sc == "paper" else a.variant_seeds)]
         runs += [(a.duration, ("dynamic", (sc, seed)),
                   lambda sc=sc, seed=seed: dynamic_run(sc, work, seed, a.duration, scenario=sc))
@@ -410,6 +433,32 @@ def main() -> int:
             sc_t.add_row(*row)
         console.print(sc_t)
     console.print(f"wrote {a.out} in {result['wall_time_s'] / 60:.1f} min")
+    return 0
+
+
+def camera_only(duration: float, jobs: int, out: Path) -> int:
+    """The camera rows (:data:`CAMERA_ROWS`, seed 0): fused and odometry ATE of each."""
+    with tempfile.TemporaryDirectory(prefix="tagswarm-acc-cam-") as tmp:
+        work = Path(tmp)
+        fns = [lambda n=n, sc=sc, ov=ov: dynamic_run(f"cam_{n}", work, 0, duration, *ov, scenario=sc)
+               for n, (sc, ov) in CAMERA_ROWS.items()]
+        rows = _parallel(jobs, fns)
+    for r in rows:
+        f, o = r["fused"], r["odom"]
+        r["fused_vs_odom"] = (o["ate_unaligned_rmse"] / f["ate_unaligned_rmse"]
+                              if f["ate_unaligned_rmse"] and o["ate_unaligned_rmse"] else None)
+    result = {"bench": "accuracy_camera", "machine": machine(), "duration_s": duration, "seed": 0, "rows": rows,
+              "targets": {"paper-realistic": "fused ATE RMSE <= 2 cm, max <= 10 cm, >= 10x better than odometry"}}
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(result, indent=2))
+    t = Table(title=f"camera rows ({duration:.0f} s, seed 0; cm)")
+    for col in ("run", "fused RMSE", "fused max", "odometry RMSE", "odom / fused"):
+        t.add_column(col)
+    for r in rows:
+        f, o = r["fused"], r["odom"]
+        t.add_row(r["name"], _cm(f["ate_unaligned_rmse"]), _cm(f["ate_unaligned_max"]), _cm(o["ate_unaligned_rmse"]),
+                  f"{r['fused_vs_odom']:.1f}" if r["fused_vs_odom"] else "-")
+    Console().print(t)
     return 0
 
 

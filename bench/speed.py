@@ -27,7 +27,10 @@ is the share of the machine's rendering limit the full pipeline (render, send,
 detect, estimate, fuse) delivers; its ceiling is render time over render + the
 rest of the per-frame work, since all of it shares the same cores.
 
-Usage: python bench/speed.py [--seconds 10] [--quick]
+The camera model (lens remap, motion blur, noise) is measured apart, in one process
+against the render it follows (bench/camera_cost.py; ``--camera-model-only``).
+
+Usage: python bench/speed.py [--seconds 10] [--quick] [--camera-model-only]
 """
 
 from __future__ import annotations
@@ -51,6 +54,7 @@ sys.path.insert(0, str(ROOT / "bench"))
 
 import numpy as np  # noqa: E402
 import psutil  # noqa: E402
+from camera_cost import camera_model_cost  # noqa: E402
 from render import raw_rate  # noqa: E402
 from rich.console import Console  # noqa: E402
 from rich.table import Table  # noqa: E402
@@ -198,9 +202,14 @@ def main() -> int:
     p.add_argument("--quick", action="store_true",
                    help="4 and 8 robots at 320x240 only, one render worker, 6 s windows")
     p.add_argument("--no-saturate", action="store_true", help="skip the efficiency (saturated) points")
+    p.add_argument("--camera-model-only", action="store_true",
+                   help="only the camera model's cost per frame against the render (bench/camera_cost.py), to "
+                        "bench/results/camera_model.json")
     p.add_argument("--out", type=Path, default=None,
                    help="JSON to write (default bench/results/speed.json, speed_quick.json with --quick)")
     a = p.parse_args()
+    if a.camera_model_only:
+        return camera_model_main(a.out or ROOT / "bench" / "results" / "camera_model.json")
     if a.out is None:
         a.out = ROOT / "bench" / "results" / ("speed_quick.json" if a.quick else "speed.json")
     resolutions = list(RESOLUTIONS)
@@ -243,7 +252,7 @@ def main() -> int:
         "versions": {"zenoh": getattr(zenoh, "__version__", "?"), "opencv": cv2.__version__,
                      "numpy": np.__version__},
         "seeds": [0], "seconds_per_point": a.seconds, "warmup_s": a.warmup, "rows": rows,
-        "efficiency": efficiency,
+        "efficiency": efficiency, "camera_model": camera_model_cost(),
         "targets": {"rtf_8_robots_320x240_10Hz": ">= 1.0", "efficiency": ">= 0.8",
                     "latency_p95_ms_8_robots": "<= 50"},
     }
@@ -267,6 +276,23 @@ def main() -> int:
         console.print(f"efficiency {r['resolution']}: {r['frames_processed_per_s']:.0f} processed/s over "
                       f"{r['bare_getCameraImage_fps']:.0f} bare getCameraImage/s = {r['efficiency']:.2f}")
     console.print(f"wrote {a.out}")
+    return 0
+
+
+def camera_model_main(out: Path) -> int:
+    """The camera model's cost per frame alone (bench/camera_cost.py)."""
+    rows = camera_model_cost()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps({"bench": "camera_model", "load_avg": os.getloadavg(), "rows": rows,
+                               "targets": {"model_share": "<= 0.2"}}, indent=2))
+    t = Table(title="camera model cost per frame (ms, median)")
+    for col in ("camera", "ideal render", "wider pinhole render", "lens + blur + noise", "model / render",
+                "all extra / render"):
+        t.add_column(col)
+    for r in rows:
+        t.add_row(r["camera"], f"{r['render_ms']:.1f}", f"{r['wide_render_ms']:.1f}", f"{r['model_ms']:.1f}",
+                  f"{r['model_share']:.2f}", f"{r['total_share']:.2f}")
+    Console().print(t)
     return 0
 
 

@@ -24,6 +24,8 @@ from tagswarm.protocol.scenario import CameraSensor
 #: a camera's noise bank holds this many frames' worth of normal samples (see NoiseBank)
 BANK_FRAMES: Final = 8
 _BANK_STREAM: Final = 0xBA4C
+#: sub-exposures of a motion blur are at most this far apart along the streak
+SAMPLE_SPACING_PX: Final = 1.5
 #: at most this many sub-exposures are averaged for a motion blur (longer streaks are sampled sparser)
 MAX_BLUR_SAMPLES: Final = 16
 #: camera motion between two frames beyond these rates is a jump (teleport, restart), not motion
@@ -98,8 +100,9 @@ def exposure_maps(map_x: F32, map_y: F32, depth_m: F32, K: Mat, twist: NDArray[n
     ``flow`` the image motion over half the exposure of a camera moving with ``twist`` and a_i
     spread over -1..1.  The motion is linear in time over the exposure and computed on a
     :data:`FLOW_GRID_PX` grid (it is smooth but at depth edges); the depth is the centre
-    frame's, so occlusions changing within the exposure are ignored.  As many sub-exposures as
-    the streak is long in pixels (at most :data:`MAX_BLUR_SAMPLES`); None when it is under 2."""
+    frame's, so occlusions changing within the exposure are ignored.  Sub-exposures at most
+    :data:`SAMPLE_SPACING_PX` apart (bilinear sampling fills between them), at least 2, at most
+    :data:`MAX_BLUR_SAMPLES`; None for a streak under 1 px."""
     if twist is None or exposure_s <= 0:
         return None
     g = FLOW_GRID_PX
@@ -110,9 +113,9 @@ def exposure_maps(map_x: F32, map_y: F32, depth_m: F32, K: Mat, twist: NDArray[n
     dx, dy = blur_flow((mx - cx) / fx, (my - cy) / fy, d, twist, exposure_s / 2.0)
     du, dv = dx * fx, dy * fy
     streak = 2.0 * float(np.sqrt((du * du + dv * dv).max()))
-    n = min(MAX_BLUR_SAMPLES, math.ceil(streak))
-    if n < 2:
+    if streak < 1.0:
         return None
+    n = min(MAX_BLUR_SAMPLES, max(2, math.ceil(streak / SAMPLE_SPACING_PX)))
     h, w = map_x.shape
     du = np.asarray(cv2.resize(du, (w, h), interpolation=cv2.INTER_LINEAR), np.float32)
     dv = np.asarray(cv2.resize(dv, (w, h), interpolation=cv2.INTER_LINEAR), np.float32)

@@ -340,6 +340,15 @@ class MapFrame(Spec, frozen=True, kw_only=True, forbid_unknown_fields=True):
     origin_id: Annotated[int, msgspec.Meta(ge=0)] = 0
 
 
+class Server(Spec, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """How the map server fuses (``[server]``): ``graph`` is the GTSAM fixed-lag pose graph
+    (:mod:`tagswarm.server.fusion`); ``stitch`` is the paper's map, the composition of the
+    latest relative observations along the who-sees-whom chain from the origin robot,
+    carried between sightings by odometry, no factor graph (:mod:`tagswarm.server.stitchmap`)."""
+
+    method: Literal["graph", "stitch"] = "graph"
+
+
 class Event(Spec, frozen=True, kw_only=True, forbid_unknown_fields=True):
     """A scheduled intervention in the physical world (a ``[[events]]`` table), applied
     by the world at the first step k with ``k / clock.tick_hz >= at_s`` (simulation
@@ -372,6 +381,7 @@ class Scenario(Spec, frozen=True, kw_only=True, forbid_unknown_fields=True):
     agent: Agent = Agent()
     missions: tuple[Mission, ...] = ()
     map: MapFrame = MapFrame()
+    server: Server = Server()
     events: tuple[Event, ...] = ()
 
     @property

@@ -34,7 +34,9 @@ from tagswarm.runtime.process import serve_node
 from tagswarm.server import journal as jr
 from tagswarm.server import outputs
 from tagswarm.server.config import ServerConfig, build_config
+from tagswarm.server.estimator import Estimator, apply_input
 from tagswarm.server.fusion import Fusion, FusionParams
+from tagswarm.server.stitchmap import StitchMap
 
 log = logging.getLogger("tagswarm.server")
 # realtime only: fresh observations trigger a fusion update at most this often (wall seconds)
@@ -62,6 +64,15 @@ def make_fusion(config: ServerConfig) -> Fusion:
     return Fusion(params, s.map.origin_id, s.robot_ids, landmarks)
 
 
+def make_estimator(config: ServerConfig) -> Estimator:
+    """The (empty) map estimator of ``[server] method``: the pose graph (``graph``, see
+    :func:`make_fusion`) or the paper's stitched map (``stitch``) with the same parameters."""
+    if config.scenario.server.method == "graph":
+        return make_fusion(config)
+    f = make_fusion(config)  # (cheap: an empty graph) the same parameters, origin and landmarks
+    return StitchMap(f.p, f.origin_id, tuple(f.robots), f.landmarks)
+
+
 class ServerNode:
     """See the module docstring."""
 
@@ -71,7 +82,8 @@ class ServerNode:
         self.bus = bus
         self.keys = Keys(config.run)
         self.roster = set(s.robot_ids)
-        self.fusion = make_fusion(config)
+        self.method = s.server.method
+        self.fusion: Estimator = make_estimator(config)
         self.rejects = streams.RejectCounter(log)
         self.gaps = streams.GapCounter()  # messages lost on the way, per sender (lossy networks)
         self.counters: Counter[str] = Counter()
@@ -105,15 +117,23 @@ class ServerNode:
         self.query_in = bus.queryable(self.keys.map())
         # subscribed before the replay, so what arrives meanwhile waits in the inboxes; alive only after
         # it, so a lockstep world does not wait for acks from a server still rebuilding its graph
-        self.journal = self._open_journal() if config.journal else None
+        if config.journal and not isinstance(self.fusion, Fusion):
+            # the journal's replay and checkpoints are the pose graph's (its decisions depend on the update
+            # sequence); the stitched map holds only the newest edges, so a restarted stitch server simply
+            # re-stitches from the observations that follow
+            log.warning("--journal %s ignored: server.method = %r keeps no journal (graph only)", config.journal,
+                        self.method)
+        self.journal = self._open_journal() if config.journal and isinstance(self.fusion, Fusion) else None
         bus.declare_token(self.keys.alive(config.participant))
-        log.info("server up: %d robots, origin %d, %s clock, lag %.0f s, journal %s", len(self.roster),
-                 s.map.origin_id, s.clock.mode, config.lag_s, config.journal or "off")
+        log.info("server up: method %s, %d robots, origin %d, %s clock, lag %.0f s, journal %s", self.method,
+                 len(self.roster), s.map.origin_id, s.clock.mode, config.lag_s,
+                 (config.journal or "off") if self.journal is not None or not config.journal else "off")
 
     def _open_journal(self) -> jr.Journal:
         """Open (and replay) the journal; a journal of another map is a usage error
         (:class:`~tagswarm.server.journal.JournalError`, exit 2)."""
         path = str(self.cfg.journal)
+        assert isinstance(self.fusion, Fusion)
         try:
             journal = jr.Journal(path, jr.header_for(self.cfg.run, self.fusion), replay=self._replay,
                                  sync_every=self.cfg.journal_sync_every,
@@ -185,6 +205,9 @@ class ServerNode:
                 self.rejects.reject("unknown_robot", f"observation of robot {ob.target_id}")
                 continue
             self.gaps.seen(item.key, ob.seq, f"observations_robot{observer}")
+            if ob.target_kind == "landmark" and len(set(ob.tag_ids)) > 1:
+                # an agent's self-localisation solved jointly from several field tags (agents/landmarkfix.py)
+                self.counters["multi_landmark_fixes"] += 1
             self._accept(jr.Observation(observer=observer, target_kind=ob.target_kind, target_id=ob.target_id,
                                         stamp_ns=ob.stamp_ns, x_m=ob.x_m, y_m=ob.y_m, yaw_rad=ob.yaw_rad,
                                         cov=tuple(float(v) for v in ob.cov)))
@@ -227,7 +250,14 @@ class ServerNode:
             self.journal.append(record)
         self._recent.append(record)
         self._note(record)
-        jr.apply(self.fusion, record)
+        self._apply(record)
+
+    def _apply(self, record: jr.Record) -> None:
+        """The estimator call ``record`` stands for (the journal's own for the graph)."""
+        if isinstance(self.fusion, Fusion):
+            jr.apply(self.fusion, record)
+        else:
+            apply_input(self.fusion, record)
 
     def _advance(self, watermark_ns: int) -> None:
         """One fusion update (journalled too: the update sequence shapes the iSAM2 state)."""
@@ -247,6 +277,7 @@ class ServerNode:
             return
         node = {"time_ns": self.time_ns, "accepted_odometry": self.counters["accepted_odometry"],
                 "accepted_observations": self.counters["accepted_observations"]}
+        assert isinstance(self.fusion, Fusion)  # a journal runs only with the graph
         record = jr.make_checkpoint(self.journal, self.fusion, node, self.latest_rx)
         self.journal.append(record)
         self.journal.flush()
@@ -289,7 +320,7 @@ class ServerNode:
         if rid is not None and rid not in self.roster:
             self.rejects.reject("journal_unknown_robot", f"journal record of robot {rid}")
             return
-        jr.apply(self.fusion, record)  # first: a checkpoint that does not restore must change nothing
+        self._apply(record)  # first: a checkpoint that does not restore must change nothing
         self.fusion.take_relocalisations()  # went out before the restart
         self._note(record)
 

@@ -11,13 +11,14 @@ from __future__ import annotations
 from collections.abc import Iterable, Mapping
 
 from tagswarm.protocol import messages as m
-from tagswarm.server.fusion import Fusion, RelocEvent
+from tagswarm.server.estimator import Estimator
+from tagswarm.server.fusion import RelocEvent
 
 #: an observation edge stays in the map this long after it was last seen (simulation ns)
 EDGE_MEMORY_NS = 5_000_000_000
 
 
-def global_map(fusion: Fusion, robot_ids: Iterable[int], origin_id: int, time_ns: int,
+def global_map(fusion: Estimator, robot_ids: Iterable[int], origin_id: int, time_ns: int,
                latest_rx: Mapping[int, int], alive: set[int], seq: int) -> m.GlobalMap:
     """Every localised robot of ``robot_ids`` (in that order) with its fused pose, when its
     odometry last arrived and whether its agent is alive, and the recent observation edges."""
@@ -34,7 +35,7 @@ def global_map(fusion: Fusion, robot_ids: Iterable[int], origin_id: int, time_ns
     return m.GlobalMap(seq=seq, stamp_ns=time_ns, origin_id=origin_id, robots=tuple(entries), edges=edges)
 
 
-def correction(fusion: Fusion, rid: int, time_ns: int, seq: int) -> m.Correction:
+def correction(fusion: Estimator, rid: int, time_ns: int, seq: int) -> m.Correction:
     """Robot ``rid``'s ``map -> odom`` correction and fused pose now; ``localised=False`` (every
     pose field zero) while the fusion cannot place it."""
     est, mo = fusion.pose(rid), fusion.map_to_odom(rid)
@@ -55,7 +56,7 @@ def relocalisation(ev: RelocEvent, seq: int) -> m.Relocalisation:
                             evidence=ev.evidence, observers=ev.observers)
 
 
-def status_counters(node: Mapping[str, int], fusion: Fusion, rejects: Mapping[str, int], gaps: Mapping[str, int],
+def status_counters(node: Mapping[str, int], fusion: Estimator, rejects: Mapping[str, int], gaps: Mapping[str, int],
                     faults: Mapping[str, int], journal: Mapping[str, int] | None, alive: int) -> dict[str, int]:
     """The server's status counters, in this order: its own, the fusion's (prefixed
     ``fusion_``), rejects, sequence gaps, network faults, the inputs accepted in all, the

@@ -52,7 +52,8 @@ the true initial pose, so its error is pure drift).
 - ``schema``: ``"tagswarm.evaluation.metrics/1"``.
 - ``run``: ``clock`` ("lockstep"/"realtime"), ``sim_time_s``, ``wall_time_s``,
   ``exit_code``, ``failure`` (the orchestrator's failure message or ``null``),
-  ``origin_id``, ``robots`` (ids), copied from ``run.json``.
+  ``origin_id``, ``robots`` (ids), copied from ``run.json``; ``method``, the server's
+  ``[server] method`` (``"graph"`` or ``"stitch"``, from the scenario in ``run.json``).
 - ``settings``: ``assoc_max_diff_s`` (timestamp association tolerance, s),
   ``rpe_delta_m`` (RPE segment length, m), ``neighbour_window_s`` (± window for
   error-vs-distance, s), ``distance_bins_m`` (bin edges, m; ``null`` = infinity),
@@ -255,7 +256,7 @@ def evaluate(run: RunData) -> Evaluation:
         "run": {"clock": run.info.get("clock"), "sim_time_s": costs["sim_time_s"],
                 "wall_time_s": costs["wall_time_s"], "exit_code": run.info.get("exit_code"),
                 "failure": run.info.get("failure"), "origin_id": run.info.get("origin_id"),
-                "robots": list(run.robots)},
+                "robots": list(run.robots), "method": _method(run.info)},
         "settings": {"assoc_max_diff_s": ASSOC_MAX_DIFF_S, "rpe_delta_m": RPE_DELTA_M,
                      "neighbour_window_s": NEIGHBOUR_WINDOW_S,
                      "distance_bins_m": [e if math.isfinite(e) else None for e in DISTANCE_BINS_M],
@@ -270,6 +271,14 @@ def evaluate(run: RunData) -> Evaluation:
         "warnings": warnings,
     }
     return Evaluation(run=run, tracks=tracks, alignment=alignment, distance=dist, metrics=_finite(metrics))
+
+
+def _method(info: dict[str, Any]) -> str:
+    """The server's ``[server] method`` the run used (older run folders: the graph)."""
+    scenario = info.get("scenario")
+    server = scenario.get("server") if isinstance(scenario, dict) else None
+    method = server.get("method") if isinstance(server, dict) else None
+    return method if isinstance(method, str) else "graph"
 
 
 def _finite(value: Any) -> Any:

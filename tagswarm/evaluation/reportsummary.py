@@ -113,6 +113,7 @@ def recovery_lines(metrics: dict[str, Any]) -> list[str]:
 def print_summary(metrics: dict[str, Any], run_dir: Path, console: Console | None = None) -> None:
     """The summary tables, formation error, shared alignment, recovery, cost and warnings."""
     con = console or Console()
+    con.print(f"server method: {metrics['run'].get('method', 'graph')}", highlight=False)
     for table in summary_tables(metrics):
         con.print(table)
     s, c = metrics["swarm"], metrics["cost"]

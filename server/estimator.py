@@ -1,0 +1,61 @@
+"""What the server node needs from a map estimator (pure code, no I/O).
+
+Both :class:`~tagswarm.server.fusion.Fusion` (``[server] method = "graph"``, the GTSAM
+pose graph) and :class:`~tagswarm.server.stitchmap.StitchMap` (``"stitch"``, the paper's
+chain of homogeneous transforms) satisfy :class:`Estimator`; :mod:`tagswarm.server.node`
+only chooses which one it builds.  Poses are in the map frame (metres, radians),
+covariances (3, 3) in the robot's own axes (GTSAM's tangent convention), times
+simulation nanoseconds.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from typing import Protocol
+
+import numpy as np
+
+from tagswarm.protocol.geometry import Pose2
+from tagswarm.server import journal_format as jf
+from tagswarm.server.fusion import RelocEvent
+from tagswarm.server.noise import Cov
+
+
+class Estimator(Protocol):
+    """The map estimator interface of the server node (see the module docstring)."""
+
+    counters: Counter[str]
+    edges: dict[tuple[int, int], int]  # (observer, target) -> stamp of the newest accepted observation
+    watermark_ns: int
+
+    def reset(self) -> None: ...
+    def add_odometry(self, rid: int, stamp_ns: int, pose: Pose2, distance_m: float, slip_m: float = 0.0) -> None: ...
+    def add_observation(self, observer: int, target: int, stamp_ns: int, rel: Pose2, cov: Cov) -> None: ...
+    def add_landmark_observation(self, observer: int, landmark: int, stamp_ns: int, rel: Pose2,
+                                 cov: Cov) -> None: ...
+    def advance(self, watermark_ns: int) -> int: ...
+    def latest_odom_ns(self, rid: int) -> int: ...
+    def pose(self, rid: int) -> tuple[Pose2, Cov] | None: ...
+    def map_to_odom(self, rid: int) -> Pose2 | None: ...
+    def last_fix_ns(self, rid: int) -> int: ...
+    def localised(self) -> list[int]: ...
+    def take_relocalisations(self) -> list[RelocEvent]: ...
+
+
+def apply_input(est: Estimator, record: jf.Record) -> None:
+    """Make the estimator call ``record`` stands for, as :func:`tagswarm.server.journal.apply`
+    does for the pose graph (a checkpoint is the graph's own state: ignored here)."""
+    if isinstance(record, jf.Odometry):
+        est.add_odometry(record.robot_id, record.stamp_ns, (record.x_m, record.y_m, record.yaw_rad),
+                         record.distance_m, record.slip_m)
+    elif isinstance(record, jf.Observation):
+        rel = (record.x_m, record.y_m, record.yaw_rad)
+        cov = np.asarray(record.cov, float).reshape(3, 3)
+        if record.target_kind == "robot":
+            est.add_observation(record.observer, record.target_id, record.stamp_ns, rel, cov)
+        else:
+            est.add_landmark_observation(record.observer, record.target_id, record.stamp_ns, rel, cov)
+    elif isinstance(record, jf.Advance):
+        est.advance(record.watermark_ns)
+    elif isinstance(record, jf.NewRun):
+        est.reset()

@@ -35,6 +35,7 @@ from tagswarm.protocol.scenario_schema import (
     Camera,
     CameraSensor,
     Clock,
+    Decoy,
     Encoders,
     Event,
     Landmark,
@@ -54,8 +55,8 @@ from tagswarm.protocol.scenario_schema import (
 )
 
 __all__ = [
-    "Agent", "Arena", "CalibrationError", "Camera", "CameraSensor",
-    "Clock", "Encoders", "Event", "Landmark", "MapFrame", "Mission", "NonNeg", "Obstacle",
+    "Agent", "Arena", "CalibrationError", "Camera", "CameraSensor", "Clock", "Decoy",
+    "Encoders", "Event", "Landmark", "MapFrame", "Mission", "NonNeg", "Obstacle",
     "Pos", "Render", "Robot", "Robots", "Scenario", "ScenarioError", "Spec", "StartPose", "TagScheme", "apply_override",
     "builtin_descriptions", "builtin_names", "convert", "load_scenario", "parse_value", "read_scenario_dict",
     "validate",
@@ -207,6 +208,7 @@ def validate(s: Scenario) -> None:
         _claim(owner, lm.id, f"landmark {i}", fam_n, s.tags.family, f"landmarks[{i}].id")
         if math.hypot(lm.x_m, lm.y_m) > math.hypot(s.arena.size_x_m, s.arena.size_y_m):
             raise ScenarioError(f"landmarks[{i}]: ({lm.x_m}, {lm.y_m}) is far outside the arena")
+    _validate_decoys(s)
     names = [c.name for c in s.robot.cameras]
     if not names:
         raise ScenarioError("robot.cameras: a robot needs at least one camera")
@@ -261,6 +263,17 @@ def validate(s: Scenario) -> None:
         for k, ob in enumerate(s.arena.obstacles):
             if segment_box_distance(poses[i][:2], poses[i][:2], ob) < r:
                 raise ScenarioError(f"robot {i} starts on arena.obstacles[{k}] (robots.placement/start)")
+
+
+def _validate_decoys(s: Scenario) -> None:
+    """``[[decoys]]``: a tag ID of its family, inside the arena (they may repeat any ID: that is what they are for)."""
+    for i, d in enumerate(s.decoys):
+        family = d.family or s.tags.family
+        n = tags.family_size(family)
+        if not 0 <= d.tag_id < n:
+            raise ScenarioError(f"decoys[{i}].tag_id={d.tag_id}: {family} has IDs 0..{n - 1}")
+        if abs(d.x_m) > s.arena.size_x_m / 2 or abs(d.y_m) > s.arena.size_y_m / 2:
+            raise ScenarioError(f"decoys[{i}]: ({d.x_m}, {d.y_m}) is outside the arena")
 
 
 #: the widest ray a lens may reach in its image corners: the lens is rendered as a wider

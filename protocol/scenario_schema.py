@@ -81,6 +81,23 @@ FISHEYE_MIN_HFOV_DEG = 120.0
 LENS_COEFFICIENTS: dict[str, int] = {"pinhole": 0, "brown_conrady": 5, "fisheye": 4}
 
 
+class Decoy(Spec, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """A tag that is not what it claims to be (a ``[[decoys]]`` table): a ``poster``, a plate
+    like a landmark's (tag centre at (x, y, z) in the arena frame, facing ``yaw_rad``,
+    upright) carrying ``tag_id`` of ``family`` (the scenario's if unset) -- a robot's ID, an
+    ID nothing carries, or a tag of another family.  Only the renderer knows it (no physics,
+    no agent): the agents must not take it for what its ID names."""
+
+    kind: Literal["poster"] = "poster"
+    tag_id: Annotated[int, msgspec.Meta(ge=0)]
+    family: Literal["tag36h11", "tag16h5"] | None = None
+    x_m: float
+    y_m: float
+    z_m: Pos = 0.6
+    yaw_rad: float = 0.0
+    size_m: Pos = 0.16
+
+
 class Camera(Spec, frozen=True, kw_only=True, forbid_unknown_fields=True):
     """An onboard pinhole camera.  Mount: optical centre at (x, y, z) in the base
     frame, looking along body yaw ``yaw_deg`` (left positive) tilted up by
@@ -374,6 +391,7 @@ class Scenario(Spec, frozen=True, kw_only=True, forbid_unknown_fields=True):
     robot: Robot = Robot()
     robots: Robots = Robots()
     landmarks: tuple[Landmark, ...] = ()
+    decoys: tuple[Decoy, ...] = ()
     encoders: Encoders = Encoders()
     clock: Clock = Clock()
     render: Render = Render()

@@ -109,6 +109,12 @@ class Renderer:
             pb.createMultiBody(baseMass=0, baseVisualShapeIndex=vis, basePosition=(lm.x_m, lm.y_m, lm.z_m),
                                baseOrientation=pb.getQuaternionFromEuler((0, 0, lm.yaw_rad)),
                                physicsClientId=self.cid)
+        for d in s.decoys:  # a poster: the plate of a landmark, its tag whatever the scenario says
+            obj = assets.landmark_mesh(self.asset_dir, d.family or s.tags.family, d.tag_id, d.size_m)
+            vis = pb.createVisualShape(pb.GEOM_MESH, fileName=str(obj), physicsClientId=self.cid)
+            pb.createMultiBody(baseMass=0, baseVisualShapeIndex=vis, basePosition=(d.x_m, d.y_m, d.z_m),
+                               baseOrientation=pb.getQuaternionFromEuler((0, 0, d.yaw_rad)),
+                               physicsClientId=self.cid)
         r = s.robot
         for rid in s.robot_ids:
             obj = assets.cube_mesh(self.asset_dir, s.tags.family, s.tag_ids(rid), r.cube_edge_m, s.tags.size_m)

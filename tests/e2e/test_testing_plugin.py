@@ -275,3 +275,29 @@ def test_no_process_survives_a_failed_timed_out_or_interrupted_test(
     assert _with_run_id(run_id) == []
     print(json.dumps({"case": case, "exit_code": proc.returncode, "processes_seen": len(seen),
                       "with_run_id": len(with_id)}))
+
+
+# ---------------------------------------------------------------------- errors, in this process
+def test_a_process_that_dies_early_is_reported_at_once_with_its_log(swarm: Any) -> None:
+    from tagswarm.testing import SwarmProcessDied
+
+    with swarm.start(robots=2, duration_s=5, extra_args={"server": ["--lag", "-1"]}) as s:
+        # reported when it dies, not when the wait runs out: that would be a SwarmTimeout, and after pytest's timeout
+        with pytest.raises(SwarmProcessDied) as failed:
+            s.wait_sim(4.0, timeout_s=3600)
+    assert failed.value.name == "server" and failed.value.code == 2
+    assert "tagswarm-server: error: --lag must be > 0" in str(failed.value)  # the log's tail
+
+
+def test_a_wait_that_runs_out_says_what_and_shows_the_logs(swarm: Any) -> None:
+    from tagswarm.protocol.errors import TagswarmError
+    from tagswarm.testing import SwarmTimeout
+
+    with swarm.start(robots=2, duration_s=5) as s:
+        s.freeze("world")  # nothing moves any more
+        with pytest.raises(SwarmTimeout) as late:
+            s.wait_sim(4.0, timeout_s=3)
+        pids = [s.pid(n) for n in s.names]
+    assert isinstance(late.value, TagswarmError)
+    assert "simulated time never reached 4 s" in str(late.value) and "--- world.log" in str(late.value)
+    assert not any(psutil.pid_exists(p) and psutil.Process(p).status() != psutil.STATUS_ZOMBIE for p in pids)

@@ -181,8 +181,26 @@ def load_scenario(name_or_path: str = "paper", overrides: tuple[str, ...] | list
     scenario, notes = complete(scenario, toml_count if isinstance(toml_count, int) else Robots().count)
     for note in notes:
         log.info("%s", note)
+    scenario = _expand_agents(scenario)
     validate(scenario)
     return scenario
+
+
+#: in ``clock.participants``, every robot's agent (``agent/0`` .. ``agent/<count-1>``):
+#: a deployment whose robot count is chosen at start (compose ``--scale``) names them so
+AGENTS_WILDCARD = "agent/*"
+
+
+def _expand_agents(s: Scenario) -> Scenario:
+    """``s`` with :data:`AGENTS_WILDCARD` in ``clock.participants`` replaced by one agent per robot."""
+    if AGENTS_WILDCARD not in s.clock.participants:
+        return s
+    out: list[str] = []
+    for p in s.clock.participants:
+        for q in ([f"agent/{r}" for r in s.robot_ids] if p == AGENTS_WILDCARD else [p]):
+            if q not in out:
+                out.append(q)
+    return msgspec.structs.replace(s, clock=msgspec.structs.replace(s.clock, participants=tuple(out)))
 
 
 # --------------------------------------------------------------------------- rules

@@ -23,6 +23,10 @@ server        publish the map, its status, every robot's correction and the ack
 viewer        receive everything of the run, query the map (spy, recorder, alive)
 operator      what viewer may, plus publish goals (``tagswarm goto``) and world
               commands (``tagswarm kidnap``)
+recorder      what viewer may, plus answer robot-id claims (``tagswarm record-run``,
+              the compose run's recorder and claim authority) and declare its token
+claimant      ask for a robot id (``tagswarm claim``, before an agent starts) and
+              watch presence (its container's healthcheck); nothing else
 ============  =====================================================================
 
 Everyone may watch presence (liveliness) under ``alive/``; each process may
@@ -43,6 +47,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+import re
 import secrets
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, fields
@@ -52,9 +57,18 @@ from typing import Any
 from tagswarm.protocol.keys import Keys
 
 WORLD, SERVER, VIEWER, OPERATOR = "world", "server", "viewer", "operator"
+RECORDER, CLAIMANT = "recorder", "claimant"
+#: the recorder's liveliness token (a lockstep observer: the world waits for it before the first tick)
+RECORDER_PARTICIPANT = "recorder/0"
 #: the file name of Zenoh's ``user:password`` dictionary written by :func:`make_secrets`
 USERS_FILE = "users.txt"
+#: the agents' part of it, for the claim authority (tagswarm/deploy/claims.py)
+AGENTS_FILE = "agents.txt"
 PASSWORD_SUFFIX = ".password"
+
+
+#: an agent's user name: ``agent<k>``
+AGENT_USER = re.compile(r"agent(0|[1-9][0-9]*)")
 
 
 def agent_user(robot_id: int) -> str:
@@ -64,7 +78,14 @@ def agent_user(robot_id: int) -> str:
 
 def users(robot_ids: Iterable[int]) -> list[str]:
     """Every user of a deployment with these robots, in a stable order."""
-    return [WORLD, SERVER, *(agent_user(r) for r in robot_ids), VIEWER, OPERATOR]
+    return [WORLD, SERVER, *(agent_user(r) for r in robot_ids), VIEWER, OPERATOR, RECORDER, CLAIMANT]
+
+
+def claim_key(keys: Keys) -> str:
+    """Where agents ask for a robot id: ``tagswarm/<run>/deploy/claim`` (a query; the
+    reply carries the id and that robot's credentials)."""
+    # TODO(protocol/keys.py owner): move to Keys.claim(); built on Keys.prefix meanwhile
+    return f"{keys.prefix}/deploy/claim"
 
 
 @dataclass(frozen=True)
@@ -116,6 +137,9 @@ def grants(keys: Keys, robot_ids: Sequence[int]) -> dict[str, Grant]:
         VIEWER: Grant(sub=(keys.all(),), ask=(keys.map(),), watch=(keys.all(),)),
         OPERATOR: Grant(put=(keys.goal(), keys.world_command()), sub=(keys.all(),), ask=(keys.map(),),
                         watch=(keys.all(),)),
+        RECORDER: Grant(sub=(keys.all(),), ask=(keys.map(),), serve=(claim_key(keys),),
+                        token=(keys.alive(RECORDER_PARTICIPANT),), watch=(keys.all(),)),
+        CLAIMANT: Grant(ask=(claim_key(keys),), watch=(keys.alive_all(),)),
     }
     for rid in robot_ids:
         me = f"agent/{int(rid)}"
@@ -188,7 +212,8 @@ def _json(value: Any, depth: int) -> str:
 def make_secrets(folder: Path, user_names: Sequence[str]) -> list[Path]:
     """Create ``folder/<user>.password`` for every user that has none yet (random,
     URL-safe, so never a ``:``) and rewrite ``folder/users.txt``, the router's
-    ``user:password`` dictionary, from all of them.  Existing passwords are kept.
+    ``user:password`` dictionary, from all of them, and ``folder/agents.txt``, its agent
+    lines (the claim authority's, :mod:`tagswarm.deploy.claims`).  Existing passwords are kept.
 
     ``folder`` is made private (0700).  The files in it are 0644 on purpose: compose
     bind-mounts each secret with its host owner and mode, and the containers run as
@@ -207,6 +232,9 @@ def make_secrets(folder: Path, user_names: Sequence[str]) -> list[Path]:
     users_path = folder / USERS_FILE
     _write(users_path, "\n".join(entries) + "\n")
     written.append(users_path)
+    agents = [e for e in entries if AGENT_USER.fullmatch(e.split(":", 1)[0])]
+    _write(folder / AGENTS_FILE, "".join(f"{e}\n" for e in agents))
+    written.append(folder / AGENTS_FILE)
     return written
 
 

@@ -11,6 +11,8 @@ unless asked for.  The router always runs in Zenoh's router mode (the
 the liveliness token ``tagswarm/<run>/alive/router/0`` and runs until SIGTERM
 or SIGINT (exit 0).  With ``--heartbeat PATH`` it touches PATH every second
 (for ``tagswarm alive --heartbeat PATH`` healthchecks) and removes it on exit.
+With ``--until-gone recorder/0`` it also exits 0 once that participant has
+come and gone (compose: the run is over and its folder written).
 
 Security (docs/security.md):
 
@@ -39,8 +41,8 @@ from pathlib import Path
 import msgspec
 
 from tagswarm.deploy import acl
-from tagswarm.protocol.bus import BusConfig, open_bus
-from tagswarm.protocol.keys import Keys
+from tagswarm.protocol.bus import Bus, BusConfig, open_bus
+from tagswarm.protocol.keys import Keys, split_participant
 from tagswarm.runtime.config import (
     ConfigError,
     Invocation,
@@ -63,6 +65,8 @@ log = logging.getLogger("tagswarm.router")
 def parser() -> OneLineParser:
     p = OneLineParser(prog=PROG, description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--heartbeat", metavar="PATH", help="touch PATH every second while the router runs")
+    p.add_argument("--until-gone", metavar="ROLE/ID", help="exit 0 once this participant's liveliness token, "
+                   "after it was seen, goes away (compose: the recorder, so `docker compose up` ends with the run)")
     s = p.add_argument_group("security (docs/security.md)")
     s.add_argument("--users", metavar="FILE", help="Zenoh user:password dictionary: only clients that log in "
                    "with one of its entries may connect (env TAGSWARM_ZENOH_USERS_FILE)")
@@ -117,6 +121,24 @@ def print_config(cfg: BusConfig, keys: Keys, robots: Sequence[int], command: str
     return acl.render_config(config, header)
 
 
+class GoneWatch:
+    """Has a liveliness token been seen and then dropped?"""
+
+    def __init__(self, bus: Bus, key: str) -> None:
+        self.key = key
+        self.inbox = bus.watch_liveliness(key)
+        self.seen = False
+
+    def gone(self) -> bool:
+        for change in self.inbox.drain():
+            if change.value:
+                self.seen = True
+            elif self.seen:
+                log.info("%s left: stopping", self.key)
+                return True
+        return False
+
+
 class Heartbeat:
     """A file whose modification time says the router is alive."""
 
@@ -130,16 +152,18 @@ class Heartbeat:
         self.path.unlink(missing_ok=True)
 
 
-def serve(cfg: BusConfig, keys: Keys, stop: threading.Event, heartbeat: Heartbeat | None) -> int:
-    """Run the router until ``stop``; returns 0."""
+def serve(cfg: BusConfig, keys: Keys, stop: threading.Event, heartbeat: Heartbeat | None,
+          until_gone: str | None = None) -> int:
+    """Run the router until ``stop`` (or ``until_gone``'s token came and went); returns 0."""
     with open_bus(cfg) as bus:
         bus.declare_token(keys.alive(PARTICIPANT))
+        watch = GoneWatch(bus, keys.alive(until_gone)) if until_gone is not None else None
         security = ("ACL on, users from " if cfg.access_control else "users from ") + str(cfg.users_file) \
             if cfg.users_file else "no authentication"
         log.info("Zenoh router %s listening on %s%s (run %r, %s)", bus.zid, ", ".join(cfg.listen),
                  f", connected to {', '.join(cfg.connect)}" if cfg.connect else "", keys.run, security)
         try:
-            while not stop.is_set():
+            while not stop.is_set() and not (watch is not None and watch.gone()):
                 if heartbeat is not None:
                     try:
                         heartbeat.beat()
@@ -167,8 +191,11 @@ def main(argv: Sequence[str] | None = None) -> int:
                 written = acl.make_secrets(folder, acl.users(robot_ids(args, env)))
             except OSError as exc:
                 raise ConfigError(f"--make-secrets: cannot write {folder}: {exc.strerror}") from None
-            print(f"{len(written) - 1} new password file(s) and {folder / acl.USERS_FILE} written")
+            print(f"{len(written) - 2} new password file(s), {folder / acl.USERS_FILE} and "
+                  f"{folder / acl.AGENTS_FILE} written")
             return 0
+        if args.until_gone is not None:
+            split_participant(args.until_gone)
         cfg = router_config(args, env, check_files=not args.print_config)
         if args.print_config:
             command = " ".join([PROG, *(sys.argv[1:] if argv is None else argv)])
@@ -185,7 +212,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         stop = threading.Event()
         install_stop_signals(stop)
         try:
-            return serve(cfg, keys, stop, heartbeat)
+            return serve(cfg, keys, stop, heartbeat, args.until_gone)
         finally:
             if heartbeat is not None:
                 heartbeat.clear()

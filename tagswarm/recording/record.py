@@ -6,8 +6,9 @@ matching KEYEXPR (default: every key of the run, ``tagswarm/<run>/**``) to an MC
 that Foxglove opens:
 
 - one raw channel per key holding the payload bytes exactly as received (msgpack, with the
-  message type's JSON schema), so ``tagswarm replay`` is byte-exact; log time is the
-  message's simulation time, publish time the wall clock at reception;
+  JSON Schema of the message type's msgpack form and its Zenoh encoding, from the wire
+  contract: see :mod:`tagswarm.recording.mcapio`), so ``tagswarm replay`` is byte-exact;
+  log time is the message's simulation time, publish time the wall clock at reception;
 - Foxglove views beside them (poses, frames, the map, camera images; see
   :mod:`tagswarm.recording.foxglove_views`), unless ``--no-foxglove``;
 - camera images optionally downsampled (``--image-scale 0.5``: area-averaged, intrinsics

@@ -93,6 +93,6 @@ def publish_once(bus: Bus, key: str, payload: bytes, timeout_s: float) -> None:
     """Publish ``payload`` on ``key`` once a subscriber is known (see the module docstring);
     :class:`NoSubscriberError` if none is within ``timeout_s`` wall seconds."""
     if not wait_matched(bus, key, timeout_s):
-        raise NoSubscriberError(f"nobody subscribes to {key} (waited {timeout_s:g} s): "
+        raise NoSubscriberError(f"nobody subscribes to {key} (waited {timeout_s:.1f} s): "
                                 "is the process that reads it running on this run and network?")
     bus.put(key, payload)

@@ -7,12 +7,14 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pybullet as pb
 import pytest
 
 from tagswarm.agents.cubegeom import CameraModel
 from tagswarm.agents.cubepose import CubePoseEstimator
 from tagswarm.agents.detect import TagMap, make_detector
 from tagswarm.protocol.geometry import se2_matrix
+from tagswarm.protocol.layout import start_poses
 from tagswarm.protocol.scenario import ScenarioError, load_scenario
 from tagswarm.world.render import Renderer, image_message
 
@@ -50,3 +52,25 @@ def test_decoy_validation() -> None:
     with pytest.raises(ScenarioError, match=r"decoys\[0\]"):
         load_scenario("paper", ['decoys=[{tag_id=11, x_m=1.0, y_m=0.0, kind="cube"}]'])
     assert math.isclose(load_scenario("paper", [DECOYS]).decoys[1].size_m, 0.15)
+
+
+def test_a_poster_beside_its_robot_is_dropped_not_the_robot() -> None:
+    """Robot 2's front tag on the wall behind robot 2: the ID shows twice in one image; the copy
+    that fits as a robot on the floor is robot 2, the other is counted as a decoy."""
+    s = load_scenario("paper", ["decoys=[{tag_id=21, x_m=3.4, y_m=0.5, z_m=0.6, yaw_rad=3.1416, size_m=0.3}]"])
+    cam = s.robot.cameras[0]
+    with Renderer(s) as r:
+        for rid, (x, y, yaw) in zip(s.robot_ids, start_poses(s), strict=True):
+            r.set_pose(rid, (x, y, 0), pb.getQuaternionFromEuler((0, 0, yaw)))
+        x0, y0, yaw0 = start_poses(s)[0]
+        observer = se2_matrix(x0, y0, yaw0)
+        msg = image_message(s, 0, cam, r.render(0, cam, observer), seq=0, step=0, stamp_ns=0)
+    img = np.frombuffer(msg.data, np.uint8).reshape(msg.height, msg.width)
+    dets = make_detector(s.tags.family).detect(img)
+    assert [d.tag_id for d in dets].count(21) == 2
+    est = CubePoseEstimator(s)
+    found = {e.target_id: e for e in est.estimate([(CameraModel.from_message(msg), dets)])}
+    assert 2 in found and est.rejects == {"decoy": 1}
+    x2, y2, _ = start_poses(s)[2]
+    truth = np.linalg.inv(observer) @ se2_matrix(x2, y2, 0.0)
+    assert math.hypot(found[2].x_m - truth[0, 3], found[2].y_m - truth[1, 3]) < 0.05

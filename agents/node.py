@@ -50,6 +50,7 @@ from tagswarm.agents.controller import (
 )
 from tagswarm.agents.cubepose import CameraModel, CubePoseEstimator, PoseEstimate
 from tagswarm.agents.detect import TagMap, make_detector
+from tagswarm.agents.landmarkfix import fix_estimates
 from tagswarm.agents.neighbours import NeighbourTracker
 from tagswarm.agents.odometry import DiffDriveOdometry, DiffDriveParams, SlipMonitor
 from tagswarm.protocol import codec
@@ -342,7 +343,8 @@ class AgentNode:
         stamp = max(img.stamp_ns for img in frames)
         self.time_ns = max(self.time_ns, stamp)
         fresh = {k: p for k, (t, p) in self._priors.items() if stamp - t <= PRIOR_MAX_AGE_NS}
-        for est in self.estimator.estimate(views, fresh):
+        # with several field tags in view, one fix from all of them replaces the per-tag ones
+        for est in fix_estimates(self.estimator, self.s, self.estimator.estimate(views, fresh), views):
             if np.hypot(est.x_m, est.y_m) > self.s.agent.max_range_m:
                 self.counters["rejected_range"] += 1
                 continue

@@ -9,8 +9,9 @@ asynchronously after the session opens (and after the liveliness token the comma
 for: another process, such as a recorder that joined a moment ago, may subscribe through a
 link that is still being set up).  A put before that is silently lost.  The publisher's
 *matching status* (Zenoh 1.x) says when the session knows at least one matching
-subscriber, so :func:`publish_once` waits for it, publishes, and leaves the session to be
-closed by ``open_bus`` (closing drains Zenoh's transmission queues).
+subscriber, so :func:`publish_once` waits for it and publishes (BLOCK, express: the sample
+is handed to the link at once); the command then makes one liveliness round trip and
+leaves ``open_bus`` to close the session cleanly, never exiting with it open.
 """
 
 from __future__ import annotations

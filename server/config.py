@@ -34,7 +34,9 @@ def parser(prog: str = "tagswarm-server") -> argparse.ArgumentParser:
     p = OneLineParser(
         prog=prog,
         description="The tagswarm map server: stitches every robot's relative observations and odometry into one "
-        "global map (paper stitching + GTSAM iSAM2 fixed-lag pose graph) and pushes map->odom corrections back.")
+        "global map and pushes map->odom corrections back.  The scenario's [server] method chooses how: 'graph' "
+        "(default; GTSAM iSAM2 fixed-lag pose graph) or 'stitch' (the paper: the newest observations composed along "
+        "the who-sees-whom chain, odometry in between; no journal), e.g. --set server.method='\"stitch\"'.")
     add_common_args(p)
     p.add_argument("--map-rate", type=float, default=2.0, metavar="HZ", help="global map publish rate (default 2)")
     p.add_argument("--update-rate", type=float, default=10.0, metavar="HZ",

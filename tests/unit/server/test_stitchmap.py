@@ -169,3 +169,17 @@ def test_chain_covariance_matches_monte_carlo(yaw: float) -> None:
         errs.append(e)
     sample = np.cov(np.array(errs).T)
     assert np.allclose(np.diag(sample), np.diag(c), rtol=0.15)
+
+
+def test_server_method_from_set_and_environment() -> None:
+    from tagswarm.protocol.scenario import ScenarioError
+    from tagswarm.server.config import build_config
+    from tagswarm.server.node import make_estimator
+
+    assert isinstance(make_estimator(build_config([], {})), Fusion)  # default: the graph
+    cfg = build_config(["--set", 'server.method="stitch"'], {})
+    assert cfg.scenario.server.method == "stitch" and isinstance(make_estimator(cfg), StitchMap)
+    env = build_config([], {"TAGSWARM_SET": 'server.method="stitch"'})
+    assert isinstance(make_estimator(env), StitchMap)
+    with pytest.raises(ScenarioError, match=r"server\.method"):
+        build_config(["--set", 'server.method="kalman"'], {})

@@ -16,6 +16,7 @@ from __future__ import annotations
 import math
 import os
 import signal
+import subprocess
 import sys
 import time
 from collections.abc import Callable
@@ -103,7 +104,7 @@ class LiveSwarm:
         for name in names or [n for n in self.names if n not in self._children]:
             self.spawn(name)
 
-    def spawn(self, name: str, *extra: str, net: NetFault | None = _KEEP) -> Any:
+    def spawn(self, name: str, *extra: str, net: NetFault | None = _KEEP) -> subprocess.Popen[bytes]:
         """Start process ``name`` (not running) with ``extra`` flags; ``net`` replaces its fault
         layer (``None``: none).  A restart gets a fresh log (``logs/agent1.1.log``).  Returns its
         :class:`subprocess.Popen`."""
@@ -123,7 +124,7 @@ class LiveSwarm:
         self._history.append(child)
         return child.proc
 
-    def restart(self, name: str, *extra: str, net: NetFault | None = _KEEP) -> Any:
+    def restart(self, name: str, *extra: str, net: NetFault | None = _KEEP) -> subprocess.Popen[bytes]:
         """SIGKILL ``name`` if it runs, then start it again (``extra``, ``net`` as :meth:`spawn`)."""
         if self.running(name):
             self.kill(name)
@@ -138,7 +139,7 @@ class LiveSwarm:
             child.send(signal.SIGCONT)  # a frozen process acts on SIGTERM only once it runs again
         try:
             child.proc.wait(timeout=timeout_s)
-        except Exception:
+        except subprocess.TimeoutExpired:
             raise SwarmTimeout(f"{name} did not exit within {timeout_s:g} s of signal {sig}\n{self.tails()}") from None
 
     def freeze(self, name: str) -> None:
@@ -149,7 +150,7 @@ class LiveSwarm:
         """SIGCONT ``name``'s group."""
         self._child(name).send(signal.SIGCONT)
 
-    def process(self, name: str) -> Any:
+    def process(self, name: str) -> subprocess.Popen[bytes]:
         """The :class:`subprocess.Popen` of ``name``'s current (or last) process."""
         return self._child(name).proc
 
@@ -290,10 +291,12 @@ class LiveSwarm:
         world = self._children.get("world")
         if world is not None:  # a process failing meanwhile is reported at once, not after the world's end
             self.wait(lambda: world.poll() is not None, timeout_s, f"the world did not finish within {timeout_s:g} s")
+        if world is not None:
+            deadline = time.monotonic() + linger_s
         for name, child in list(self._children.items()):
             try:
-                child.proc.wait(timeout=linger_s if world is not None else max(1.0, deadline - time.monotonic()))
-            except Exception:
+                child.proc.wait(timeout=max(0.01, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
                 self.stopped_at_end.append(name)
                 child.stop(self.grace_s)
                 continue
@@ -332,8 +335,8 @@ class LiveSwarm:
             for c in live:
                 try:
                     c.proc.wait(timeout=max(0.01, deadline - time.monotonic()))
-                except Exception:
-                    pass
+                except subprocess.TimeoutExpired:
+                    pass  # reap() below SIGKILLs it
         finally:
             for c in self._history:
                 c.reap()

@@ -301,3 +301,14 @@ def test_a_wait_that_runs_out_says_what_and_shows_the_logs(swarm: Any) -> None:
     assert isinstance(late.value, TagswarmError)
     assert "simulated time never reached 4 s" in str(late.value) and "--- world.log" in str(late.value)
     assert not any(psutil.pid_exists(p) and psutil.Process(p).status() != psutil.STATUS_ZOMBIE for p in pids)
+
+
+def test_a_process_that_outlives_the_world_is_stopped_and_named(swarm: Any) -> None:
+    with swarm.start(robots=2, duration_s=3) as s:
+        s.wait(lambda: not s.running("world"), 120, "the world never finished")
+        s.restart("agent/1")  # too late: it waits for a world that is gone
+        s.wait_exit(linger_s=2.0)
+        run = s.write()
+    assert s.stopped_at_end == ["agent/1"]
+    assert run.exit_codes["agent/1"] in (0, -signal.SIGTERM) and run.exit_codes["world"] == 0
+    assert json.loads((run.run_dir / "run.json").read_text())["stopped_at_end"] == ["agent/1"]

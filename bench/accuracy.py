@@ -12,6 +12,8 @@ Writes ``bench/results/accuracy.json`` and plots next to it.
   alignment), pairwise distance error, re-localisation rotations, time lost.
 - scenes nobody tuned for (bench/scenes.py): hall, crowd, corridor, kidnap at
   their own lengths: time localised, re-localisations, kidnap recovery, contacts, NEES.
+- server methods side by side (bench/methods.py): ``stitch`` (the paper) and ``graph`` on the
+  same scenes and seed, shortened runs; plots ``<out>_methods_<method>.png``.
 - ablations (dynamic, seed 0): 320x240 vs 640x480, one camera vs a four-camera
   rig, whole-cube vs single-tag pose, active re-localisation on vs off (paper
   scenario, and allmoving where it triggers).  Stitching alone vs the factor graph
@@ -48,6 +50,7 @@ from tagswarm.protocol.geometry import se2_between, wrap_angle  # noqa: E402
 from tagswarm.server.stitch import Edge, stitch  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+import methods  # type: ignore[import-not-found]  # noqa: E402
 import scenes  # type: ignore[import-not-found]  # noqa: E402
 
 TAGSWARM = str(Path(sys.executable).parent / "tagswarm")
@@ -327,6 +330,7 @@ def main() -> int:
     p.add_argument("--quick", action="store_true", help="8 (+3 single-tag) trials, 20 s, 1 seed, 20 s ablations")
     p.add_argument("--skip-ablations", action="store_true")
     p.add_argument("--skip-scenes", action="store_true")
+    p.add_argument("--skip-methods", action="store_true", help="skip the stitch-vs-graph runs (bench/methods.py)")
     p.add_argument("--camera-only", action="store_true",
                    help="only the camera rows (paper vs paper-realistic vs a calibration error, --ablation-duration "
                         "each) to bench/results/accuracy_camera.json")
@@ -380,6 +384,11 @@ def main() -> int:
             # the crowd's 16 lockstep robots run at ~0.13x real time: weigh it by its cost, not its length
             runs.append((dur * (6.0 if sc == "crowd" else 1.0), ("scene", sc),
                          lambda sc=sc, dur=dur: scenes.scene_run(up, work, sc, dur)))
+        method_jobs = [] if a.skip_methods else [(sc, me) for sc in methods.SCENES for me in methods.METHODS]
+        for sc, me in method_jobs:
+            dur = methods.SCENES[sc]
+            runs.append((dur * (6.0 if sc == "crowd" else 1.0), ("method", (sc, me)),
+                         lambda sc=sc, me=me, dur=dur: methods.method_run(up, work, sc, me, dur)))
         runs.sort(key=lambda r: -r[0])
         done = dict(zip([key for _, key, _ in runs], _parallel(a.jobs, [fn for _, _, fn in runs]), strict=True))
     static = {label: [done[(label, seed)] for seed in range(n)]
@@ -400,6 +409,10 @@ def main() -> int:
     result["scenes"] = [done[("scene", sc)] for sc in scene_names]
     result["settings"]["scenes"] = {sc: scenes.SCENES[sc][1 if a.quick else 0] for sc in scene_names}
     result["targets"]["scenes"] = scenes.TARGETS
+    by_method = [done[("method", job)] for job in method_jobs]
+    result["methods"] = methods.without_curves(by_method)
+    for me in methods.METHODS if by_method else ():
+        methods.plot(by_method, me, a.out.parent / f"{a.out.stem}_methods_{me}.png")
     result["dynamic_summary"] = summarise_dynamic(result["dynamic"] + result.get("ablations", []))
     result["wall_time_s"] = time.monotonic() - t_start
     plot_dynamic(result["dynamic_summary"], a.out.parent / f"{a.out.stem}_dynamic.png")

@@ -348,6 +348,35 @@ class Bus:
         self._keep.append(self._session.declare_subscriber(key, _direct(on_faulty_sample if faulty else on_sample)))
         return inbox
 
+    def subscribe_encoded(self, key: str, *, capacity: int = 65536) -> Inbox[tuple[str, bytes]]:
+        """Subscribe to ``key`` keeping each sample's Zenoh encoding: the inbox holds
+        ``(encoding, payload)`` pairs (for inspection tools; no fault injection)."""
+        inbox: Inbox[tuple[str, bytes]] = Inbox(self._wake, newest_only=False, capacity=capacity)
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            inbox.put(str(sample.key_expr), (str(sample.encoding), sample.payload.to_bytes()))
+
+        self._keep.append(self._session.declare_subscriber(key, _direct(on_sample)))
+        return inbox
+
+    def wait_matched(self, key: str, timeout_s: float) -> bool:
+        """True once this session knows of a subscriber matching ``key`` (in any process,
+        this one included), False after ``timeout_s`` wall seconds.  A probe publisher's
+        matching listener wakes the wait (no polling); undeclaring the probe afterwards does
+        not make the session forget the subscribers it learnt."""
+        matched = threading.Event()
+        probe = self._session.declare_publisher(key)
+        try:
+            listener = probe.declare_matching_listener(lambda status: matched.set() if status.matching else None)
+            try:
+                # a MatchingStatus object (zenoh 1.10's stub says bool, and any object is truthy)
+                now: Any = probe.matching_status
+                return bool(now.matching) or matched.wait(timeout_s)
+            finally:
+                listener.undeclare()
+        finally:
+            probe.undeclare()
+
     def fault_stats(self) -> dict[str, int]:
         """Samples lost to / delayed by injected network faults so far (for statuses)."""
         f = self._faults

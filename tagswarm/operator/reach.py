@@ -16,9 +16,7 @@ leaves ``open_bus`` to close the session cleanly, never exiting with it open.
 
 from __future__ import annotations
 
-import threading
 from collections.abc import Callable
-from typing import Any
 
 from tagswarm.protocol import codec
 from tagswarm.protocol import messages as m
@@ -69,31 +67,10 @@ class NoSubscriberError(UsageError):
     """Nobody subscribes to a command's key: exit 2, one line."""
 
 
-def wait_matched(bus: Bus, key: str, timeout_s: float) -> bool:
-    """True once this session knows of a subscriber matching ``key`` (any process, this one
-    included), False after ``timeout_s`` wall seconds.  Uses a probe publisher's matching
-    listener (no polling); the probe is undeclared before returning, which does not make
-    the session forget the subscribers it learnt."""
-    # protocol/bus.py has no matching-status call (yet): the session is reached directly
-    session = bus._session
-    matched = threading.Event()
-    probe = session.declare_publisher(key)
-    try:
-        listener = probe.declare_matching_listener(lambda status: matched.set() if status.matching else None)
-        try:
-            # a MatchingStatus (zenoh 1.10's stub says bool, and any object is truthy)
-            now: Any = probe.matching_status
-            return bool(now.matching) or matched.wait(timeout_s)
-        finally:
-            listener.undeclare()
-    finally:
-        probe.undeclare()
-
-
 def publish_once(bus: Bus, key: str, payload: bytes, timeout_s: float) -> None:
     """Publish ``payload`` on ``key`` once a subscriber is known (see the module docstring);
     :class:`NoSubscriberError` if none is within ``timeout_s`` wall seconds."""
-    if not wait_matched(bus, key, timeout_s):
+    if not bus.wait_matched(key, timeout_s):
         raise NoSubscriberError(f"nobody subscribes to {key} (waited {timeout_s:.1f} s): "
                                 "is the process that reads it running on this run and network?")
     bus.put(key, payload)

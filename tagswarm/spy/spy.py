@@ -36,14 +36,14 @@ import sys
 import threading
 import time
 from collections.abc import Callable, Sequence
-from typing import Any, TextIO
+from typing import TextIO
 
 import msgspec
 from rich.console import Console
 from rich.live import Live
 from rich.table import Table
 
-from tagswarm.protocol.bus import Bus, Inbox, open_bus
+from tagswarm.protocol.bus import Bus, open_bus
 from tagswarm.protocol.keys import Keys
 from tagswarm.runtime.config import ConfigError, Invocation, OneLineParser, add_common_args
 from tagswarm.runtime.process import install_stop_signals, run_main, setup_logging
@@ -65,28 +65,12 @@ from tagswarm.spy.traffic import (
 __all__ = [
     "INBOX_CAPACITY", "LAST_WIDTH", "PROG", "KeyStats", "Row", "Spy", "Traffic", "decode", "echo_line",
     "encoding_mismatch", "human_rate", "image_summary", "main", "message_json", "parser", "plain_snapshot",
-    "rich_snapshot", "run_spy", "subscribe_encoded", "summarise", "type_name",
+    "rich_snapshot", "run_spy", "summarise", "type_name",
 ]
 
 PROG = "tagswarm spy"
 #: Items an unread subscription may hold before the oldest are dropped (and counted).
 INBOX_CAPACITY = 20_000
-
-
-def subscribe_encoded(bus: Any, keyexpr: str, capacity: int) -> tuple[Inbox[tuple[str, bytes]], Any]:
-    """An inbox of ``(Zenoh encoding, payload)`` per sample on ``keyexpr``, and the handle
-    that keeps the subscription alive.  :meth:`Bus.subscribe` hands payloads only, so the
-    subscriber is declared on the bus's session here (its callback only enqueues); a bus
-    with a ``subscribe_encoded(keyexpr, capacity=...)`` method (tests' fakes) is used as is."""
-    own = getattr(bus, "subscribe_encoded", None)
-    if own is not None:
-        return own(keyexpr, capacity=capacity), None
-    inbox: Inbox[tuple[str, bytes]] = Inbox(threading.Condition(), newest_only=False, capacity=capacity)
-
-    def on_sample(sample: Any) -> None:
-        inbox.put(str(sample.key_expr), (str(sample.encoding), sample.payload.to_bytes()))
-
-    return inbox, bus._session.declare_subscriber(keyexpr, on_sample)
 
 
 class Spy:
@@ -97,7 +81,7 @@ class Spy:
         self.clock = clock
         self.traffic = Traffic(window_s, clock())
         try:
-            self.inbox, self._subscription = subscribe_encoded(bus, keyexpr, INBOX_CAPACITY)
+            self.inbox = bus.subscribe_encoded(keyexpr, capacity=INBOX_CAPACITY)
             self.alive_in = bus.watch_liveliness(keyexpr) if alive else None
         except Exception as exc:  # zenoh rejects malformed key expressions when declaring
             reason = " ".join(str(exc).split()).split(" at /", 1)[0]  # drop zenoh's Rust source location

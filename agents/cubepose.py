@@ -38,7 +38,9 @@ Algorithm per target (``c0``: the camera that sees the target's largest tag):
    the estimate's own 3-sigma, or a tag seen from behind ("implausible"); too few
    or collapsed corners, a singular Jacobian ("degenerate"); one tag ID twice in
    one image ("duplicate") unless exactly one choice of its copies gives a plausible
-   pose, then the other copies count as "decoy" (a poster with the ID).
+   pose, then the other copies count as "decoy" (a poster with the ID); a set of tags
+   that fits no plausible pose is retried leaving each tag out, and if exactly one such
+   set fits, the tag left out counts as "decoy".
 6. Planar (the default for robots, ``planar=True``): both robots stand upright on
    one floor, so once the 6-DOF stage has found a plausible pose (step 5 still
    rejects a target its 6-DOF fit puts off the floor or tilted), (x, y, yaw) of
@@ -70,7 +72,6 @@ it against a bare AprilTag detect call.
 
 from __future__ import annotations
 
-import itertools
 import math
 from collections import Counter
 from typing import Final
@@ -90,6 +91,7 @@ from tagswarm.agents.cubegeom import (
     output_jacobian,
     quad_area,
 )
+from tagswarm.agents.decoys import DecoyResolver
 from tagswarm.agents.detect import TagDetection, TagMap
 from tagswarm.agents.lens import LensCorrector
 from tagswarm.agents.planar import PlanarProblem
@@ -104,11 +106,9 @@ __all__ = ["LANDMARK_PLATE_THICKNESS_M", "CameraModel", "CubePoseEstimator", "Po
 _PLANAR_CACHE_SIZE: Final = 1024
 # the planar covariance's pixel sigma over pixel_sigma_px: see CubePoseEstimator
 _PLANAR_NOISE: Final = 1.35
-# a target whose tag IDs repeat in an image (decoys) is tried with at most this many choices of copies
-_MAX_COPY_CHOICES: Final = 16
 
 
-class CubePoseEstimator:
+class CubePoseEstimator(DecoyResolver):
     """Bundle adjustment of observed tag cubes and landmark tags, one camera or a rig.
 
     ``pixel_sigma_px`` is the corner noise (1 sigma per axis) behind the covariance.
@@ -209,33 +209,10 @@ class CubePoseEstimator:
         for key, members in groups.items():
             if self.single_tag and len(members) > 1:
                 members = [max(members, key=lambda m: quad_area(m[2].corners))]
-            est = self._resolve_copies(key, members, views, None if priors is None else priors.get(key))
+            est = self.resolve(key, members, views, None if priors is None else priors.get(key))
             if est is not None:
                 out.append(est)
         return out
-
-    def _resolve_copies(self, key: tuple[str, int], members: list[tuple[int, TagGeom, TagDetection]],
-                        views: list[tuple[CameraModel, list[TagDetection]]], prior: Prior) -> PoseEstimate | None:
-        """The target's estimate when one of its tag IDs shows more than once in an image (a decoy:
-        a poster or a copy): every choice of one copy per repeated tag is tried; if exactly one
-        choice gives a plausible pose it is the target and the other copies are counted as
-        ``decoy``, otherwise the target is rejected as ``duplicate`` (no guessing)."""
-        copies: dict[tuple[int, int], list[tuple[int, TagGeom, TagDetection]]] = {}
-        for m in members:
-            copies.setdefault((m[0], m[2].tag_id), []).append(m)
-        repeated = [c for c in copies.values() if len(c) > 1]
-        if not repeated:
-            return self._estimate_target(key, members, views, prior)
-        once = [c[0] for c in copies.values() if len(c) == 1]
-        kept = self.rejects.copy()
-        found = [est for choice in itertools.islice(itertools.product(*repeated), _MAX_COPY_CHOICES)
-                 if (est := self._estimate_target(key, once + list(choice), views, prior)) is not None]
-        self.rejects = kept  # the trials' own rejects are not the target's
-        if len(found) != 1:
-            self._reject("duplicate")
-            return None
-        self.rejects["decoy"] += sum(len(c) - 1 for c in repeated)
-        return found[0]
 
     # ------------------------------------------------------------------ internals
     def _reject(self, reason: str) -> None:

@@ -36,3 +36,41 @@ def test_paper_realistic_localises_every_robot(tmp_path: Path) -> None:
     for rid, r in m["robots"].items():
         assert r["fused"]["ate_unaligned"]["rmse"] <= 0.10, (rid, r["fused"]["ate_unaligned"])
         assert _final_error(out, int(rid)) <= 0.10, rid
+
+
+# posters on the arena's end walls, above the cubes: robot 2's and robot 3's IDs, robot 1's own back tag, an ID
+# nothing carries and another family's tag (docs/camera.md, Decoys)
+DECOYS = ('decoys=[{tag_id=21, x_m=3.4, y_m=0.5, z_m=0.6, yaw_rad=3.1416, size_m=0.3}, '
+          '{tag_id=300, x_m=3.4, y_m=-0.6, z_m=0.6, yaw_rad=3.1416, size_m=0.3}, '
+          '{tag_id=5, family="tag16h5", x_m=3.4, y_m=0.0, z_m=0.9, yaw_rad=3.1416, size_m=0.3}, '
+          '{tag_id=31, x_m=-3.4, y_m=0.8, z_m=0.6, yaw_rad=0.0, size_m=0.3}, '
+          '{tag_id=12, x_m=-3.4, y_m=-0.8, z_m=0.6, yaw_rad=0.0, size_m=0.3}]')
+DECOY_RUN_S = 20.0
+
+
+def _up(out: Path, *extra: str) -> dict[str, dict[str, int]]:
+    res = subprocess.run([script("tagswarm"), "up", "--scenario", "paper", "--clock", "lockstep", "--seed", "0",
+                          "--duration", str(DECOY_RUN_S), "--out", str(out), "--no-live", *extra],
+                         capture_output=True, text=True, timeout=1200)
+    assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
+    counters: dict[str, dict[str, int]] = json.loads((out / "run.json").read_text())["counters"]
+    return counters
+
+
+def _total(counters: dict[str, dict[str, int]], name: str) -> int:
+    return sum(c.get(name, 0) for who, c in counters.items() if who.startswith("agent/"))
+
+
+def test_decoys_are_counted_and_do_not_move_the_map(tmp_path: Path) -> None:
+    plain = _up(tmp_path / "plain")
+    decoyed = _up(tmp_path / "decoys", "--set", DECOYS)
+    assert _total(decoyed, "pose_rejected_decoy") > 0  # robot 2's ID beside robot 2: the poster copy is dropped
+    assert _total(decoyed, "unknown_tags") > _total(plain, "unknown_tags")
+    assert _total(decoyed, "pose_rejected_implausible") > _total(plain, "pose_rejected_implausible")
+    for rid in range(4):
+        a = np.loadtxt(tmp_path / "plain" / "trajectories" / f"fused_{rid}.tum", ndmin=2)
+        b = np.loadtxt(tmp_path / "decoys" / "trajectories" / f"fused_{rid}.tum", ndmin=2)
+        common, ia, ib = np.intersect1d(a[:, 0], b[:, 0], return_indices=True)
+        assert len(common) > 0.9 * min(len(a), len(b)), rid
+        gap = np.hypot(a[ia, 1] - b[ib, 1], a[ia, 2] - b[ib, 2])
+        assert float(gap.max()) <= 0.01, (rid, float(gap.max()))

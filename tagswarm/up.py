@@ -13,7 +13,6 @@ import os
 import re
 import signal
 import socket
-import subprocess
 import sys
 import threading
 import time
@@ -32,6 +31,7 @@ from tagswarm.protocol.bus import BusConfig, open_bus
 from tagswarm.protocol.keys import Keys
 from tagswarm.protocol.scenario import Scenario
 from tagswarm.recording.runrecorder import RunRecorder
+from tagswarm.runtime import procgroup
 from tagswarm.runtime.config import ConfigError, Invocation, OneLineParser, add_common_args, scenario_from
 from tagswarm.runtime.process import run_main, setup_logging
 
@@ -105,24 +105,16 @@ def agent_modules(specs: Sequence[str], robot_ids: Sequence[int]) -> dict[int, s
     return out
 
 
-class Child:
-    """One child process and its log file."""
+class Child(procgroup.Child):
+    """One child process (leading its own process group) and its log file; if ``tagswarm up``
+    dies without stopping it (SIGKILL, a test's timeout), the reaper takes it down."""
 
     def __init__(self, name: str, argv: list[str], log: Path, env: dict[str, str] | None = None) -> None:
-        self.name, self.log = name, log
-        self._fh = open(log, "wb")
-        self.proc = subprocess.Popen(argv, stdout=self._fh, stderr=subprocess.STDOUT, start_new_session=True,
-                                     env=env)
+        super().__init__(name, argv, log, os.environ if env is None else env)
+        self.log = log
 
-    def stop(self, timeout_s: float = 10.0) -> None:
-        if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGTERM)
-            try:
-                self.proc.wait(timeout=timeout_s)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait()
-        self._fh.close()
+    def stop(self, grace_s: float = 10.0) -> None:
+        super().stop(grace_s)
 
     def tail(self, n: int = 15) -> str:
         lines = self.log.read_text(errors="replace").splitlines()
@@ -169,6 +161,7 @@ def run_up(scenario: Scenario, out: Path, endpoint: str, run: str, *, live: bool
     scen_file = out / "scenario.json"
     scen_file.write_bytes(msgspec.json.format(msgspec.json.encode(scenario)))
     common = ["--scenario", str(scen_file), "--run", run, *child_args]
+    procgroup.REGISTRY.catch_term = False  # SIGTERM stops the run in order (see main)
     children: list[Child] = []
     failure: str | None = None
     may_die = {f"agent/{r}" for r in scenario.robots.may_die}

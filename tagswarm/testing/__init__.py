@@ -4,10 +4,10 @@ The pytest fixture ``swarm`` (:mod:`tagswarm.testing.plugin`, registered as a py
 hands out a :class:`SwarmFactory`: ``swarm(...)`` returns a finished :class:`Run`,
 ``swarm.start(...)`` a :class:`LiveSwarm`.  Usage and reference: docs/testing.md.
 
-Modules: ``options`` (what a test asks for -> scenario and command lines), ``procgroup``
-(children in their own process groups, the atexit/SIGTERM net and the ``reaper``),
+Modules: ``options`` (what a test asks for -> scenario and command lines),
 ``live`` (the live handle), ``subscription``, ``result`` (the finished run),
-``trajectories``, ``runfolder``, ``factory``, ``errors``, ``plugin``.
+``trajectories``, ``runfolder``, ``factory``, ``errors``, ``plugin``; the children's
+process groups and the nets that take them down are :mod:`tagswarm.runtime.procgroup`.
 
 Names are imported on first use, so loading the plugin does not load Zenoh or numpy.
 """

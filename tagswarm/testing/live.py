@@ -35,9 +35,9 @@ from tagswarm.protocol.bus import Bus, BusConfig, BusError, open_bus
 from tagswarm.protocol.errors import TagswarmError
 from tagswarm.protocol.keys import ROOT, Keys
 from tagswarm.recording.runrecorder import RunRecorder
+from tagswarm.runtime.procgroup import Child
 from tagswarm.testing.errors import SwarmError, SwarmProcessDied, SwarmTimeout
 from tagswarm.testing.options import NetFault, SwarmSpec, check_name, child_env, command, log_name, process_names
-from tagswarm.testing.procgroup import Child
 from tagswarm.testing.result import Run
 from tagswarm.testing.runfolder import free_endpoint, write_run
 from tagswarm.testing.subscription import Subscription

@@ -2,14 +2,15 @@
 
 Each child starts in a new session (``start_new_session``), so it leads its own process
 group: signals go to the whole group (the world's render workers with the world), a
-Ctrl-C in the terminal reaches only the test process (which then tears down in order),
+Ctrl-C in the terminal reaches only the owner (which then tears down in order),
 and killing the group leaves nothing behind.  Nets, from first to last:
 
-1. the owner (the fixture's teardown, a ``with`` block) stops its groups: SIGCONT,
-   SIGTERM, a grace period, SIGKILL (:meth:`Child.stop`);
-2. ``atexit`` and a SIGTERM handler in the test process kill every group still alive;
-3. a reaper process (:mod:`tagswarm.testing.reaper`) holds the read end of a pipe and
-   kills the groups it was told about when the test process is gone, however it ended
+1. the owner (the fixture's teardown, a ``with`` block, ``tagswarm up`` at the end of a
+   run) stops its groups: SIGCONT, SIGTERM, a grace period, SIGKILL (:meth:`Child.stop`);
+2. ``atexit`` and (unless the owner handles SIGTERM itself, ``catch_term=False``) a
+   SIGTERM handler in the owner kill every group still alive;
+3. a reaper process (:mod:`tagswarm.runtime.reaper`) holds the read end of a pipe and
+   kills the groups it was told about when the owner is gone, however it ended
    (SIGKILL, pytest-timeout's ``os._exit``).
 """
 
@@ -28,7 +29,7 @@ from pathlib import Path
 from types import FrameType
 from typing import IO, Any
 
-log = logging.getLogger("tagswarm.testing")
+log = logging.getLogger("tagswarm.runtime.procgroup")
 REAPER = Path(__file__).with_name("reaper.py")
 
 
@@ -52,7 +53,7 @@ def signal_group(pgid: int, sig: int) -> None:
 
 
 class _Registry:
-    """Every live group of this test process, for the atexit/SIGTERM net and the reaper."""
+    """Every live group of this process, for the atexit/SIGTERM net and the reaper."""
 
     def __init__(self) -> None:
         self.groups: set[int] = set()
@@ -60,11 +61,12 @@ class _Registry:
         self.reaper: subprocess.Popen[bytes] | None = None
         self.pid = os.getpid()
         self.hooked = False
+        self.catch_term = True  # False: the owner's own SIGTERM handler stops its children
         self.previous_term: Any = None
 
     def _tell(self, line: str) -> None:
         if self.reaper is None or self.reaper.poll() is not None or self.pid != os.getpid():
-            # a fork of the test process (multiprocessing) must not share our reaper's pipe
+            # a fork of the owner (multiprocessing) must not share our reaper's pipe
             self.reaper = subprocess.Popen([sys.executable, str(REAPER)], stdin=subprocess.PIPE,
                                            stdout=subprocess.DEVNULL, start_new_session=True)
             self.pid = os.getpid()
@@ -105,7 +107,7 @@ class _Registry:
             return
         self.hooked = True
         atexit.register(self.kill_all)
-        if threading.current_thread() is threading.main_thread():
+        if self.catch_term and threading.current_thread() is threading.main_thread():
             self.previous_term = signal.getsignal(signal.SIGTERM)
             signal.signal(signal.SIGTERM, self._on_term)
 

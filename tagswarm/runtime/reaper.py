@@ -1,9 +1,9 @@
 """The last line of defence against stray processes: run as a plain script (no tagswarm
-import, so it starts in milliseconds) by :mod:`tagswarm.testing.procgroup`, in its own
+import, so it starts in milliseconds) by :mod:`tagswarm.runtime.procgroup`, in its own
 session so a Ctrl-C in the terminal does not reach it.
 
-It reads lines from stdin: ``+PGID`` (a process group the test process started),
-``-PGID`` (that group is gone).  When stdin reaches end of file -- the test process
+It reads lines from stdin: ``+PGID`` (a process group the owner started),
+``-PGID`` (that group is gone).  When stdin reaches end of file -- the owner
 closed it, exited, or was killed in any way, even SIGKILL or pytest-timeout's
 ``os._exit`` -- it SIGKILLs every group still listed, then exits.
 """

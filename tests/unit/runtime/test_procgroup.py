@@ -1,4 +1,4 @@
-"""tagswarm.testing.procgroup: a child leads its own process group, stopping it takes its
+"""tagswarm.runtime.procgroup: a child leads its own process group, stopping it takes its
 grandchildren too (also when frozen), and the reaper kills the groups it was told about once
 the test process's end of the pipe closes.  Plain ``sleep`` processes: no network."""
 
@@ -13,7 +13,7 @@ from pathlib import Path
 
 import psutil
 
-from tagswarm.testing.procgroup import REAPER, Child, group_alive
+from tagswarm.runtime.procgroup import REAPER, Child, group_alive
 
 #: a shell that starts a grandchild in its own group and waits
 FAMILY = ["/bin/sh", "-c", "sleep 300 & echo started; wait"]

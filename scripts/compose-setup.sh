@@ -53,6 +53,11 @@ if ! command -v dockerd >/dev/null 2>&1; then
 fi
 command -v docker >/dev/null 2>&1 || fail "no docker client after installing docker.io"
 if ! docker info >/dev/null 2>&1; then
+  # a daemon of an earlier session that was killed leaves its pid file behind, and a new
+  # dockerd refuses to start while it is there
+  if [ -f /var/run/docker.pid ] && ! kill -0 "$(cat /var/run/docker.pid)" 2>/dev/null; then
+    rm -f /var/run/docker.pid
+  fi
   # no systemd in this sandbox: start the daemon ourselves, detached from this shell
   setsid dockerd >"$DOCKERD_LOG" 2>&1 < /dev/null &
   for _ in $(seq 1 60); do

@@ -46,6 +46,7 @@ MAX_BYTES: Final[dict[type[m.Msg], int]] = {
     m.Goal: 4 * _KB,
     m.WorldCommand: 4 * _KB,
     m.Relocalisation: 16 * _KB,
+    m.ClaimReply: 2 * _KB,
 }
 
 _ENCODER: Final = msgspec.msgpack.Encoder()

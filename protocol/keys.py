@@ -19,6 +19,7 @@ Layout (``<run>`` isolates runs sharing one network)::
     tagswarm/<run>/server/map                       GlobalMap (also a queryable)
     tagswarm/<run>/server/status                    AgentStatus of the server
     tagswarm/<run>/server/relocalisation            Relocalisation events
+    tagswarm/<run>/deploy/claim                     ClaimReply (a query: compose agents claim a robot id)
     tagswarm/<run>/alive/<role>/<id>                liveliness tokens
 """
 
@@ -134,6 +135,10 @@ class Keys:
 
     def relocalisation(self) -> str:
         return f"{self.prefix}/server/relocalisation"
+
+    def claim(self) -> str:
+        """Where an agent container asks the claim authority for a free robot id (a query)."""
+        return f"{self.prefix}/deploy/claim"
 
     # -- presence ------------------------------------------------------------
     def alive(self, participant: str) -> str:

@@ -271,6 +271,26 @@ class Relocalisation(Msg, frozen=True, kw_only=True, tag="relocalisation"):
     observers: tuple[Annotated[int, msgspec.Meta(ge=-1, le=100_000)], ...] = ()
 
 
+class ClaimReply(Msg, frozen=True, kw_only=True, tag="claim_reply"):
+    """The claim authority's answer to an agent container's query on the claim key:
+    robot ``robot_id`` (0..) with the Zenoh login of that robot's agent (``user``,
+    ``password``), or ``robot_id`` -1 and the ``reason``.  ``robots`` is the run's
+    number of robots; ``seq`` counts the authority's replies, ``stamp_ns`` is 0 (claims
+    happen before the simulation clock starts).  Only the claim authority may answer
+    and only the claimant login may ask (router ACL), so the password travels to
+    nobody else."""
+
+    robot_id: Annotated[int, msgspec.Meta(ge=-1, le=100_000)]
+    robots: Count
+    user: str = ""  # the codec's 2 KB limit bounds these
+    password: str = ""
+    reason: str = ""
+
+    @property
+    def granted(self) -> bool:
+        return self.robot_id >= 0
+
+
 class RenderPoses(Msg, frozen=True, kw_only=True, tag="render_poses"):
     """World -> render workers: the robot poses to render for step ``step`` and the
     cameras each worker must render (``"robot_id/camera"``); ``poses[i]`` is robot
@@ -298,4 +318,5 @@ AnyMessage = (
     | Goal
     | WorldCommand
     | Relocalisation
+    | ClaimReply
 )

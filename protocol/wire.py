@@ -27,7 +27,7 @@ MEDIA_TYPE: Final = "application/msgpack"
 MESSAGE_TYPES: Final[tuple[type[m.Msg], ...]] = (
     m.Tick, m.TickAck, m.RenderPoses, m.WorldCommand, m.CameraImage, m.EncoderTicks, m.WheelCommand,
     m.GroundTruthPose, m.RelativeObservation, m.OdometryEstimate, m.Correction, m.Goal, m.AgentStatus,
-    m.GlobalMap, m.Relocalisation,
+    m.GlobalMap, m.Relocalisation, m.ClaimReply,
 )
 _BY_NAME: Final = {cls.__name__: cls for cls in MESSAGE_TYPES}
 _BY_TAG: Final[dict[bytes, type[m.Msg]]] = {str(cls.__struct_config__.tag).encode(): cls for cls in MESSAGE_TYPES}
@@ -136,6 +136,8 @@ KEYS: Final[tuple[KeySpec, ...]] = (
     KeySpec(lambda k: k.server_status(), (), m.AgentStatus, "block", "server", "tools"),
     KeySpec(lambda k: k.relocalisation(), (), m.Relocalisation, "block", "server", "tools",
             "one per re-localisation event"),
+    KeySpec(lambda k: k.claim(), (), m.ClaimReply, "block", "claim authority (tagswarm record-run)",
+            "agent containers (tagswarm claim)", "compose only: a query; the reply carries a robot id and its login"),
     KeySpec(lambda k: k.alive_all().removesuffix("/**") + "/*/*", ("<role>", "<id>"), None, "none",
             "every process", "every process", "Zenoh liveliness tokens, no payload"),
 )

@@ -82,10 +82,9 @@ def users(robot_ids: Iterable[int]) -> list[str]:
 
 
 def claim_key(keys: Keys) -> str:
-    """Where agents ask for a robot id: ``tagswarm/<run>/deploy/claim`` (a query; the
-    reply carries the id and that robot's credentials)."""
-    # TODO(protocol/keys.py owner): move to Keys.claim(); built on Keys.prefix meanwhile
-    return f"{keys.prefix}/deploy/claim"
+    """Where agents ask for a robot id (:meth:`Keys.claim`; a query whose reply carries the
+    id and that robot's credentials)."""
+    return keys.claim()
 
 
 @dataclass(frozen=True)

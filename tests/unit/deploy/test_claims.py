@@ -33,7 +33,7 @@ def test_a_robot_without_a_password_is_a_one_line_error() -> None:
 
 
 def test_replies_round_trip_and_garbage_is_no_reply() -> None:
-    reply = claims.ClaimReply(robot_id=4, robots=6, user="agent4", password="s3cret")
+    reply = claims.ClaimReply(seq=0, stamp_ns=0, robot_id=4, robots=6, user="agent4", password="s3cret")
     assert claims.decode(claims.encode(reply)) == reply
     assert claims.decode(b"FORGED") is None
     assert claims.decode(claims.encode(reply)[:-3]) is None

@@ -56,6 +56,7 @@ SAMPLES: list[m.Msg] = [
     m.WorldCommand(seq=1, stamp_ns=2_000_000_000, robot_id=4, action="teleport", x_m=1.0, y_m=-0.5, yaw_rad=0.5),
     m.Relocalisation(seq=0, stamp_ns=3_000_000_000, robot_id=4, from_x_m=2.7, from_y_m=-0.3, from_yaw_rad=0.1,
                      to_x_m=3.6, to_y_m=-1.3, to_yaw_rad=0.15, jump_m=1.35, evidence=6, observers=(0, 2, -1)),
+    m.ClaimReply(seq=2, stamp_ns=0, robot_id=3, robots=6, user="agent3", password="Zq9-long-random-secret"),
 ]
 BY_TYPE: dict[type[m.Msg], m.Msg] = {type(s): s for s in SAMPLES}
 

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import psutil
 
+from tagswarm.runtime import reaper
 from tagswarm.runtime.procgroup import REAPER, Child, group_alive
 
 #: a shell that starts a grandchild in its own group and waits
@@ -67,3 +68,7 @@ def test_the_reaper_kills_every_group_it_was_told_about_when_the_pipe_closes(tmp
             if p.poll() is None:
                 os.killpg(p.pid, signal.SIGKILL)
                 p.wait()
+
+
+def test_the_reaper_keeps_the_groups_still_listed() -> None:
+    assert reaper.follow(["+10\n", "+11\n", "-10\n", "junk\n", "+\n", "-99\n", "+12"]) == {11, 12}

@@ -1,5 +1,5 @@
 """tagswarm.testing.trajectories and the finished Run: TUM rows to (t, x, y, yaw), errors at
-equal stamps, the reaper's bookkeeping."""
+equal stamps."""
 
 from __future__ import annotations
 
@@ -10,7 +10,6 @@ import numpy as np
 import pytest
 
 from tagswarm.protocol.scenario import load_scenario
-from tagswarm.testing import reaper
 from tagswarm.testing.errors import SwarmError
 from tagswarm.testing.result import Run
 from tagswarm.testing.trajectories import planar, position_errors, read_tum, recorded_errors, rms
@@ -58,7 +57,3 @@ def test_a_run_reads_its_folder(tmp_path: Path) -> None:
         run.trajectory("gps", 1)
     with pytest.raises(SwarmError, match="metrics"):
         Run.load(tmp_path / "missing", load_scenario("paper"), "r2")
-
-
-def test_the_reaper_keeps_the_groups_still_listed() -> None:
-    assert reaper.follow(["+10\n", "+11\n", "-10\n", "junk\n", "+\n", "-99\n", "+12"]) == {11, 12}

@@ -212,11 +212,13 @@ def _descendants(pid: int, cmdlines: dict[psutil.Process, str]) -> None:
     except psutil.NoSuchProcess:
         return
     for p in children:
-        if p not in cmdlines:
-            try:
-                cmdlines[p] = " ".join(p.cmdline())
-            except psutil.Error:
-                cmdlines[p] = ""
+        # read again each time: a child caught between fork and exec still shows its parent's command line
+        try:
+            cmd = " ".join(p.cmdline())
+        except psutil.Error:
+            cmd = ""
+        if cmd or p not in cmdlines:
+            cmdlines[p] = cmd
 
 
 def _with_run_id(run_id: str) -> list[psutil.Process]:

@@ -197,6 +197,19 @@ def machine() -> dict[str, Any]:
             "memory_gb": round(psutil.virtual_memory().total / 2**30, 1), "versions": vers}
 
 
+def print_table(title: str, header: list[str], rows: list[list[str]]) -> None:
+    """A results table on the terminal (rich)."""
+    from rich.console import Console
+    from rich.table import Table
+
+    t = Table(title=title)
+    for c in header:
+        t.add_column(c)
+    for row in rows:
+        t.add_row(*row)
+    Console().print(t)
+
+
 def summarise_dynamic(runs: list[dict[str, Any]]) -> dict[str, Any]:
     """Per run name: mean and worst over seeds of the headline numbers."""
     out: dict[str, Any] = {}

@@ -127,9 +127,7 @@ def main() -> int:
     sys.path.insert(0, str(Path(__file__).resolve().parent))
     import tempfile
 
-    from accuracy import machine, up  # type: ignore[import-not-found]
-    from rich.console import Console
-    from rich.table import Table
+    from accuracy import machine, print_table, up  # type: ignore[import-not-found]
 
     p = argparse.ArgumentParser(description=__doc__)
     p.add_argument("--scenes", nargs="*", default=list(SCENES))
@@ -157,12 +155,7 @@ def main() -> int:
     out.write_text(json.dumps({"bench": "methods", "machine": machine(), "scenes": SCENES,
                                "results": without_curves(results),
                                "wall_time_s": time.monotonic() - t0}, indent=2))
-    t = Table(title=f"server methods (lockstep, seed {a.seed})")
-    for c in HEADER:
-        t.add_column(c)
-    for row in table_rows(results):
-        t.add_row(*row)
-    Console().print(t)
+    print_table(f"server methods (lockstep, seed {a.seed})", HEADER, table_rows(results))
     return 0
 
 

@@ -98,9 +98,7 @@ def main() -> int:
     sys.path.insert(0, str(Path(__file__).resolve().parent))
     import tempfile
 
-    from accuracy import machine, up  # type: ignore[import-not-found]
-    from rich.console import Console
-    from rich.table import Table
+    from accuracy import machine, print_table, up  # type: ignore[import-not-found]
 
     p = argparse.ArgumentParser(description=__doc__)
     p.add_argument("--quick", action="store_true", help="shorter runs (see SCENES)")
@@ -114,12 +112,7 @@ def main() -> int:
         results = [scene_run(up, Path(tmp), s, SCENES[s][1 if a.quick else 0]) for s in a.scenes]
     out.write_text(json.dumps({"bench": "scenes", "machine": machine(), "targets": TARGETS, "scenes": results,
                                "wall_time_s": time.monotonic() - t0}, indent=2))
-    t = Table(title="scenes")
-    for c in HEADER:
-        t.add_column(c)
-    for row in table_rows(results):
-        t.add_row(*row)
-    Console().print(t)
+    print_table("scenes", HEADER, table_rows(results))
     return 0
 
 

@@ -38,6 +38,18 @@ def script(name: str) -> str:
     return str(path)
 
 
+def stop(proc: subprocess.Popen[bytes], sig: int = signal.SIGINT, timeout_s: float = 30.0) -> None:
+    """Send ``sig`` to a still running child (SIGINT: as Ctrl-C, so ``tagswarm up`` still writes
+    its report), SIGKILL it after ``timeout_s``, and reap it."""
+    if proc.poll() is None:
+        proc.send_signal(sig)
+        try:
+            proc.wait(timeout=timeout_s)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+
+
 @contextmanager
 def process(argv: list[str], log: Path | None = None) -> Iterator[subprocess.Popen[bytes]]:
     """Run a child process; SIGTERM then SIGKILL it on exit."""
@@ -47,13 +59,7 @@ def process(argv: list[str], log: Path | None = None) -> Iterator[subprocess.Pop
     try:
         yield proc
     finally:
-        if proc.poll() is None:
-            proc.send_signal(signal.SIGTERM)
-            try:
-                proc.wait(timeout=10)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait()
+        stop(proc, signal.SIGTERM, 10.0)
         if log:
             out.close()  # type: ignore[union-attr]
 

@@ -9,7 +9,6 @@ from __future__ import annotations
 import csv
 import json
 import os
-import signal
 import socket
 import subprocess
 import sys
@@ -22,7 +21,7 @@ import pytest
 from tagswarm.protocol import codec, wire
 from tagswarm.protocol import messages as m
 from tagswarm.protocol.keys import Keys
-from tests.harness import client, endpoint, script, wait_alive
+from tests.harness import client, endpoint, script, stop, wait_alive
 
 ROOT = Path(__file__).resolve().parents[2]
 EXAMPLE = ROOT / "examples" / "raw_subscriber.py"
@@ -45,16 +44,6 @@ def _wait_for(what: str, check: object, timeout_s: float, *procs: subprocess.Pop
             assert p.poll() is None, f"{p.args[:2]} exited with {p.returncode} while waiting for {what}"
         assert time.monotonic() < deadline, f"timed out waiting for {what}"
         time.sleep(0.1)
-
-
-def _stop(proc: subprocess.Popen[bytes]) -> None:
-    if proc.poll() is None:
-        proc.send_signal(signal.SIGINT)
-        try:
-            proc.wait(timeout=30)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
 
 
 @pytest.fixture
@@ -106,9 +95,9 @@ def raw_run(tmp_path: Path) -> Iterator[tuple[dict, Path, Keys]]:
             reader.wait(timeout=120)
             assert reader.returncode == 0, log.read_text()[-3000:]
         finally:
-            _stop(up)
+            stop(up)
             if reader is not None:
-                _stop(reader)
+                stop(reader)
     yield json.loads(summary.read_text()), out, keys
 
 

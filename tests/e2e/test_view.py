@@ -25,7 +25,6 @@ import importlib
 import json
 import math
 import os
-import signal
 import socket
 import subprocess
 import tempfile
@@ -50,7 +49,7 @@ from tagswarm.protocol.keys import Keys
 from tagswarm.protocol.layout import arena_to_map
 from tagswarm.protocol.scenario import load_scenario
 from tagswarm.runtime import lockstep
-from tests.harness import client, endpoint, free_port, script
+from tests.harness import client, endpoint, free_port, script, stop
 
 #: Debian's chromium (scripts/setup.sh installs it); VIEW_TEST_CHROMIUM points elsewhere (tests of the gate)
 CHROMIUM = os.environ.get("VIEW_TEST_CHROMIUM", "/usr/bin/chromium")
@@ -132,17 +131,7 @@ def _proc(argv: list[str], log: Path) -> Iterator[subprocess.Popen[bytes]]:
         try:
             yield proc
         finally:
-            _stop(proc)
-
-
-def _stop(proc: subprocess.Popen[bytes]) -> None:
-    if proc.poll() is None:
-        proc.send_signal(signal.SIGINT)
-        try:
-            proc.wait(timeout=30)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
+            stop(proc)
 
 
 def _up_argv(ep: str, run: str, out: Path) -> list[str]:
@@ -427,7 +416,7 @@ def test_browser_view_of_a_running_system(tmp_path: Path, sync_api: ModuleType) 
                     assert (ARTIFACTS / "view.png").stat().st_size > 20_000
 
                     # 3. the system restarts under the view: a new run id, the page starts over
-                    _stop(up1)
+                    stop(up1)
                     pub.clear()
                     with _proc(_up_argv(ep, run, tmp_path / "run2"), tmp_path / "up2.log") as up2:
                         page.wait_for_function(
@@ -441,7 +430,7 @@ def test_browser_view_of_a_running_system(tmp_path: Path, sync_api: ModuleType) 
                         _check_drawn_against_map(page, part, a2m, errs)
 
                         # 4. the view restarts: the page reconnects on its own
-                        _stop(view1)
+                        stop(view1)
                         page.wait_for_function("document.body.dataset.connected === '0'", timeout=10_000)
                         with _proc(_view_argv(ep, run, http_port), tmp_path / "view2.log"):
                             page.wait_for_function(

@@ -46,10 +46,9 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from tagswarm.protocol.errors import UsageError
 from tagswarm.server import checkpoint as ckpt
+from tagswarm.server.estimator import apply_input
 from tagswarm.server.fusion import Fusion
 from tagswarm.server.journal_format import (
     MAGIC,
@@ -93,23 +92,12 @@ class JournalError(UsageError, ValueError):
 
 def apply(fusion: Fusion, record: Record) -> None:
     """Make the :class:`Fusion` call a record stands for (the live server and the
-    replay both go through here, so they cannot diverge)."""
-    if isinstance(record, Odometry):
-        fusion.add_odometry(record.robot_id, record.stamp_ns, (record.x_m, record.y_m, record.yaw_rad),
-                            record.distance_m, record.slip_m)
-    elif isinstance(record, Observation):
-        rel = (record.x_m, record.y_m, record.yaw_rad)
-        cov = np.asarray(record.cov, float).reshape(3, 3)
-        if record.target_kind == "robot":
-            fusion.add_observation(record.observer, record.target_id, record.stamp_ns, rel, cov)
-        else:
-            fusion.add_landmark_observation(record.observer, record.target_id, record.stamp_ns, rel, cov)
-    elif isinstance(record, Advance):
-        fusion.advance(record.watermark_ns)
-    elif isinstance(record, NewRun):
-        fusion.reset()
-    elif isinstance(record, Checkpoint):
+    replay both go through here, so they cannot diverge): a checkpoint restores the
+    fusion's state, every other record is an input (:func:`~tagswarm.server.estimator.apply_input`)."""
+    if isinstance(record, Checkpoint):
         ckpt.restore(fusion, record.fusion)
+    else:
+        apply_input(fusion, record)
 
 
 def make_checkpoint(journal: Journal, fusion: Fusion, node: dict[str, int], latest_rx: dict[int, int]) -> Checkpoint:

@@ -83,9 +83,11 @@ class WorldNode:
         self._published_step = -1  # newest step whose tick is out
         self._render_step = -1  # newest step whose render poses are out
         self._next_status_ns = 0
-        pairs = [(rid, cam) for rid in s.robot_ids for cam in s.robot.cameras]
-        self._camera_pairs = [(rid, cam, i / len(pairs) if s.render.stagger_cameras else 0.0)
-                              for i, (rid, cam) in enumerate(pairs)]
+        # Robots are staggered, not a robot's cameras: a rig's frames must share one
+        # instant so the agent's multi-camera refinement can combine them.
+        n = len(s.robot_ids)
+        self._camera_pairs = [(rid, cam, i / n if s.render.stagger_cameras else 0.0)
+                              for i, rid in enumerate(s.robot_ids) for cam in s.robot.cameras]
         self.cmd_in = bus.subscribe(self.keys.cmd())
         self.world_cmd_in = bus.subscribe(self.keys.world_command())
         self.ack_in = bus.subscribe(self.keys.acks())

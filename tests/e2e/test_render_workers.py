@@ -52,10 +52,10 @@ def test_two_workers_render_the_same_frames_as_the_world(tmp_path: Path) -> None
     for o in SCENE:
         tagswarm += ["--set", o]
     remote = _frames(tagswarm, ep2, "workers", 12, tmp_path / "workers.log")
-    # steps 3..12 of a 30 Hz clock: the 8 cameras (front 10 Hz, rear 5 Hz, 4 robots) at staggered
-    # phases i/8 of their periods: 4 or 3 front frames and 2 or 1 rear frames each
+    # steps 3..12 of a 30 Hz clock: the 8 cameras (front 10 Hz, rear 5 Hz, 4 robots); robot j's
+    # cameras fire at phase j/4 of their periods: 4 or 3 front frames and 2 or 1 rear frames each
     rates = [10.0, 5.0] * 4
-    assert len(local) == sum(due(k, r, 30.0, i / 8) for i, r in enumerate(rates) for k in range(3, 13)) == 21
+    assert len(local) == sum(due(k, r, 30.0, (i // 2) / 4) for i, r in enumerate(rates) for k in range(3, 13)) == 21
     assert set(remote) == set(local)
     for key, data in local.items():
         assert remote[key] == data, f"frame {key} differs"

@@ -22,13 +22,18 @@ S = load_scenario("rig", ["robots.count=2", 'robots.placement="explicit"',
 
 
 def test_a_rigs_cameras_fire_together() -> None:
-    assert [c.hfov_deg for c in S.robot.cameras] == [120.0] * 4 and not S.render.stagger_cameras
-    pairs = [(rid, cam) for rid in S.robot_ids for cam in S.robot.cameras]
-    phases = [i / len(pairs) if S.render.stagger_cameras else 0.0 for i in range(len(pairs))]
-    for step in range(60):
-        fired = {cam.name for (rid, cam), ph in zip(pairs, phases, strict=True) if rid == 0
-                 and due(step, cam.rate_hz, S.clock.tick_hz, ph)}
-        assert fired in (set(), {"front", "left", "rear", "right"}), (step, fired)
+    """The world's phases (world/node.py: robot i of n at i/n of the period, a robot's cameras
+    together): a rig fires all four cameras on one tick, the robots on different ticks."""
+    assert [c.hfov_deg for c in S.robot.cameras] == [120.0] * 4 and S.render.stagger_cameras
+    pairs = [(rid, cam, i / len(S.robot_ids)) for i, rid in enumerate(S.robot_ids) for cam in S.robot.cameras]
+    ticks: dict[int, set[int]] = {rid: set() for rid in S.robot_ids}
+    for step in range(1, 60):  # step 0: every sensor fires
+        for robot in S.robot_ids:
+            fired = {cam.name for rid, cam, ph in pairs if rid == robot and due(step, cam.rate_hz, S.clock.tick_hz, ph)}
+            assert fired in (set(), {"front", "left", "rear", "right"}), (step, fired)
+            if fired:
+                ticks[robot].add(step)
+    assert ticks[0] and ticks[1] and not ticks[0] & ticks[1], ticks
 
 
 def test_target_straddling_two_fisheyes_uses_both() -> None:

@@ -1,11 +1,15 @@
 """Decoys among a target's tags: a poster with one of a robot's tag IDs, seen beside the
-robot or instead of the face it names (pure code; docs/camera.md, Decoys).
+robot or instead of the face it names, or a copy of its cube (pure code; docs/camera.md, Decoys).
 
 :class:`DecoyResolver` is the part of :class:`tagswarm.agents.cubepose.CubePoseEstimator`
 that decides which of a target's detections belong to it before its pose is trusted:
 a tag ID seen twice in one image, or a set of tags that together fits no plausible
 pose, is retried copy by copy / leaving one tag out; only an unambiguous answer is
-kept, and what was dropped is counted as ``decoy``.  Frames and units as in
+kept, and what was dropped is counted as ``decoy``.  When what was dropped is itself a
+plausible target (a second cube carrying copies of the target's IDs), the image shows
+two robots of one identity and neither is trusted (``duplicate``).  A copy cube seen
+alone is indistinguishable from its robot in the images: the fusion server's gate and
+its consistency test (server/recovery.py) keep it out of the map.  Frames and units as in
 :mod:`tagswarm.agents.cubegeom`.
 """
 
@@ -43,7 +47,8 @@ class DecoyResolver:
         """The target's estimate when one of its tag IDs shows more than once in an image (a decoy:
         a poster or a copy): every choice of one copy per repeated tag is tried; if exactly one
         choice gives a plausible pose it is the target and the other copies are counted as
-        ``decoy``, otherwise the target is rejected as ``duplicate`` (no guessing)."""
+        ``decoy``, otherwise the target is rejected as ``duplicate`` (no guessing).  Copies left
+        out that are a plausible target on their own (a copy cube) reject it as ``duplicate`` too."""
         copies: dict[tuple[int, int], list[tuple[int, TagGeom, TagDetection]]] = {}
         for m in members:
             copies.setdefault((m[0], m[2].tag_id), []).append(m)
@@ -52,14 +57,34 @@ class DecoyResolver:
             return self._without_stranger(key, members, views, prior)
         once = [c[0] for c in copies.values() if len(c) == 1]
         kept = self.rejects.copy()
-        found = [est for choice in itertools.islice(itertools.product(*repeated), _MAX_COPY_CHOICES)
+        found = [(choice, est) for choice in itertools.islice(itertools.product(*repeated), _MAX_COPY_CHOICES)
                  if (est := self._estimate_target(key, once + list(choice), views, prior)) is not None]
         self.rejects = kept  # the trials' own rejects are not the target's
         if len(found) != 1:
             self._reject("duplicate")
             return None
-        self.rejects["decoy"] += sum(len(c) - 1 for c in repeated)
-        return found[0]
+        chosen, est = found[0]
+        left = [m for c in repeated for m in c if not any(m is k for k in chosen)]
+        if self._also_a_target(key, left, views, prior):
+            self._reject("duplicate")
+            return None
+        self.rejects["decoy"] += len(left)
+        return est
+
+    def _also_a_target(self, key: tuple[str, int], left: list[Member],
+                       views: list[tuple[CameraModel, list[TagDetection]]], prior: Prior) -> bool:
+        """Whether the detections ``left`` out of a target's estimate are, on their own, a plausible
+        target too: a second cube carrying copies of the target's IDs (or the target itself beside
+        such a copy).  Two plausible robots of one identity in one instant cannot be told apart
+        from the images, so neither is trusted; a poster off the floor or tilted is no robot."""
+        kept = self.rejects.copy()
+        by_view: dict[int, list[Member]] = {}
+        for m in left:
+            by_view.setdefault(m[0], []).append(m)
+        # one view at a time: copies left out of different images need not be one object
+        alone = any(self._estimate_target(key, ms, views, prior) is not None for ms in by_view.values())
+        self.rejects = kept
+        return alone
 
     def _without_stranger(self, key: tuple[str, int], members: list[tuple[int, TagGeom, TagDetection]],
                           views: list[tuple[CameraModel, list[TagDetection]]], prior: Prior) -> PoseEstimate | None:
@@ -74,11 +99,15 @@ class DecoyResolver:
             return est
         failed = self.rejects
         self.rejects = kept.copy()
-        found = [e for i in range(len(members))
+        found = [(i, e) for i in range(len(members))
                  if (e := self._estimate_target(key, members[:i] + members[i + 1:], views, prior)) is not None]
         if len(found) != 1:
             self.rejects = failed
             return None
         self.rejects = kept
+        i, est = found[0]
+        if self._also_a_target(key, [members[i]], views, prior):
+            self._reject("duplicate")
+            return None
         self.rejects["decoy"] += 1
-        return found[0]
+        return est

@@ -85,10 +85,14 @@ class Decoy(Spec, frozen=True, kw_only=True, forbid_unknown_fields=True):
     """A tag that is not what it claims to be (a ``[[decoys]]`` table): a ``poster``, a plate
     like a landmark's (tag centre at (x, y, z) in the arena frame, facing ``yaw_rad``,
     upright) carrying ``tag_id`` of ``family`` (the scenario's if unset) -- a robot's ID, an
-    ID nothing carries, or a tag of another family.  Only the renderer knows it (no physics,
-    no agent): the agents must not take it for what its ID names."""
+    ID nothing carries, or a tag of another family.  A ``cube``: a copy of a robot (its
+    chassis and tag cube, the scenario's sizes) standing on the floor at (x, y) facing
+    ``yaw_rad`` (``z_m`` and ``size_m`` unused), carrying ``tag_id`` on its front face and the
+    next IDs on the other faces as a robot does (a robot's front ID copies that robot's
+    cube; :func:`decoy_cube_ids`).  Only the renderer knows it (no physics, no agent): the
+    agents must not take it for what its IDs name."""
 
-    kind: Literal["poster"] = "poster"
+    kind: Literal["poster", "cube"] = "poster"
     tag_id: Annotated[int, msgspec.Meta(ge=0)]
     family: Literal["tag36h11", "tag16h5"] | None = None
     x_m: float
@@ -96,6 +100,13 @@ class Decoy(Spec, frozen=True, kw_only=True, forbid_unknown_fields=True):
     z_m: Pos = 0.6
     yaw_rad: float = 0.0
     size_m: Pos = 0.16
+
+
+def decoy_cube_ids(d: Decoy, family: str) -> tuple[int, ...]:
+    """The six tag IDs of a ``cube`` decoy in :class:`tagswarm.protocol.tags.Face` order
+    (``tag_id`` and the next five, wrapping at the end of ``family``)."""
+    n = tags.family_size(family)
+    return tuple((d.tag_id + k) % n for k in range(len(tags.Face)))
 
 
 class Camera(Spec, frozen=True, kw_only=True, forbid_unknown_fields=True):

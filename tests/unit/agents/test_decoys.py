@@ -50,7 +50,7 @@ def test_decoy_validation() -> None:
     with pytest.raises(ScenarioError, match=r"decoys\[0\]: \(9.0, 0.0\) is outside the arena"):
         load_scenario("paper", ["decoys=[{tag_id=11, x_m=9.0, y_m=0.0}]"])
     with pytest.raises(ScenarioError, match=r"decoys\[0\]"):
-        load_scenario("paper", ['decoys=[{tag_id=11, x_m=1.0, y_m=0.0, kind="cube"}]'])
+        load_scenario("paper", ['decoys=[{tag_id=11, x_m=1.0, y_m=0.0, kind="box"}]'])
     assert math.isclose(load_scenario("paper", [DECOYS]).decoys[1].size_m, 0.15)
 
 

@@ -93,7 +93,7 @@ from tagswarm.agents.cubegeom import (
 )
 from tagswarm.agents.decoys import DecoyResolver
 from tagswarm.agents.detect import TagDetection, TagMap
-from tagswarm.agents.lens import LensCorrector
+from tagswarm.agents.lens import LensCorrector, corner_sigma_px
 from tagswarm.agents.planar import PlanarProblem
 from tagswarm.agents.sixdof import AMBIGUITY_GAP, Prior, SixDofSolver
 from tagswarm.protocol import tags
@@ -111,7 +111,8 @@ _PLANAR_NOISE: Final = 1.35
 class CubePoseEstimator(DecoyResolver):
     """Bundle adjustment of observed tag cubes and landmark tags, one camera or a rig.
 
-    ``pixel_sigma_px`` is the corner noise (1 sigma per axis) behind the covariance.
+    ``pixel_sigma_px`` is the render's corner noise (1 sigma per axis) behind the covariance;
+    a camera with noise or motion blur (``[camera]``) widens it (:func:`corner_sigma_px`).
     Measured on our renders (AprilTag 3, 0.5-5 m, 320x240 and 640x480, 60 deg HFOV):
     corners scatter 0.25-0.33 px RMS per axis about the projected truth, whatever
     the tag's size; with 0.3 px the NEES of (x, y, yaw) averages 2.5-3.4 over
@@ -145,6 +146,8 @@ class CubePoseEstimator(DecoyResolver):
                  planar: bool = True, planar_landmarks: bool = False) -> None:
         if pixel_sigma_px <= 0:
             raise ValueError("pixel_sigma_px must be positive")
+        # the render's corner noise, widened by the camera's noise and blur (ideal camera: unchanged)
+        pixel_sigma_px = corner_sigma_px(scenario, pixel_sigma_px)
         self.scenario = scenario
         self.planar = planar
         # the ablation of a per-tag PnP: keep only the largest face of each target

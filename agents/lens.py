@@ -8,7 +8,8 @@ seeded by (scenario seed, robot, camera), so a run repeats and two robots' error
 differ.  Detected corners (OpenCV pixel convention) are then undistorted with the
 believed model (``cv2.undistortPoints`` / ``cv2.fisheye.undistortPoints``) onto the
 pinhole with the believed ``K``, which is what :mod:`tagswarm.agents.cubepose` solves on.
-A pinhole with no calibration error passes through untouched.
+A pinhole with no calibration error passes through untouched.  :func:`corner_sigma_px` is the
+corner noise the agent expects of its cameras (what its covariances are built on).
 """
 
 from __future__ import annotations
@@ -24,7 +25,33 @@ from numpy.typing import NDArray
 
 from tagswarm.agents.cubegeom import CameraModel
 from tagswarm.agents.detect import TagDetection
-from tagswarm.protocol.scenario import CalibrationError
+from tagswarm.protocol.scenario import CalibrationError, Scenario
+
+#: corner noise (px, 1 sigma) per DN of image noise at mid-grey over the contrast: read noise 8-20 DN
+#: widened the corners' scatter about the projected truth from 0.23 to 0.24-0.26 px (320x240 60 deg,
+#: tags 1-3.5 m; docs/camera.md, Covariance)
+CORNER_PX_PER_NOISE_DN: Final = 0.006
+#: corner noise (px, 1 sigma) per pixel of motion-blur streak: a 7 px streak (20 ms at 1.2 rad/s)
+#: widened the scatter from 0.25 to 0.59 px; a blur is symmetric about the mid-exposure edge, so
+#: the detector's line fit moves far less than the streak's length
+CORNER_PX_PER_STREAK_PX: Final = 0.08
+
+
+def corner_sigma_px(scenario: Scenario, render_sigma_px: float) -> float:
+    """Corner noise (px, 1 sigma per axis) of the scenario's cameras: the render's own
+    ``render_sigma_px`` (aliasing) and, from the ``[camera]`` section, image noise (read and
+    shot noise at mid-grey, over the contrast) and motion blur (the streak of the agent's
+    fastest turn, ``agent.max_turn_rad_s``, during the exposure at the largest focal length),
+    added in quadrature.  The ideal camera gives ``render_sigma_px`` itself."""
+    c = scenario.camera.resolved()
+    e = c.electrons_per_dn or 0.0
+    noise_dn = math.sqrt((c.read_noise_dn or 0.0) ** 2 + (128.0 / e if e else 0.0)) / (c.contrast or 1.0)
+    # the equidistant focal length bounds the pinhole one (theta >= tan theta): the larger streak
+    f_px = max((cam.width / 2.0) / math.radians(cam.hfov_deg / 2.0) for cam in scenario.robot.cameras)
+    streak_px = (c.exposure_ms or 0.0) * 1e-3 * scenario.agent.max_turn_rad_s * f_px
+    return math.sqrt(render_sigma_px**2 + (CORNER_PX_PER_NOISE_DN * noise_dn) ** 2
+                     + (CORNER_PX_PER_STREAK_PX * streak_px) ** 2)
+
 
 _CRITERIA: Final = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-10)
 # mixed into the calibration error's seed so it never repeats a world-side random stream

@@ -45,7 +45,7 @@ import numpy as np
 from tagswarm.protocol.errors import TagswarmError
 from tagswarm.protocol.geometry import Pose2
 from tagswarm.server.fusion import Fusion, _Event
-from tagswarm.server.keyframes import Robot
+from tagswarm.server.keyframes import PairView, Robot
 from tagswarm.server.placement import Candidate
 
 P3 = tuple[float, float, float]
@@ -119,7 +119,9 @@ class FusionState(msgspec.Struct, frozen=True, kw_only=True):
     reloc_robot: dict[int, list[CandidateState]] = {}
     reloc_landmark: dict[int, list[CandidateState]] = {}
     partners: dict[int, list[tuple[int, int]]] = {}
-    pair_factors: list[tuple[int, int, int, int]] = []  # (a, b, key a, key b) of each pair's newest factor
+    # the view of each pair's newest factor: (a, b, chain a, chain b, odom a (3), odom b (3), rel (3)); a
+    # snapshot of an older version (its pair_factors held keyframe keys) restores without them
+    pair_views: list[tuple[int, int, int, int, P3, P3, P3]] = []
     factors: str  # gtsam NonlinearFactorGraph.serialize() of the smoother's live factors
     theta: str  # gtsam Values.serialize() of the smoother's linearisation point
     stamps: list[tuple[int, float]]  # (key, seconds) of every variable in the smoother
@@ -203,7 +205,8 @@ def snapshot(fusion: Fusion) -> bytes:
         reloc_robot={rid: [_candidate_state(c) for c in ev] for rid, ev in fusion.recovery.robot_ev.items()},
         reloc_landmark={rid: [_candidate_state(c) for c in ev] for rid, ev in fusion.recovery.landmark_ev.items()},
         partners={rid: [(int(t), int(o)) for t, o in q] for rid, q in fusion.recovery.partners.items()},
-        pair_factors=[(a, b, int(ka), int(kb)) for (a, b), (ka, kb) in fusion._pair_factors.items()],
+        pair_views=[(a, b, v.chain_a, v.chain_b, _p3(v.odom_a), _p3(v.odom_b), _p3(v.rel))
+                    for (a, b), v in fusion._pair_factors.items()],
         factors=_live_factors(fusion.smoother).serialize() if stamps else "",
         theta=fusion.smoother.getLinearizationPoint().serialize() if stamps else "", stamps=stamps)
     return zlib.compress(_ENC.encode(state), ZLIB_LEVEL)
@@ -282,7 +285,7 @@ def restore(fusion: Fusion, blob: bytes | FusionState) -> None:
     new.recovery.robot_ev = {rid: [_candidate(c) for c in ev] for rid, ev in state.reloc_robot.items()}
     new.recovery.landmark_ev = {rid: [_candidate(c) for c in ev] for rid, ev in state.reloc_landmark.items()}
     new.recovery.partners = {rid: deque(q, maxlen=256) for rid, q in state.partners.items()}
-    new._pair_factors = {(a, b): (ka, kb) for a, b, ka, kb in state.pair_factors}
+    new._pair_factors = {(a, b): PairView(ca, cb, oa, ob, rel) for a, b, ca, cb, oa, ob, rel in state.pair_views}
     if state.stamps:
         try:
             # iSAM2 relinearises on every relinearizeSkip-th update; keep that phase (a fresh smoother

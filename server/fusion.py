@@ -38,7 +38,7 @@ import gtsam
 import numpy as np
 
 from tagswarm.protocol.geometry import Pose2, se2_between, se2_compose, se2_inverse
-from tagswarm.server.keyframes import KeyframeGraph, Robot
+from tagswarm.server.keyframes import KeyframeGraph, PairView, Robot, repeats
 from tagswarm.server.noise import CHI2_3DOF_999, Cov, FusionParams, inverse_cov, odom_increment_cov, tangent_cov
 from tagswarm.server.placement import Candidate, Placement, choose
 from tagswarm.server.recovery import LANDMARK_WITNESS, Recovery, Verdict
@@ -91,7 +91,7 @@ class Fusion:
         self.watermark_ns = -1
         self._init: dict[int, list[Candidate]] = {}
         self.recovery = Recovery(params, origin_id, anchored_origin=not self.landmarks)
-        self._pair_factors: dict[tuple[int, int], tuple[int, int]] = {}  # (a, b) -> keys of its newest factor
+        self._pair_factors: dict[tuple[int, int], PairView] = {}  # (a, b) -> the view of its newest factor
         self.relocalisations: list[RelocEvent] = []  # not yet taken by the node
 
     def reset(self) -> None:
@@ -265,6 +265,7 @@ class Fusion:
         assert po is not None and pg is not None
         anchors = {observer: self.graph.anchor(observer, stamp_ns, oo, po),
                    target: self.graph.anchor(target, stamp_ns, go, pg)}
+        odoms = {observer: oo, target: go}
         for a, b, m_rel, m_cov in meas:
             for rid in (a, b):
                 if rid not in anchors:  # the robot that saw (or was seen by) the new one in the chosen candidate
@@ -273,14 +274,18 @@ class Fusion:
                     assert r_odom is not None and r.estimate is not None
                     anchors[rid] = self.graph.anchor(rid, stamp_ns, r_odom,
                                                 se2_compose(r.estimate, se2_between(r.kf_odom, r_odom)))
+                    odoms[rid] = r_odom
             (ka, da, ca), (kb, db, cb) = anchors[a], anchors[b]
-            if self._pair_factors.get((a, b)) == (ka, kb):
-                # the same two keyframes again (neither robot moved): the same viewpoint and the same tag pixels
-                # repeat the same error, so a second factor would only fake certainty (measured: the fused
-                # covariance of a robot watched standing still shrank until its NEES passed 30)
+            view = PairView(self.robots[a].chain, self.robots[b].chain, odoms[a], odoms[b], m_rel)
+            prev = self._pair_factors.get((a, b))
+            if prev is not None and repeats(prev, view, m_cov, self.p):
+                # neither robot moved and the measurement did not change: the same viewpoint and the same
+                # tag pixels repeat the same error, so a second factor would only fake certainty.  Measured:
+                # two robots standing 3 m apart for 40 s got a factor per keyframe interval (2 s), and the
+                # observer's yaw sigma shrank from 0.27 to 0.06 rad around a 0.23 rad error (NEES 29).
                 self.counters["repeated_observations"] += 1
                 continue
-            self._pair_factors[(a, b)] = (ka, kb)
+            self._pair_factors[(a, b)] = view
             # the measurement between the two keyframes: observer's motion since its keyframe, the
             # observation, then back along the target's motion since its keyframe
             z = se2_compose(se2_compose(da, m_rel), se2_inverse(db))

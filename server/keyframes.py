@@ -16,6 +16,7 @@ from __future__ import annotations
 import math
 from collections import Counter, deque
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import gtsam
 import numpy as np
@@ -45,6 +46,34 @@ class Robot:
     reset_hint: Pose2 | None = None
     slip_m: float = 0.0  # the agent's cumulative slip evidence at the latest odometry
     kf_slip_m: float = 0.0  # ... at the last keyframe
+
+
+class PairView(NamedTuple):
+    """What the newest factor between robots a and b saw: both robots' keyframe chains,
+    their odometry poses (each in its own ``odom`` frame) and the measurement (b in a's
+    frame, x_m, y_m, yaw_rad)."""
+
+    chain_a: int
+    chain_b: int
+    odom_a: Pose2
+    odom_b: Pose2
+    rel: Pose2
+
+
+def repeats(prev: PairView, now: PairView, cov: Cov, p: FusionParams) -> bool:
+    """Whether ``now`` repeats ``prev``: the same chains, neither robot's odometry moved
+    more than a quarter of a keyframe step, and the measurement moved by no more than
+    its noise (chi² of the difference under twice ``cov``, (3, 3) tangent space, within
+    ``p.repeat_chi2``).  A robot pushed while its wheels stood still changes the
+    measurement, so it is not a repeat."""
+    if (prev.chain_a, prev.chain_b) != (now.chain_a, now.chain_b):
+        return False
+    for before, after in ((prev.odom_a, now.odom_a), (prev.odom_b, now.odom_b)):
+        d = se2_between(before, after)
+        if math.hypot(d[0], d[1]) >= p.kf_dist_m / 4 or abs(d[2]) >= p.kf_angle_rad / 4:
+            return False
+    e = np.array(se2_between(prev.rel, now.rel))
+    return float(e @ np.linalg.solve(2 * cov, e)) <= p.repeat_chi2
 
 
 def robot_key(rid: int, chain: int, index: int) -> int:
@@ -122,6 +151,10 @@ class KeyframeGraph:
         else:
             assert initial is not None
             guess = initial
+            # a chain's first keyframe: its covariance is not known until the smoother has it, so read it
+            # at the next update rather than a cov_period_s later (until then r.cov is a placeholder, and a
+            # robot placed 0.7 m off was reported with 1 cm sigma for up to a second)
+            self.next_cov_ns = 0
         if prior is not None:
             self.factors.add(gtsam.PriorFactorPose2(key, gtsam.Pose2(*guess),
                                                     gtsam.noiseModel.Isotropic.Sigma(3, prior)))

@@ -40,6 +40,9 @@ class FusionParams:
     # consecutive frames of one pair share their errors (same viewpoint, same tag pixels): fusing every
     # frame buys little accuracy and costs graph size, so each (observer, target) pair is thinned to this
     obs_min_interval_s: float = 0.3
+    # a pair's observation that repeats its newest factor's view (neither robot moved, the measurement
+    # within this chi² (3 dof, 99 %) of it) adds no factor: its error is the same error again
+    repeat_chi2: float = 11.34
     # an observation reaches the server after its observer's odometry of later instants (the image had to be
     # rendered, sent and detected) and often after the watermark passed its stamp; within this window it
     # is still fused, tied to the keyframes through the odometry buffered around its stamp
@@ -71,7 +74,7 @@ def odom_increment_cov(delta: Pose2, p: FusionParams, slip_m: float = 0.0) -> Co
     var_lat = var_th * ds**2 / 4
     slip = (p.odom_slip_sigma * max(slip_m, 0.0)) ** 2
     var_s, var_lat, var_th = var_s + slip, var_lat + slip, var_th + slip / (b / 2) ** 2
-    return np.diag([var_s + 1e-8, var_lat + 1e-8, var_th + 1e-8])
+    return np.diag([var_s + 1e-6, var_lat + 1e-6, var_th + 1e-6])
 
 
 def tangent_cov(rel: Pose2, cov: Cov) -> Cov:

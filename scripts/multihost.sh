@@ -1,0 +1,15 @@
+#!/usr/bin/env bash
+# A swarm across several "hosts" on this machine: Linux network namespaces joined by veth
+# pairs and a bridge (10.77.0.0/24), the router, the world, the server and each agent on
+# a host of its own, links impaired as asked; writes the usual run folder to --out.
+#
+#   sudo scripts/multihost.sh --out runs/mh [--robots N] [--clock lockstep|realtime]
+#        [--delay-ms D] [--loss P] [--duration S] [--rate-mbit R] [--seed N] [--set FIELD=VALUE]
+#
+# Needs root (ip netns, iptables, tc).  Everything it made (namespaces, veths, processes) is
+# removed on exit, on failure and on Ctrl-C.  Any flag of tagswarm up's scenario and network
+# groups works too (--scenario, --zenoh-lease-ms ...).  Docs: docs/multihost.md.
+set -euo pipefail
+ROOT="$(cd "$(dirname "$0")/.." && pwd)"
+PY="${TAGSWARM_PYTHON:-$ROOT/.venv/bin/python}"
+exec "$PY" -m tagswarm.deploy.multihost "$@"

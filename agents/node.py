@@ -99,6 +99,7 @@ class AgentNode:
             c.name: bus.subscribe(self.keys.image(rid, c.name), newest_only=not self.lockstep,
                                   capacity=LOCKSTEP_FRAME_QUEUE) for c in s.robot.cameras}
         self._frames_taken = 0  # frames drained from the newest-only inboxes (the rest were overwritten)
+        self._camera_models: dict[str, tuple[tuple[object, ...], CameraModel]] = {}
         self.enc_in = bus.subscribe(self.keys.encoders(rid))
         self.tick_in = bus.subscribe(self.keys.tick())
         self.corr_in = bus.subscribe(self.keys.correction(rid))
@@ -338,7 +339,7 @@ class AgentNode:
                     self.counters["own_tags"] += 1  # a reflection of ourselves cannot happen; count it
                 else:
                     dets.append(d)
-            views.append((CameraModel.from_message(img), dets))
+            views.append((self._camera_model(img), dets))
             self.counters["frames_processed"] += 1
         stamp = max(img.stamp_ns for img in frames)
         self.time_ns = max(self.time_ns, stamp)
@@ -352,6 +353,16 @@ class AgentNode:
             self._publish_observation(est, stamp)
             # a sighting corrects our pose only through a server
             self._fix = self._fix or self.server_alive
+
+    def _camera_model(self, img: m.CameraImage) -> CameraModel:
+        """The camera model of ``img``, made once per camera while its calibration stays the same
+        (building one costs ~0.1 ms, a 3x3 and a 4x4 matrix and an inverse, every frame)."""
+        key = (img.camera, img.fx_px, img.fy_px, img.cx_px, img.cy_px, img.width, img.height, img.lens,
+               tuple(img.distortion), img.mount, img.robot_id)
+        cached = self._camera_models.get(img.camera)
+        if cached is None or cached[0] != key:
+            cached = self._camera_models[img.camera] = (key, CameraModel.from_message(img))
+        return cached[1]
 
     def _publish_observation(self, est: PoseEstimate, stamp_ns: int) -> None:
         key = self.keys.observation(self.rid)

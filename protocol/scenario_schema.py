@@ -290,13 +290,16 @@ class Clock(Spec, frozen=True, kw_only=True, forbid_unknown_fields=True):
 
 class Render(Spec, frozen=True, kw_only=True, forbid_unknown_fields=True):
     """Rendering: ``workers`` = 0 renders in the world process; K > 0 spawns K
-    render worker processes (each a visual-only replica of the scene).
+    render worker processes (each a visual-only replica of the scene); -1 (the
+    default) lets the world choose from the machine's cores and what the cameras
+    ask for (``tagswarm.world.config.auto_render_workers``: in-process for a light
+    load and in lockstep, else one or two workers).
     ``stagger_cameras``: the robots' cameras fire at evenly spread phases of their
     period (robot i of n at i/n of it) rather than all on the same tick, so rendering
     is spread over the ticks instead of a burst that the last camera waits behind.
     A robot's own cameras (a rig) always fire on the same tick."""
 
-    workers: Annotated[int, msgspec.Meta(ge=0, le=32)] = 0
+    workers: Annotated[int, msgspec.Meta(ge=-1, le=32)] = -1
     floor: bool = False
     shadows: bool = False
     stagger_cameras: bool = True

@@ -40,7 +40,7 @@ from tagswarm.protocol.keys import Keys
 from tagswarm.protocol.scenario import Camera
 from tagswarm.runtime import streams
 from tagswarm.runtime.process import install_stop_signals, run_main, setup_logging
-from tagswarm.world.config import WorldConfig, build_config
+from tagswarm.world.config import WorldConfig, build_config, render_load, resolve_render_workers
 from tagswarm.world.interventions import Schedule
 from tagswarm.world.lockstep import AckTracker
 from tagswarm.world.render import Renderer, image_message, pose_matrix
@@ -64,7 +64,7 @@ class WorldNode:
 
     def __init__(self, config: WorldConfig, bus: Bus) -> None:
         self.cfg = config
-        self.s = s = config.scenario
+        self.s = s = resolve_render_workers(config.scenario)
         self.bus = bus
         self.keys = Keys(config.run)
         self.instance = f"{config.run}-{uuid.uuid4().hex[:8]}"
@@ -93,9 +93,10 @@ class WorldNode:
         self.ack_in = bus.subscribe(self.keys.acks())
         self.alive_in = bus.watch_liveliness(self.keys.alive_all())
         bus.declare_token(self.keys.alive("world/0"))
-        log.info("world %s: %d robots, %s clock at %g Hz, %d camera(s)/robot, render %s",
-                 self.instance, len(s.robot_ids), s.clock.mode, self.tick_hz, len(s.robot.cameras),
-                 "in-process" if self.renderer else f"in {s.render.workers} worker(s)")
+        log.info("world %s: %d robots, %s clock at %g Hz, %d camera(s)/robot, render %s (the cameras ask for "
+                 "~%.2f core of rendering)", self.instance, len(s.robot_ids), s.clock.mode, self.tick_hz,
+                 len(s.robot.cameras), "in-process" if self.renderer else f"in {s.render.workers} worker(s)",
+                 render_load(s))
 
     # ------------------------------------------------------------------ helpers
     def _publish(self, key: str, msg: m.Msg, *, drop: bool = False) -> None:
@@ -331,7 +332,7 @@ class WorldNode:
 def spawn_render_workers(config: WorldConfig, folder: Path) -> list[subprocess.Popen[bytes]]:
     """Start the render workers (before this process opens its Zenoh session: never
     fork after opening one).  They get the resolved scenario as a JSON file."""
-    s = config.scenario
+    s = resolve_render_workers(config.scenario)
     if s.render.workers == 0 or not config.spawn_render_workers:
         return []
     scen = folder / "scenario.json"

@@ -25,7 +25,7 @@ from numpy.typing import NDArray
 
 from tagswarm.protocol.geometry import Mat, matrix_to_pose3, quat_to_rot, transform
 from tagswarm.protocol.layout import wall_boxes
-from tagswarm.protocol.messages import CameraImage
+from tagswarm.protocol.messages import CameraImage, Pose3
 from tagswarm.protocol.scenario import Camera, Scenario
 from tagswarm.world import assets
 from tagswarm.world._pybullet import pb
@@ -262,6 +262,12 @@ def published_lens(cam: Camera, preset: str) -> Lens:
     return lens_for(cam, preset)
 
 
+@functools.lru_cache(maxsize=64)
+def published_mount(cam: Camera) -> Pose3:
+    """The mount pose a camera's images carry (cached: building it cost ~3 % of the world's time)."""
+    return matrix_to_pose3(mount_transform(cam))
+
+
 def image_message(scenario: Scenario, robot_id: int, cam: Camera, img: NDArray[np.uint8], *, seq: int, step: int,
                   stamp_ns: int) -> CameraImage:
     """Wrap a rendered (H, W) uint8 frame with its intrinsics, lens and mount pose (an
@@ -273,6 +279,6 @@ def image_message(scenario: Scenario, robot_id: int, cam: Camera, img: NDArray[n
     k = lens.K
     return CameraImage(seq=seq, stamp_ns=stamp_ns, robot_id=robot_id, camera=cam.name, step=step,
                        width=cam.width, height=cam.height, fx_px=float(k[0, 0]), fy_px=float(k[1, 1]),
-                       cx_px=float(k[0, 2]), cy_px=float(k[1, 2]), mount=matrix_to_pose3(mount_transform(cam)),
+                       cx_px=float(k[0, 2]), cy_px=float(k[1, 2]), mount=published_mount(cam),
                        data=np.ascontiguousarray(img, np.uint8).tobytes(), lens=lens.model,
                        distortion=lens.coeffs, version=2)

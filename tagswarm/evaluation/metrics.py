@@ -60,7 +60,8 @@ the true initial pose, so its error is pure drift).
   ``localised_m`` (0.10 m), ``localised_hold_s`` (0.5 s), ``recovered_stay_s``
   (1.0 s): see "Localised" above and ``kidnaps``.
 - ``cost``: ``wall_time_s``; ``sim_time_s``; ``real_time_factor`` = sim/wall
-  (``null`` if wall time is 0 or unknown); ``frames_rendered`` (world total);
+  (``null`` if wall time is 0 or unknown); ``frames_rendered`` (world total: the
+  world's own renders, or the sum over its render workers' ``render/<i>`` statuses);
   ``frames_rendered_per_robot`` (that total / number of robots);
   ``frames_processed`` and ``frames_skipped`` (sums over agents; per robot in
   ``robots``).
@@ -248,6 +249,8 @@ def evaluate(run: RunData) -> Evaluation:
         robots_out[str(k)].update(behaviour[k])
     swarm.update(swarm_behaviour(run.robots, behaviour))
     costs = cost(run, behaviour)
+    if costs["frames_rendered"] is None:
+        costs.update(_rendered_by_workers(run))
     events = recovery_metrics(run, tracks, robots_out, swarm, KINDS, warnings)
 
     dist = error_vs_distance(run, tracks)
@@ -299,3 +302,16 @@ def compute_metrics(run_dir: Path) -> dict[str, Any]:
     """The metrics of a run folder as a JSON-able dict (fields: see the module docstring).
     Raises :class:`RunFolderError` for a missing or malformed folder."""
     return evaluate(load_run(Path(run_dir))).metrics
+
+
+def _rendered_by_workers(run: RunData) -> dict[str, Any]:
+    """``frames_rendered`` (and per robot) as the sum of the render workers' last counters, for a
+    world that rendered in ``render/<i>`` worker processes (its own status then has none)."""
+    counters = run.info.get("counters")
+    counts = [c.get("frames_rendered") for who, c in (counters.items() if isinstance(counters, dict) else ())
+              if who.startswith("render/") and isinstance(c, dict)]
+    known = [int(v) for v in counts if isinstance(v, int | float) and not isinstance(v, bool)]
+    if not known:
+        return {}
+    total = sum(known)
+    return {"frames_rendered": total, "frames_rendered_per_robot": total / len(run.robots) if run.robots else None}

@@ -307,6 +307,16 @@ def test_counters_cost_and_real_time_factor(tmp_path: Path) -> None:
     assert m["run"]["clock"] == "lockstep"
 
 
+def test_frames_rendered_by_render_workers_are_summed(tmp_path: Path) -> None:
+    # a world with render workers counts requests; the frames are in each worker's render/<i> status
+    counters = {"world": {"frames_requested": 700, "step": 1200}, "render/0": {"frames_rendered": 350},
+                "render/1": {"frames_rendered": 340}, "agent/0": {"frames_processed": 170}}
+    truth = {k: (T20, circle(k, T20)) for k in range(2)}
+    c = compute_metrics(make_run(tmp_path, truth, counters=counters, sim_time_s=30.0, wall_time_s=31.0))["cost"]
+    assert c["frames_rendered"] == 690
+    assert c["frames_rendered_per_robot"] == pytest.approx(345.0)
+
+
 def test_real_time_factor_is_null_without_wall_time(tmp_path: Path) -> None:
     truth = {0: (T20, circle(0, T20))}
     m = compute_metrics(make_run(tmp_path, truth, wall_time_s=0.0))

@@ -92,8 +92,96 @@ def blur_flow(xn: F32, yn: F32, depth_m: F32, twist: NDArray[np.float64], tau_s:
     return np.asarray(x2 / z2 - xn, np.float32), np.asarray(y2 / z2 - yn, np.float32)
 
 
+_JACOBIANS: dict[int, tuple[F32, tuple[F32, F32, F32, F32]]] = {}
+
+
+def _inverse_map_jacobian(map_x: F32, map_y: F32, g: int) -> tuple[F32, F32, F32, F32]:
+    """(a, b, c, e) on the ``g`` grid of the maps: [[a, b], [c, e]] turns a displacement in the
+    render (px) into one in the output image (px), the inverse of the maps' derivative (cached per map)."""
+    hit = _JACOBIANS.get(id(map_x))
+    if hit is not None and hit[0] is map_x:
+        return hit[1]
+    mx, my = map_x.astype(np.float64), map_y.astype(np.float64)
+    xu, xv = np.gradient(mx, axis=1)[::g, ::g], np.gradient(mx, axis=0)[::g, ::g]
+    yu, yv = np.gradient(my, axis=1)[::g, ::g], np.gradient(my, axis=0)[::g, ::g]
+    det = xu * yv - xv * yu
+    det = np.where(np.abs(det) > 1e-9, det, 1e-9)
+    inv = (np.asarray(yv / det, np.float32), np.asarray(-xv / det, np.float32), np.asarray(-yu / det, np.float32),
+           np.asarray(xu / det, np.float32))
+    if len(_JACOBIANS) > 64:
+        _JACOBIANS.clear()
+    _JACOBIANS[id(map_x)] = (map_x, inv)  # the map itself is kept: its id cannot be reused meanwhile
+    return inv
+
+
+#: a streak (output px) that varies by at most this much over the image is blurred as one kernel over the
+#: lens image: each sample lands at most this far from where the per-pixel sub-exposures put it
+UNIFORM_STREAK_TOL_PX: Final = 0.25
+_FIXED: dict[int, tuple[F32, tuple[Any, Any]]] = {}
+
+
+class Exposures(list[tuple[F32, F32]]):
+    """The sub-exposures of one frame (:func:`exposure_maps`): their sampling maps, or, when the streak
+    is the same all over the image, ``kernel``, the blur as one filter over the lens image (the render
+    resampled through ``lens_maps``)."""
+
+    kernel: F32 | None = None
+    lens_maps: tuple[F32, F32] | None = None
+
+
+def streak_kernel(du: float, dv: float, n: int) -> F32:
+    """The filter (odd square, anchor at its centre) averaging ``n`` bilinear samples of an image at
+    offsets ``-a_i (du, dv)`` (px), a_i spread over -1..1 as the sub-exposures are."""
+    r = math.ceil(max(abs(du), abs(dv))) + 1
+    k = np.zeros((2 * r + 1, 2 * r + 1), np.float32)
+    for i in range(n):
+        a = 2.0 * ((i + 0.5) / n - 0.5)
+        ox, oy = -a * du + r, -a * dv + r
+        x0, y0 = math.floor(ox), math.floor(oy)
+        wx, wy = ox - x0, oy - y0
+        k[y0, x0] += (1 - wx) * (1 - wy) / n
+        k[y0, x0 + 1] += wx * (1 - wy) / n
+        k[y0 + 1, x0] += (1 - wx) * wy / n
+        k[y0 + 1, x0 + 1] += wx * wy / n
+    return k
+
+
+_GRID_OF_MAP: dict[tuple[int, bytes, tuple[int, ...]], tuple[F32, NDArray[np.intp], F32, F32]] = {}
+
+
+def _flow_grid(map_x: F32, map_y: F32, K: Mat, depth_shape: tuple[int, ...]) -> tuple[NDArray[np.intp], F32, F32]:
+    """On the :data:`FLOW_GRID_PX` grid of the output: the flat index of the render pixel each grid
+    point samples (for its depth) and its normalised coordinates (cached per map, intrinsics and size)."""
+    key = (id(map_x), np.asarray(K, np.float64).tobytes(), tuple(depth_shape))
+    hit = _GRID_OF_MAP.get(key)
+    if hit is not None and hit[0] is map_x:
+        return hit[1], hit[2], hit[3]
+    g = FLOW_GRID_PX
+    mx, my = map_x[::g, ::g], map_y[::g, ::g]
+    hd, wd = depth_shape
+    idx = np.clip(np.rint(my).astype(np.intp), 0, hd - 1) * wd + np.clip(np.rint(mx).astype(np.intp), 0, wd - 1)
+    xn = np.asarray((mx - np.float32(K[0, 2])) / np.float32(K[0, 0]), np.float32)
+    yn = np.asarray((my - np.float32(K[1, 2])) / np.float32(K[1, 1]), np.float32)
+    if len(_GRID_OF_MAP) > 64:
+        _GRID_OF_MAP.clear()
+    _GRID_OF_MAP[key] = (map_x, idx, xn, yn)  # the map itself is kept: its id cannot be reused meanwhile
+    return idx, xn, yn
+
+
+def _fixed_maps(map_x: F32, map_y: F32) -> tuple[Any, Any]:
+    """``cv2.remap``'s fixed-point form of float maps (cached per map)."""
+    hit = _FIXED.get(id(map_x))
+    if hit is not None and hit[0] is map_x:
+        return hit[1]
+    fixed = cv2.convertMaps(map_x, map_y, cv2.CV_16SC2)
+    if len(_FIXED) > 64:
+        _FIXED.clear()
+    _FIXED[id(map_x)] = (map_x, (fixed[0], fixed[1]))
+    return fixed[0], fixed[1]
+
+
 def exposure_maps(map_x: F32, map_y: F32, depth_m: F32, K: Mat, twist: NDArray[np.float64] | None,
-                  exposure_s: float) -> list[tuple[F32, F32]] | None:
+                  exposure_s: float) -> Exposures | None:
     """Sampling maps of the sub-exposures of one frame: the output pixel q of sub-exposure i shows
     the pinhole render (intrinsics ``K``, depth ``depth_m``) at ``map(q) - a_i flow(map(q))``,
     with ``map`` the lens's maps into the render (float (H, W); the pixel grid for a pinhole),
@@ -101,33 +189,44 @@ def exposure_maps(map_x: F32, map_y: F32, depth_m: F32, K: Mat, twist: NDArray[n
     spread over -1..1.  The motion is linear in time over the exposure and computed on a
     :data:`FLOW_GRID_PX` grid (it is smooth but at depth edges); the depth is the centre
     frame's, so occlusions changing within the exposure are ignored.  Sub-exposures at most
-    :data:`SAMPLE_SPACING_PX` apart (bilinear sampling fills between them), at least 2, at most
-    :data:`MAX_BLUR_SAMPLES`; None for a streak under 1 px."""
+    :data:`SAMPLE_SPACING_PX` output pixels apart (bilinear sampling fills between them), at least
+    2, at most :data:`MAX_BLUR_SAMPLES`; None for a streak under 1 output pixel."""
     if twist is None or exposure_s <= 0:
         return None
     g = FLOW_GRID_PX
-    mx, my = map_x[::g, ::g], map_y[::g, ::g]
-    hd, wd = depth_m.shape
-    d = depth_m[np.clip(np.rint(my).astype(np.intp), 0, hd - 1), np.clip(np.rint(mx).astype(np.intp), 0, wd - 1)]
-    fx, fy, cx, cy = (np.float32(v) for v in (K[0, 0], K[1, 1], K[0, 2], K[1, 2]))
-    dx, dy = blur_flow((mx - cx) / fx, (my - cy) / fy, d, twist, exposure_s / 2.0)
+    depth_at, xn, yn = _flow_grid(map_x, map_y, K, depth_m.shape)
+    fx, fy = np.float32(K[0, 0]), np.float32(K[1, 1])
+    dx, dy = blur_flow(xn, yn, depth_m.ravel().take(depth_at), twist, exposure_s / 2.0)
     du, dv = dx * fx, dy * fy
-    streak = 2.0 * float(np.sqrt((du * du + dv * dv).max()))
+    # the streak in OUTPUT pixels decides the sub-exposures (the lens may sample the render sparser or
+    # denser than one render pixel per output pixel: a fisheye's wide pinhole render is ~2x its image)
+    a, b, c, e = _inverse_map_jacobian(map_x, map_y, g)
+    su, sv = a * du + b * dv, c * du + e * dv
+    streak = 2.0 * float(np.sqrt((su * su + sv * sv).max()))
     if streak < 1.0:
         return None
     n = min(MAX_BLUR_SAMPLES, max(2, math.ceil(streak / SAMPLE_SPACING_PX)))
+    out = Exposures()
+    mu, mv = float(su.mean()), float(sv.mean())
+    if max(float(np.abs(su - mu).max()), float(np.abs(sv - mv).max())) <= UNIFORM_STREAK_TOL_PX:
+        # a turn seen through a narrow lens: one small filter instead of n resamplings of the render
+        out.kernel, out.lens_maps = streak_kernel(mu, mv, n), (map_x, map_y)
+        return out
     h, w = map_x.shape
     du = np.asarray(cv2.resize(du, (w, h), interpolation=cv2.INTER_LINEAR), np.float32)
     dv = np.asarray(cv2.resize(dv, (w, h), interpolation=cv2.INTER_LINEAR), np.float32)
-    out = []
     for i in range(n):
-        a = np.float32(2.0 * ((i + 0.5) / n - 0.5))
-        out.append((map_x - a * du, map_y - a * dv))
+        weight = -2.0 * ((i + 0.5) / n - 0.5)
+        out.append((np.asarray(cv2.scaleAdd(du, weight, map_x), np.float32),  # type: ignore[call-overload]
+                    np.asarray(cv2.scaleAdd(dv, weight, map_y), np.float32)))  # type: ignore[call-overload]
     return out
 
 
-def expose(render: F32, maps: list[tuple[F32, F32]]) -> F32:
+def expose(render: F32, maps: Exposures) -> F32:
     """The mean of the sub-exposures sampled from ``render`` through ``maps`` (:func:`exposure_maps`)."""
+    if maps.kernel is not None and maps.lens_maps is not None:
+        lensed = cv2.remap(render, *_fixed_maps(*maps.lens_maps), cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        return np.asarray(cv2.filter2D(lensed, -1, maps.kernel, borderType=cv2.BORDER_REPLICATE), np.float32)
     acc = np.zeros(maps[0][0].shape, np.float32)
     for mx, my in maps:
         acc += np.asarray(cv2.remap(render, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE), np.float32)
@@ -190,12 +289,17 @@ def develop(img: F32, cfg: CameraSensor, rng: np.random.Generator, gain: F32 | N
     ``electrons_per_dn``, DN^2) and read noise (Gaussian, DN), rounded and clipped.  ``cfg`` is
     a resolved ``[camera]`` section."""
     scale, offset = toned if toned is not None else tone(cfg, gain, img.shape)  # type: ignore[arg-type]
-    out = np.clip(img * scale + np.float32(offset), 0.0, 255.0)
+    out = img * scale
+    out += np.float32(offset)
+    np.clip(out, 0.0, 255.0, out=out)
     read2 = float(cfg.read_noise_dn or 0.0) ** 2
     if cfg.electrons_per_dn or read2:
         # shot noise as its Gaussian limit (>= 20 electrons per DN is far beyond where Poisson differs),
-        # one draw with read noise; sigma looked up per whole DN of the signal
+        # one draw with read noise; sigma looked up per whole DN of the signal (cv2.LUT: ~3x numpy's gather)
         e = float(cfg.electrons_per_dn or 0.0)
         sigma = np.sqrt(np.arange(256, dtype=np.float32) * np.float32(1.0 / e if e else 0.0) + np.float32(read2))
-        out += sigma[out.astype(np.uint8)] * (normals(rng, out.shape) if bank is None else bank.draw(rng, out.shape))
-    return np.asarray(np.clip(np.rint(out), 0, 255), np.uint8)
+        noise: F32 = np.asarray(cv2.LUT(out.astype(np.uint8), sigma), np.float32)
+        noise *= normals(rng, out.shape) if bank is None else bank.draw(rng, out.shape)
+        out += noise
+    # rounding to nearest (ties to even, as numpy's rint) and saturation to 0..255 in one pass
+    return np.asarray(cv2.add(out, 0.0, dtype=cv2.CV_8U), np.uint8)  # type: ignore[call-overload]

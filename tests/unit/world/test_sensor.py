@@ -117,3 +117,51 @@ def test_noise_bank_statistics() -> None:
     cfg = CameraSensor(read_noise_dn=1.5, electrons_per_dn=20.0).resolved()
     out = develop(np.full((240, 320), 100.0, np.float32), cfg, frame_rng(1, 0, "front", 3), bank=bank)
     assert abs(float(out.std()) - math.sqrt(100 / 20 + 1.5**2)) < 0.1
+
+
+def _turning_exposure(overrides: list[str], exposure_s: float,
+                      tol_px: float | None = None) -> tuple[object, np.ndarray, np.ndarray]:
+    """(exposure maps, blurred frame, sharp frame) of robot 0 of the paper scene turning at 1.2 rad/s."""
+    from tagswarm.world import sensor
+
+    s = load_scenario("paper", ["camera.preset=realistic", *overrides])
+    cam = s.robot.cameras[0]
+    with Renderer(s) as r:
+        for rid in s.robot_ids:
+            r.set_pose(rid, (0.5 * rid, 0.4 * (rid - 1.5), 0), (0, 0, 0, 1))
+        p = r.plan(cam)
+        mount = r._mount[cam.name]
+        t_wc, prev = se2_matrix(-1.5, 0, 0) @ mount, se2_matrix(-1.5, 0, -0.12) @ mount
+        gray, zbuf = r._shoot(p.render_cam, t_wc, True)
+    depth = sensor.linear_depth(zbuf, cam.near_m, cam.far_m)
+    twist = sensor.camera_twist(prev, t_wc, 0.1)
+    kept = sensor.UNIFORM_STREAK_TOL_PX
+    if tol_px is not None:
+        sensor.UNIFORM_STREAK_TOL_PX = tol_px
+    try:
+        maps = sensor.exposure_maps(*p.sample_maps(), depth, p.K_render, twist, exposure_s)
+    finally:
+        sensor.UNIFORM_STREAK_TOL_PX = kept
+    g = gray.astype(np.float32)
+    return maps, (p.apply(g) if maps is None else sensor.expose(g, maps)), p.apply(g)
+
+
+def test_a_uniform_streak_is_one_filter_close_to_the_sub_exposures() -> None:
+    """A turn through the 60 deg lens: the streak is the same all over the image, so the blur is one
+    small filter over the lens image, within a fraction of a DN of resampling the render per
+    sub-exposure (its own bilinear step smooths a little more)."""
+    maps, fast, sharp = _turning_exposure([], 0.004)
+    assert maps is not None and maps.kernel is not None  # type: ignore[attr-defined]
+    per_pixel, slow, _ = _turning_exposure([], 0.004, tol_px=-1.0)
+    assert per_pixel is not None and per_pixel.kernel is None and len(per_pixel) == 2  # type: ignore[attr-defined]
+    blur = float(np.abs(slow - sharp).mean())
+    assert blur > 0.2
+    assert float(np.abs(fast - slow).mean()) < 0.6 * blur
+
+
+def test_sub_exposures_count_output_pixels() -> None:
+    """A 320x240 120 deg fisheye turning at 1.2 rad/s for 4 ms streaks ~0.7 output px (its pinhole
+    render, twice the image's size, would call it ~1.5 px): no blur; 20 ms is a blur."""
+    fisheye = "robot.cameras=[{name='front', width=320, height=240, hfov_deg=120.0}]"
+    assert _turning_exposure([fisheye], 0.004)[0] is None
+    assert _turning_exposure([fisheye], 0.020)[0] is not None

@@ -101,10 +101,14 @@ class AgentNode:
         self._frames_taken = 0  # frames drained from the newest-only inboxes (the rest were overwritten)
         self._camera_models: dict[str, tuple[tuple[object, ...], CameraModel]] = {}
         self.enc_in = bus.subscribe(self.keys.encoders(rid))
-        self.tick_in = bus.subscribe(self.keys.tick())
-        self.corr_in = bus.subscribe(self.keys.correction(rid))
-        self.goal_in = bus.subscribe(self.keys.goal(rid))
-        self.map_in = bus.subscribe(self.keys.map(), capacity=MAP_QUEUE)
+        # realtime: only encoders (a control cycle) and frames wake the loop; ticks, corrections, goals and
+        # maps are read at the next wake-up, which is where they are used anyway (one pass of the loop
+        # less per tick, correction and map: ~60 a second per agent).  Lockstep waits on them
+        wakes = self.lockstep
+        self.tick_in = bus.subscribe(self.keys.tick(), wakes=wakes)
+        self.corr_in = bus.subscribe(self.keys.correction(rid), wakes=wakes)
+        self.goal_in = bus.subscribe(self.keys.goal(rid), wakes=wakes)
+        self.map_in = bus.subscribe(self.keys.map(), capacity=MAP_QUEUE, wakes=wakes)
         self.static_obstacles = static_boxes(s)
         self.server_alive_in = bus.watch_liveliness(self.keys.alive_role("server"))
         self.world_alive_in = bus.watch_liveliness(self.keys.alive_role("world"))

@@ -215,11 +215,15 @@ class Inbox(Generic[T]):
     Otherwise it is a FIFO of ``capacity`` items; items beyond that are dropped
     and counted in ``overflow`` (a safety net, not a flow-control mechanism).
     ``fault_dropped`` counts the samples lost to injected network faults.
+    ``wakes=False``: an arrival does not wake the loop (:meth:`Bus.wait`); for inputs the
+    loop only reads when something else woke it, so each such sample does not cost a
+    pass of the loop.
     """
 
-    def __init__(self, wake: threading.Condition, *, newest_only: bool, capacity: int) -> None:
+    def __init__(self, wake: threading.Condition, *, newest_only: bool, capacity: int, wakes: bool = True) -> None:
         self._items: deque[Received[T]] = deque(maxlen=1 if newest_only else capacity)
         self._wake = wake
+        self._wakes = wakes
         self.received = 0
         self.overflow = 0
         self.fault_dropped = 0
@@ -232,7 +236,8 @@ class Inbox(Generic[T]):
                 self.overflow += 1
             self._items.append(Received(key, value))
             self.received += 1
-            self._wake.notify_all()
+            if self._wakes:
+                self._wake.notify_all()
 
     def count_fault_drop(self) -> None:
         """Called from Zenoh threads for a sample the fault injector discarded."""
@@ -326,10 +331,12 @@ class Bus:
         """Publish ``payload`` on ``key`` through a cached publisher."""
         self.publisher(key, drop=drop).put(payload)
 
-    def subscribe(self, key: str, *, newest_only: bool = False, capacity: int = 65536) -> Inbox[bytes]:
+    def subscribe(self, key: str, *, newest_only: bool = False, capacity: int = 65536,
+                  wakes: bool = True) -> Inbox[bytes]:
         """Subscribe to ``key`` (may contain wildcards); payloads arrive as bytes.
-        With network faults configured, matching samples may be lost or delayed."""
-        inbox: Inbox[bytes] = Inbox(self._wake, newest_only=newest_only, capacity=capacity)
+        With network faults configured, matching samples may be lost or delayed.
+        ``wakes=False``: arrivals do not wake :meth:`wait` / :meth:`wait_for` (see :class:`Inbox`)."""
+        inbox: Inbox[bytes] = Inbox(self._wake, newest_only=newest_only, capacity=capacity, wakes=wakes)
         faults = self._faults
 
         def on_sample(sample: zenoh.Sample) -> None:

@@ -42,12 +42,16 @@ def paper_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 def test_paper_scenario_localises_every_robot_within_10cm(paper_run: Path) -> None:
     drifts = []
+    robots = json.loads((paper_run / "metrics.json").read_text())["robots"]
     for rid in range(4):
         fused_err, odom_err = _final_errors(paper_run, rid)
         assert fused_err < 0.10, f"robot {rid}: fused error {fused_err:.3f} m at the end"
         drifts.append(odom_err)
         if rid != 0:  # the origin holds station: no drift to beat
-            assert odom_err > fused_err, f"robot {rid}: odometry {odom_err:.3f} m vs fused {fused_err:.3f} m"
+            # over the whole run, not at the last instant: a drifting odometry can pass near the truth
+            # at the end (robot 1's ended 5 mm off with a 14.5 cm RMSE)
+            fused, odom = (robots[str(rid)][kind]["ate_unaligned"]["rmse"] for kind in ("fused", "odom"))
+            assert odom > 5 * fused, f"robot {rid}: odometry RMSE {odom:.3f} m vs fused {fused:.3f} m"
     assert max(drifts) > 0.10  # the error model really drifts over 60 s
 
 

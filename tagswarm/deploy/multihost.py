@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import shutil
 import signal
 import sys
@@ -44,6 +45,7 @@ import msgspec
 from tagswarm.deploy import netns
 from tagswarm.deploy.hostprobe import Probe
 from tagswarm.protocol.bus import Bus, BusConfig, open_bus
+from tagswarm.protocol.errors import TagswarmError
 from tagswarm.protocol.keys import Keys
 from tagswarm.protocol.scenario import Scenario
 from tagswarm.runtime import procgroup
@@ -66,6 +68,11 @@ ROUTER_CONFIG = """{
 BIN = Path(sys.executable).parent
 
 
+class MultiHostError(TagswarmError, RuntimeError):
+    """The run failed: a process died unasked, or something did not happen in time (the
+    message says what, with the tails of the logs)."""
+
+
 def host_names(robots: Sequence[int]) -> list[str]:
     """Router first (``10.77.0.1``), then world, server and one host per agent."""
     return ["router", "world", "server", *(f"agent{r}" for r in robots)]
@@ -85,7 +92,7 @@ def resolve(scenario: Scenario) -> Scenario:
 
 def commands(topo: netns.Topology, *, run: str, scenario_file: Path, out: Path, robots: Sequence[int],
              delay_ms: float = 0.0, lease_ms: int | None = None, socket: Path | None = None,
-             tagswarm: str = "tagswarm") -> dict[str, tuple[str, list[str]]]:
+             tagswarm: str = "tagswarm", report: bool = True) -> dict[str, tuple[str, list[str]]]:
     """Process name -> (host, command line): what runs where.  The same lines work on real
     hosts with the router's address in place of ``10.77.0.1``."""
     router = f"tcp/{topo.host('router').addr}:{PORT}"
@@ -97,7 +104,8 @@ def commands(topo: netns.Topology, *, run: str, scenario_file: Path, out: Path, 
     listen = ["--listen", f"tcp/0.0.0.0:{PORT}"] + (["--listen", f"unixsock-stream/{socket}"] if socket else [])
     cmds: dict[str, tuple[str, list[str]]] = {
         "router": ("router", [tagswarm, "router", *listen, "--zenoh-config", str(out / "router.json5"), *common]),
-        "recorder": ("router", [tagswarm, "record-run", "--out", str(out), *client]),
+        "recorder": ("router", [tagswarm, "record-run", "--out", str(out), *client,
+                                *([] if report else ["--no-report"])]),
         "server": ("server", [tagswarm, "server", *client, "--journal", str(out / "server.journal"), *delay]),
     }
     for r in robots:
@@ -113,7 +121,7 @@ class MultiHost:
 
     def __init__(self, out: Path, scenario: Scenario, *, run: str | None = None, delay_ms: float = 0.0,
                  loss: float = 0.0, rate_mbit: float | None = None, lease_ms: int | None = None,
-                 latency: bool = False) -> None:
+                 latency: bool = False, report: bool = True) -> None:
         self.out = out.resolve()
         self.scenario = resolve(scenario)
         self.topo = netns.plan(netns.new_prefix(), host_names(self.scenario.robot_ids))
@@ -131,7 +139,7 @@ class MultiHost:
         self.t0 = time.monotonic()
         self.cmds = commands(self.topo, run=self.run, scenario_file=self.out / "scenario.json", out=self.out,
                              robots=self.scenario.robot_ids, delay_ms=delay_ms, lease_ms=lease_ms,
-                             socket=self.sockdir / "router.sock", tagswarm=str(BIN / "tagswarm"))
+                             socket=self.sockdir / "router.sock", tagswarm=str(BIN / "tagswarm"), report=report)
 
     # ---- life cycle
     def __enter__(self) -> MultiHost:
@@ -212,7 +220,7 @@ class MultiHost:
             except Exception:
                 self._check_children()
                 if time.monotonic() > deadline:
-                    raise TimeoutError(f"the router never listened\n{self.tails()}") from None
+                    raise MultiHostError(f"the router never listened\n{self.tails()}") from None
                 time.sleep(0.2)
         self.probe = Probe(self.bus, self.keys, self.scenario, latency=self.latency)
 
@@ -240,7 +248,7 @@ class MultiHost:
             if check:
                 self._check_children()
             if time.monotonic() - t0 > timeout_s:
-                raise TimeoutError(f"{what} (after {timeout_s:g} s)\n{self.tails()}")
+                raise MultiHostError(f"{what} (after {timeout_s:g} s)\n{self.tails()}")
             if self.bus is not None:
                 self.bus.wait(0.05)
             else:
@@ -249,7 +257,7 @@ class MultiHost:
     def _check_children(self) -> None:
         dead = [c for c in self.children.values() if c.poll() not in (None, 0) and not c.signalled]
         if dead:
-            raise RuntimeError(", ".join(f"{c.name} exited with code {c.poll()}" for c in dead) + "\n" + self.tails())
+            raise MultiHostError(", ".join(f"{c.name} exited with code {c.poll()}" for c in dead) + "\n" + self.tails())
 
     def tails(self, n: int = 8) -> str:
         return "\n".join(c.tail(n) for c in self.children.values())
@@ -259,6 +267,9 @@ class MultiHost:
         then write ``multihost.json``.  Exit codes by process."""
         self.until(lambda: self.children["world"].poll() is not None, timeout_s, "the world never finished")
         self.until(lambda: self.children["recorder"].poll() is not None, 120, "the recorder never wrote the folder")
+        # the recorder saw their tokens go: the processes themselves may still be closing
+        self.until(lambda: all(c.poll() is not None for n, c in self.children.items() if n != "router"), 60,
+                   "the swarm's processes did not exit after the run")
         return self.write_summary()
 
     def exit_codes(self) -> dict[str, int | None]:
@@ -285,8 +296,6 @@ class MultiHost:
 
 
 def _environ() -> dict[str, str]:
-    import os
-
     return dict(os.environ)
 
 
@@ -299,6 +308,7 @@ def parser() -> OneLineParser:
                    help="share of packets each host drops on receive (iptables statistic; default 0)")
     p.add_argument("--rate-mbit", type=float, default=None, metavar="MBIT",
                    help="egress bandwidth of every host (tbf; default unlimited)")
+    p.add_argument("--no-report", action="store_true", help="do not compute metrics and plots at the end")
     p.add_argument("--timeout", type=float, default=600.0, metavar="SECONDS",
                    help="give up when the run has not ended after this long (wall; default 600)")
     add_common_args(p)
@@ -328,10 +338,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         signal.signal(signal.SIGINT, lambda *_: stop.set())
         signal.signal(signal.SIGTERM, lambda *_: stop.set())
         with MultiHost(args.out, scenario, run=args.run, delay_ms=args.delay_ms, loss=args.loss,
-                       rate_mbit=args.rate_mbit, lease_ms=lease,
+                       rate_mbit=args.rate_mbit, lease_ms=lease, report=not args.no_report,
                        latency=scenario.clock.mode == "realtime") as mh:
             print(f"{PROG}: {len(mh.topo.hosts)} hosts ({mh.topo.prefix}-*), run {mh.run!r}, "
                   f"{scenario.clock.mode}, run folder {mh.out}", flush=True)
+            failure: str | None = None
             try:
                 mh.start()
                 mh.until(lambda: stop.is_set() or mh.children["world"].poll() is not None, args.timeout,
@@ -339,9 +350,14 @@ def main(argv: Sequence[str] | None = None) -> int:
                 if stop.is_set():
                     mh.children["recorder"].send(signal.SIGTERM)  # it writes what it has, exit 130
                 mh.until(lambda: mh.children["recorder"].poll() is not None, 120, "the recorder never finished")
+            except MultiHostError as exc:
+                failure = str(exc)
             finally:
-                codes = mh.write_summary()
+                codes = mh.write_summary({"failure": failure})
             print(json.dumps({"exit_codes": codes, "probe": mh.probe.summary() if mh.probe else None}), flush=True)
+        if failure is not None:
+            sys.stderr.write(f"{PROG}: run failed: {failure}\n")
+            return 1
         return 130 if stop.is_set() else (0 if all(c == 0 for c in codes.values() if c is not None) else 1)
 
     return run_main(PROG, body)

@@ -34,6 +34,8 @@ import threading
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 
+from tagswarm.protocol.errors import TagswarmError
+
 log = logging.getLogger("tagswarm.netns")
 
 SUBNET = "10.77.0"
@@ -48,7 +50,7 @@ _counter = iter(range(1, 1 << 30))
 _counter_lock = threading.Lock()
 
 
-class NetnsError(RuntimeError):
+class NetnsError(TagswarmError, RuntimeError):
     """A namespace command failed (the message names the command and ip's error)."""
 
 

@@ -318,15 +318,19 @@ ABLATIONS: dict[str, tuple[str, list[str]]] = {
         "noise": ["camera.read_noise_dn=1.0", "camera.electrons_per_dn=20.0"],
         "blur": ["camera.exposure_ms=8.0"],
         "distortion": [DISTORTED],
-        "calibration_error": ["camera.preset=realistic", *CALIBRATION_ERROR],
+        "calibration_error": CALIBRATION_ERROR,  # an ideal pinhole handed a wrong focal, centre and mount
     }.items()},
 }
-#: the realistic camera, and the realistic camera handed a calibration with typical errors
+#: the realistic camera, the realistic camera handed a calibration with typical errors, and the
+#: realistic camera's effects one at a time on the ideal one
 CAMERA_ROWS: dict[str, tuple[str, list[str]]] = {
     "paper": ("paper", []),
     "paper-realistic": ("paper-realistic", []),
-    "camera_calibration_error": ABLATIONS["camera_calibration_error"],
+    "realistic_calibration_error": ("paper", ["camera.preset=realistic", *CALIBRATION_ERROR]),
+    **{k: v for k, v in ABLATIONS.items() if k.startswith("camera_")},
 }
+#: the static Fig. 5 case through each camera (the lattice placements of static_trial, 640x480 60 deg)
+STATIC_CAMERAS: dict[str, list[str]] = {"ideal": [], "realistic": ["camera.preset=realistic"]}
 
 
 def main() -> int:
@@ -345,14 +349,16 @@ def main() -> int:
     p.add_argument("--skip-scenes", action="store_true")
     p.add_argument("--skip-methods", action="store_true", help="skip the stitch-vs-graph runs (bench/methods.py)")
     p.add_argument("--camera-only", action="store_true",
-                   help="only the camera rows (paper vs paper-realistic vs a calibration error, --ablation-duration "
-                        "each) to bench/results/accuracy_camera.json")
+                   help="only the camera rows to bench/results/accuracy_camera.json: static Fig. 5 through the ideal "
+                        "and the realistic camera (--trials each), paper vs paper-realistic vs a calibration error "
+                        "and the camera ablations (--ablation-duration each)")
     p.add_argument("--out", type=Path, default=None,
                    help="JSON to write (default bench/results/accuracy.json, accuracy_quick.json with --quick); "
                         "plots go beside it")
     a = p.parse_args()
     if a.camera_only:
-        return camera_only(a.ablation_duration, a.jobs, a.out or ROOT / "bench" / "results" / "accuracy_camera.json")
+        return camera_only(a.ablation_duration, a.trials, a.jobs,
+                           a.out or ROOT / "bench" / "results" / "accuracy_camera.json")
     if a.out is None:
         a.out = ROOT / "bench" / "results" / ("accuracy_quick.json" if a.quick else "accuracy.json")
     if a.quick:
@@ -462,19 +468,27 @@ def main() -> int:
     return 0
 
 
-def camera_only(duration: float, jobs: int, out: Path) -> int:
-    """The camera rows (:data:`CAMERA_ROWS`, seed 0): fused and odometry ATE of each."""
+def camera_only(duration: float, trials: int, jobs: int, out: Path) -> int:
+    """The camera rows: static Fig. 5 through each of :data:`STATIC_CAMERAS` (``trials`` each, the
+    same placements), and :data:`CAMERA_ROWS` (seed 0): fused and odometry ATE of each."""
+    t_start = time.monotonic()
     with tempfile.TemporaryDirectory(prefix="tagswarm-acc-cam-") as tmp:
         work = Path(tmp)
         fns = [lambda n=n, sc=sc, ov=ov: dynamic_run(f"cam_{n}", work, 0, duration, *ov, scenario=sc)
                for n, (sc, ov) in CAMERA_ROWS.items()]
-        rows = _parallel(jobs, fns)
+        fns += [lambda c=c, seed=seed: static_trial(seed, work, *STATIC_CAMERAS[c], tag=f"{c}_")
+                for c in STATIC_CAMERAS for seed in range(trials)]
+        done = _parallel(jobs, fns)
+    rows, flat = done[:len(CAMERA_ROWS)], done[len(CAMERA_ROWS):]
+    static = {c: summarise_static(flat[i * trials:(i + 1) * trials]) for i, c in enumerate(STATIC_CAMERAS)}
     for r in rows:
         f, o = r["fused"], r["odom"]
         r["fused_vs_odom"] = (o["ate_unaligned_rmse"] / f["ate_unaligned_rmse"]
                               if f["ate_unaligned_rmse"] and o["ate_unaligned_rmse"] else None)
     result = {"bench": "accuracy_camera", "machine": machine(), "duration_s": duration, "seed": 0, "rows": rows,
-              "targets": {"paper-realistic": "fused ATE RMSE <= 2 cm, max <= 10 cm, >= 10x better than odometry"}}
+              "static_trials": trials, "static": static, "wall_time_s": time.monotonic() - t_start,
+              "targets": {"paper-realistic": "fused ATE RMSE <= 2 cm, max <= 10 cm, >= 10x better than odometry",
+                          "static realistic": "p95 <= 10 cm, heading p95 <= 1.5 deg"}}
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(result, indent=2))
     t = Table(title=f"camera rows ({duration:.0f} s, seed 0; cm)")
@@ -485,6 +499,15 @@ def camera_only(duration: float, jobs: int, out: Path) -> int:
         t.add_row(r["name"], _cm(f["ate_unaligned_rmse"]), _cm(f["ate_unaligned_max"]), _cm(o["ate_unaligned_rmse"]),
                   f"{r['fused_vs_odom']:.1f}" if r["fused_vs_odom"] else "-")
     Console().print(t)
+    st = Table(title=f"static (Fig. 5), {trials} trials x 4 robots, 640x480 60 deg (cm, deg)")
+    for col in ("camera", "method", "localised", "median", "p95", "max", "heading median", "heading p95"):
+        st.add_column(col)
+    for c, res in static.items():
+        for kind in ("stitch", "fusion"):
+            k = res[kind]
+            st.add_row(c, kind, f"{100 * k['share_localised']:.0f}%", _cm(k["err_median_m"]), _cm(k["err_p95_m"]),
+                       _cm(k["err_max_m"]), f"{k['yaw_median_deg'] or 0:.2f}", f"{k['yaw_p95_deg'] or 0:.2f}")
+    Console().print(st)
     return 0
 
 

@@ -296,11 +296,14 @@ def recovery_metrics(run: RunData, tracks: dict[tuple[int, str], Track], robots_
 
     # NEES judges the covariance against the errors the fusion models; a kidnap is outside that model
     # (the robot is carried off, its wheels never turn), so "nees_nominal" leaves out each kidnapped
-    # robot from the kidnap until it is localised again (or the end of the run)
+    # robot from the kidnap until it is localised again (or the end of the run).  The window opens one
+    # association tolerance early: a sample stamped 1 ns before the kidnap's tick is paired with the moved
+    # truth (measured: that one sample, NEES 57,800, lifted a 40 s run's mean from 3 to 51)
     pooled: dict[str, list[F64]] = {"nees": [], "nees_nominal": []}
     for k in run.robots:
         tr = tracks.get((k, "fused"))
-        windows = [(e["t_s"], math.inf if e["time_to_relocalise_s"] is None else e["t_s"] + e["time_to_relocalise_s"])
+        windows = [(e["t_s"] - ASSOC_MAX_DIFF_S,
+                    math.inf if e["time_to_relocalise_s"] is None else e["t_s"] + e["time_to_relocalise_s"])
                    for e in kidnaps if e["robot"] == k]
         for key, exclude in (("nees", []), ("nees_nominal", windows)):
             values = nees_samples(tr, run.fused_cov.get(k), exclude=exclude) if tr is not None else None

@@ -313,3 +313,19 @@ def test_nominal_nees_leaves_out_a_kidnapped_robot_until_it_is_found_again(tmp_p
     # robot 2 is never found again: everything from its kidnap on is left out
     assert r2["nees_nominal"]["count"] == 85 and r2["nees_nominal"]["mean"] == 0.0
     assert m["swarm"]["fused"]["nees_nominal"]["count"] == 85 + 85
+
+
+def test_nominal_nees_window_opens_at_the_kidnap_tick_whatever_the_stamp_rounding(tmp_path: Path) -> None:
+    """The truth is written after the kidnap's tick and a fused sample stamped a hair earlier
+    is paired with it: that sample belongs to the kidnap, not to the nominal NEES."""
+    t = T10
+    p1 = static(1.0, 0.0, t)
+    p1[t >= 5.0 - 1e-9, 0] = 2.0  # the 5.0 s truth sample is already carried off
+    f1 = static(1.0, 0.0, t)
+    f1[t >= 6.5 - 1e-9, 0] = 2.0
+    run = make_run(tmp_path, {0: (t, static(0.0, 0.0, t)), 1: (t, p1)},
+                   fused={0: (t, static(0.0, 0.0, t)), 1: (t - 1e-8, f1)}, scenario=scheduled((5.0, 1, "teleport")))
+    write_cov(run, 1, t - 1e-8, np.diag([0.05**2, 0.05**2, 0.01]))
+    r1 = compute_metrics(run)["robots"]["1"]["fused"]
+    assert r1["nees"]["mean"] > 20  # 15 samples 1 m off (NEES 200 each)
+    assert r1["nees_nominal"]["mean"] == 0.0, r1["nees_nominal"]

@@ -100,6 +100,9 @@ class AgentNode:
                                   capacity=LOCKSTEP_FRAME_QUEUE) for c in s.robot.cameras}
         self._frames_taken = 0  # frames drained from the newest-only inboxes (the rest were overwritten)
         self._camera_models: dict[str, tuple[tuple[object, ...], CameraModel]] = {}
+        # CPU seconds (this thread) handling frames, and of that in the detector and the pose estimate:
+        # the status reports them (cpu_frames_us, cpu_detect_pose_us) for bench/speed.py's overhead ratio
+        self._cpu_s: Counter[str] = Counter()
         self.enc_in = bus.subscribe(self.keys.encoders(rid))
         # realtime: only encoders (a control cycle) and frames wake the loop; ticks, corrections, goals and
         # maps are read at the next wake-up, which is where they are used anyway (one pass of the loop
@@ -322,6 +325,13 @@ class AgentNode:
     def _process_frames(self) -> None:
         if not self.pending_frames:
             return
+        t0 = time.thread_time()
+        try:
+            self._process_pending()
+        finally:
+            self._cpu_s["frames"] += time.thread_time() - t0
+
+    def _process_pending(self) -> None:
         frames = list(self.pending_frames.values())
         self.pending_frames.clear()
         if self.custom is not None and self.custom.wants_images:
@@ -335,7 +345,10 @@ class AgentNode:
             self.counters["frame_age_max_ms"] = max(self.counters["frame_age_max_ms"], age_ms)
             gray = np.frombuffer(img.data, np.uint8).reshape(img.height, img.width)
             dets = []
-            for d in self.detector.detect(gray):
+            t0 = time.thread_time()
+            found = self.detector.detect(gray)
+            self._cpu_s["detect_pose"] += time.thread_time() - t0
+            for d in found:
                 owner = self.tagmap.lookup(d.tag_id)
                 if owner is None:
                     self.counters["unknown_tags"] += 1
@@ -349,7 +362,10 @@ class AgentNode:
         self.time_ns = max(self.time_ns, stamp)
         fresh = {k: p for k, (t, p) in self._priors.items() if stamp - t <= PRIOR_MAX_AGE_NS}
         # with several field tags in view, one fix from all of them replaces the per-tag ones
-        for est in fix_estimates(self.estimator, self.s, self.estimator.estimate(views, fresh), views):
+        t0 = time.thread_time()
+        estimates = fix_estimates(self.estimator, self.s, self.estimator.estimate(views, fresh), views)
+        self._cpu_s["detect_pose"] += time.thread_time() - t0
+        for est in estimates:
             if np.hypot(est.x_m, est.y_m) > self.s.agent.max_range_m:
                 self.counters["rejected_range"] += 1
                 continue
@@ -428,7 +444,8 @@ class AgentNode:
                    avoiding_cycles=b.avoider.cycles_avoiding, avoid_yields=b.avoider.yields,
                    avoid_side_flips=b.avoider.side_flips, maps_used=self.neighbours.maps_adopted,
                    slip_mm=round(self.slip.slip_m * 1000), slip_events=self.slip.events,
-                   frames_received=received,
+                   frames_received=received, cpu_frames_us=round(self._cpu_s["frames"] * 1e6),
+                   cpu_detect_pose_us=round(self._cpu_s["detect_pose"] * 1e6),
                    # overwritten in the newest-only inbox, or replaced while pending
                    frames_skipped=received - self._frames_taken + self.counters["frames_replaced"])
         out.update(self.rejects.as_counters())

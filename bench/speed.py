@@ -61,10 +61,13 @@ from rich.table import Table  # noqa: E402
 
 from tagswarm.protocol import messages as m  # noqa: E402
 from tagswarm.protocol.keys import Keys  # noqa: E402
+from tagswarm.protocol.scenario import load_scenario  # noqa: E402
 from tagswarm.runtime import streams  # noqa: E402
 from tests.harness import client, endpoint  # noqa: E402
 
 TAGSWARM = str(Path(sys.executable).parent / "tagswarm")
+# the built-in paper.toml still says `[render] workers = 0` (from before the automatic default, -1)
+PAPER_PINS_WORKERS = load_scenario("paper").render.workers != -1
 RESOLUTIONS = {"320x240@10Hz": (320, 240, 10.0), "640x480@5Hz": (640, 480, 5.0)}
 
 
@@ -93,11 +96,15 @@ def _cpu(procs: dict[int, psutil.Process]) -> dict[int, float]:
     return out
 
 
-def measure(robots: int, res: str, workers: int, seconds: float, warmup: float, camera_hz: float | None = None,
-            log_dir: Path | None = None) -> dict[str, Any]:
+def measure(robots: int, res: str, workers: int | None, seconds: float, warmup: float,
+            camera_hz: float | None = None, log_dir: Path | None = None, headline: bool = False,
+            latency: bool = True, extra: tuple[str, ...] = ()) -> dict[str, Any]:
     """One realtime run; returns RTF, frame rates, latency and CPU per process type.
     ``camera_hz``: cameras (and the world's clock) at this rate instead of the
-    resolution's own, to ask for more frames than the machine can render."""
+    resolution's own, to ask for more frames than the machine can render.  ``headline``:
+    exactly ``tagswarm up --robots N --clock realtime`` (the paper scenario's camera, the
+    automatic ``render.workers``; ``res`` and ``workers`` are ignored).  ``latency=False``
+    leaves the images alone (the bench client then costs the machine almost nothing)."""
     w, h, hz = RESOLUTIONS[res]
     tick: list[str] = []  # the scenario's clock (30 Hz)
     if camera_hz is not None:
@@ -107,18 +114,23 @@ def measure(robots: int, res: str, workers: int, seconds: float, warmup: float, 
     keys = Keys(run)
     out = Path(tempfile.mkdtemp(prefix="tagswarm-speed-"))
     argv = [TAGSWARM, "up", "--clock", "realtime", "--listen", ep, "--run", run, "--out", str(out), "--no-live",
-            "--no-report", "--robots", str(robots), "--duration", "100000", "--seed", "0",
-            # the paper scenario (robot 0 holds, the others patrol) on an even grid for any robot count
-            "--set", 'robots.placement="grid"',
-            "--set", camera_override(w, h, hz), "--set", f"render.workers={workers}", *tick]
-    log = open((log_dir or out) / f"up_{robots}_{res}_{workers}.log", "w")
+            "--no-report", "--robots", str(robots), "--duration", "100000"]
+    argv += list(extra)
+    if not headline:
+        # the paper scenario (robot 0 holds, the others patrol) on an even grid for any robot count
+        argv += ["--seed", "0", "--set", 'robots.placement="grid"', "--set", camera_override(w, h, hz), *tick]
+        if workers is not None:
+            argv += ["--set", f"render.workers={workers}"]
+    load_before = [round(x, 2) for x in os.getloadavg()]
+    log = open((log_dir or out) / f"up_{robots}_{res}_{workers}{'_headline' if headline else ''}.log", "w")
     up = subprocess.Popen(argv, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
     try:
         with client(ep) as bus:
             ticks = bus.subscribe(keys.tick(), capacity=1_000_000)
-            images = bus.subscribe(keys.images(), capacity=1_000_000)
+            images = bus.subscribe(keys.images() if latency else keys.tick(), capacity=1_000_000)
             corr = bus.subscribe(keys.correction(), capacity=1_000_000)
             status = bus.subscribe(keys.robot_status(), capacity=1_000_000)
+            wstatus = bus.subscribe(keys.world_status(), capacity=1_000_000)
             if not bus.wait_for(lambda: len(ticks) > 0 or up.poll() is not None, 120) or up.poll() is not None:
                 raise RuntimeError(f"no ticks from {argv}; see {log.name}")
             deadline = time.monotonic() + 120
@@ -129,7 +141,7 @@ def measure(robots: int, res: str, workers: int, seconds: float, warmup: float, 
                 bus.wait(0.2)
                 for _, st in streams.RejectCounter().decoded(status.drain(), m.AgentStatus):
                     seen.add(st.robot_id)
-            for box in (ticks, images, corr, status):
+            for box in (ticks, images, corr, status, wstatus):
                 box.drain()
             procs = {p.pid: p for p in [psutil.Process(up.pid), *psutil.Process(up.pid).children(recursive=True)]}
             kinds = {pid: "up_and_recorder" if pid == up.pid else _kind(p) for pid, p in procs.items()}
@@ -140,6 +152,8 @@ def measure(robots: int, res: str, workers: int, seconds: float, warmup: float, 
             last_fix: dict[int, int] = {}
             latencies: list[float] = []
             frames: dict[int, list[tuple[float, int]]] = defaultdict(list)
+            rendered: dict[str, list[tuple[int, int]]] = defaultdict(list)
+            agent_cpu: dict[int, list[dict[str, int]]] = {}  # first and last status counters in the window
             sim: list[int] = []
             n_images = 0
             rc = streams.RejectCounter()
@@ -148,9 +162,12 @@ def measure(robots: int, res: str, workers: int, seconds: float, warmup: float, 
                 now = time.monotonic()
                 for _, tk in rc.decoded(ticks.drain(), m.Tick):
                     sim.append(tk.stamp_ns)
-                for _, im in rc.decoded(images.drain(), m.CameraImage):
-                    first_image.setdefault(im.stamp_ns, now)
-                    n_images += 1
+                if latency:
+                    for _, im in rc.decoded(images.drain(), m.CameraImage):
+                        first_image.setdefault(im.stamp_ns, now)
+                        n_images += 1
+                else:
+                    images.drain()
                 for _, c in rc.decoded(corr.drain(), m.Correction):
                     if c.localised and c.last_fix_ns > last_fix.get(c.robot_id, -1):
                         if c.robot_id in last_fix and c.last_fix_ns in first_image:
@@ -158,6 +175,11 @@ def measure(robots: int, res: str, workers: int, seconds: float, warmup: float, 
                         last_fix[c.robot_id] = c.last_fix_ns
                 for _, st in rc.decoded(status.drain(), m.AgentStatus):
                     frames[st.robot_id].append((now, st.counters.get("frames_processed", 0)))
+                    agent_cpu.setdefault(st.robot_id, [st.counters, st.counters])[1] = st.counters
+                for _, st in rc.decoded(wstatus.drain(), m.AgentStatus):
+                    # the world's own renders (in-process) or each render worker's, by simulation time
+                    if "frames_rendered" in st.counters:
+                        rendered[st.role].append((st.stamp_ns, st.counters["frames_rendered"]))
             wall = time.monotonic() - t0
             cpu1, my1 = _cpu(procs), sum(me.cpu_times()[:2])
     finally:
@@ -180,18 +202,106 @@ def measure(robots: int, res: str, workers: int, seconds: float, warmup: float, 
         if len(series) >= 2 and series[-1][0] > series[0][0]:
             processed += (series[-1][1] - series[0][1]) / (series[-1][0] - series[0][0])
     rtf = (sim[-1] - sim[0]) / 1e9 / wall if len(sim) >= 2 else 0.0
+    rendered_per_sim_s = 0.0
+    for series in rendered.values():
+        if len(series) >= 2 and series[-1][0] > series[0][0]:
+            rendered_per_sim_s += (series[-1][1] - series[0][1]) / ((series[-1][0] - series[0][0]) / 1e9)
+    asked = robots * hz * rtf
     lat = np.array(latencies) * 1e3
+    sim_s = rtf * wall
+
+    def delta(name: str) -> int:
+        return sum(last.get(name, 0) - first.get(name, 0) for first, last in agent_cpu.values())
+
+    n_frames, frames_us, dp_us = delta("frames_processed"), delta("cpu_frames_us"), delta("cpu_detect_pose_us")
+    agent_s = cpu.get("agent", 0.0) * wall
     return {
-        "robots": robots, "resolution": res, "render_workers": workers, "camera_hz": hz,
+        "robots": robots, "resolution": res, "render_workers": count.get("render_worker", 0), "camera_hz": hz,
+        "command": " ".join(["tagswarm", *argv[1:]]), "load_avg_before": load_before,
         "wall_s": round(wall, 2), "rtf": round(rtf, 3),
-        "frames_asked_per_s": round(robots * hz * rtf, 1), "images_delivered_per_s": round(n_images / wall, 1),
+        "frames_asked_per_s": round(asked, 1), "images_delivered_per_s": round(n_images / wall, 1),
+        "frames_rendered_per_s": round(rendered_per_sim_s * rtf, 1),
         "frames_processed_per_s": round(processed, 1),
+        "processed_share": round(processed / asked, 3) if asked else None,
+        "cpu_core_s_per_sim_s": {k: round(v * wall / sim_s, 3) for k, v in sorted(cpu.items())} if sim_s else {},
+        # the agents' own account (status counters cpu_frames_us, cpu_detect_pose_us) over the window: per
+        # frame, detect + pose, all the frame handling, and the whole agent process (psutil) per frame
+        "agent_ms_per_frame": {
+            "frames": n_frames,
+            "detect_pose": round(dp_us / n_frames / 1e3, 3) if n_frames and dp_us else None,
+            "frame_handling": round(frames_us / n_frames / 1e3, 3) if n_frames and frames_us else None,
+            "whole_process": round(agent_s / n_frames * 1e3, 3) if n_frames else None,
+            "handling_over_detect_pose": round(frames_us / dp_us, 3) if dp_us else None,
+            "process_over_detect_pose": round(agent_s * 1e6 / dp_us, 3) if dp_us else None},
         "latency_ms": {"n": int(lat.size), "p50": float(np.percentile(lat, 50)) if lat.size else None,
                        "p95": float(np.percentile(lat, 95)) if lat.size else None,
                        "max": float(lat.max()) if lat.size else None},
         "cpu_cores": {k: round(v, 3) for k, v in sorted(cpu.items())},
         "processes": dict(count), "bench_client_cpu_cores": round((my1 - my0) / wall, 3),
     }
+
+
+ROLES = ("world", "render_worker", "agent", "server", "up_and_recorder", "router")
+
+
+def headline(robots: list[int], repeats: int, seconds: float, warmup: float, log_dir: Path,
+             extra: tuple[str, ...] = (), speed: float = 1.0) -> list[dict[str, Any]]:
+    """The goal's command, ``tagswarm up --robots N --clock realtime`` and nothing else, ``repeats``
+    times per robot count: the median of each figure and the CPU budget per role (cores over the
+    window, median over the repeats).  ``tagswarm up`` runs no Zenoh router (its processes are peers
+    linked directly), so the router's share is 0; the Zenoh I/O is in each process's own figure.
+    Latency only at 8 robots or fewer: there the bench client's own work on every image is small.
+    ``speed`` < 1 (``--set clock.speed``) measures the budget where the machine has room for every
+    frame: core-seconds per simulated second is then what real time needs."""
+    out = []
+    if speed != 1.0:
+        extra = (*extra, "--set", f"clock.speed={speed}")
+    for n in robots:
+        runs = [measure(n, "320x240@10Hz", None, seconds, warmup, log_dir=log_dir, headline=True,
+                        latency=n <= 8 and speed == 1.0, extra=extra) for _ in range(repeats)]
+
+        def med(get: Any, runs: list[dict[str, Any]] = runs) -> Any:
+            vals = [v for v in (get(r) for r in runs) if v is not None]
+            return round(float(np.median(vals)), 3) if vals else None
+
+        row: dict[str, Any] = {
+            "robots": n, "resolution": "320x240@10Hz", "headline": True, "repeats": repeats,
+            "command": " ".join(["tagswarm up --robots", str(n), "--clock realtime", *extra]), "clock_speed": speed,
+            "render_workers": runs[0]["render_workers"],
+            "rtf": med(lambda r: r["rtf"]), "rtf_all": [r["rtf"] for r in runs],
+            "frames_asked_per_s": med(lambda r: r["frames_asked_per_s"]),
+            "frames_rendered_per_s": med(lambda r: r["frames_rendered_per_s"]),
+            "frames_processed_per_s": med(lambda r: r["frames_processed_per_s"]),
+            "processed_share": med(lambda r: r["processed_share"]),
+            "latency_ms": {k: med(lambda r, k=k: r["latency_ms"][k]) for k in ("p50", "p95", "max")},
+            "agent_ms_per_frame": {k: med(lambda r, k=k: r["agent_ms_per_frame"][k])
+                                   for k in runs[0]["agent_ms_per_frame"]},
+            "cpu_cores": {k: med(lambda r, k=k: r["cpu_cores"].get(k, 0.0)) for k in ROLES},
+            "cpu_core_s_per_sim_s": {k: med(lambda r, k=k: r["cpu_core_s_per_sim_s"].get(k, 0.0)) for k in ROLES},
+            "bench_client_cpu_cores": med(lambda r: r["bench_client_cpu_cores"]),
+            "load_avg_before": [r["load_avg_before"] for r in runs], "runs": runs,
+        }
+        row["cpu_cores"]["total"] = round(sum(v or 0.0 for v in row["cpu_cores"].values()), 3)
+        row["cpu_core_s_per_sim_s"]["total"] = round(sum(v or 0.0 for v in row["cpu_core_s_per_sim_s"].values()), 3)
+        row["per_agent_cores"] = round((row["cpu_cores"]["agent"] or 0.0) / n, 4)
+        out.append(row)
+        Console().print({k: v for k, v in row.items() if k != "runs"})
+    return out
+
+
+def print_budget(rows: list[dict[str, Any]]) -> None:
+    """The CPU budget per role of the headline rows (cores, median over the repeats)."""
+    t = Table(title="tagswarm up --robots N --clock realtime: CPU per role (cores; at clock.speed < 1 "
+                    "core-seconds per simulated second)")
+    for col in ("robots", "speed", "RTF", "frames processed / asked", "latency p50/p95 ms", *ROLES, "total"):
+        t.add_column(col)
+    for r in rows:
+        c, lat = r["cpu_cores"] if r["clock_speed"] == 1.0 else r["cpu_core_s_per_sim_s"], r["latency_ms"]
+        t.add_row(str(r["robots"]), f"{r['clock_speed']:g}", f"{r['rtf']:.2f}",
+                  f"{r['frames_processed_per_s']:.0f} / {r['frames_asked_per_s']:.0f}",
+                  "-" if lat["p50"] is None else f"{lat['p50']:.0f} / {lat['p95']:.0f}",
+                  *(f"{c[k] or 0:.2f}" for k in ROLES), f"{c['total']:.2f}")
+    Console().print(t)
 
 
 def main() -> int:
@@ -205,11 +315,23 @@ def main() -> int:
     p.add_argument("--camera-model-only", action="store_true",
                    help="only the camera model's cost per frame against the render (bench/camera_cost.py), to "
                         "bench/results/camera_model.json")
+    p.add_argument("--headline", action="store_true",
+                   help="only the headline: the plain `tagswarm up --robots N --clock realtime` (N from --robots, "
+                        "default 8 16) --repeats times each, with the CPU budget per role, to "
+                        "bench/results/speed_headline.json")
+    p.add_argument("--repeats", type=int, default=3, help="runs per headline point (medians are reported)")
+    p.add_argument("--budget-speed", type=float, default=0.5,
+                   help="headline: also run each point at this clock.speed, where every frame fits, for the CPU "
+                        "budget in core-seconds per simulated second (0: skip)")
+    p.add_argument("--as-configured", action="store_true",
+                   help="headline: the command exactly, even while paper.toml pins render.workers = 0")
     p.add_argument("--out", type=Path, default=None,
                    help="JSON to write (default bench/results/speed.json, speed_quick.json with --quick)")
     a = p.parse_args()
     if a.camera_model_only:
         return camera_model_main(a.out or ROOT / "bench" / "results" / "camera_model.json")
+    if a.headline:
+        return headline_main(a)
     if a.out is None:
         a.out = ROOT / "bench" / "results" / ("speed_quick.json" if a.quick else "speed.json")
     resolutions = list(RESOLUTIONS)
@@ -276,6 +398,35 @@ def main() -> int:
         console.print(f"efficiency {r['resolution']}: {r['frames_processed_per_s']:.0f} processed/s over "
                       f"{r['bare_getCameraImage_fps']:.0f} bare getCameraImage/s = {r['efficiency']:.2f}")
     console.print(f"wrote {a.out}")
+    return 0
+
+
+def machine() -> dict[str, Any]:
+    return {"cpus": os.cpu_count(), "python": platform.python_version(), "platform": platform.platform(),
+            "processor": platform.processor() or platform.machine(),
+            "memory_gb": round(psutil.virtual_memory().total / 2**30, 1), "load_avg_at_end": os.getloadavg()}
+
+
+def headline_main(a: argparse.Namespace) -> int:
+    """``--headline``: the goal's command at each robot count, to speed_headline.json."""
+    robots = a.robots if a.robots != [2, 4, 8, 16] else [8, 16]
+    log_dir = Path(tempfile.mkdtemp(prefix="tagswarm-speed-logs-"))
+    # what the command gives once paper.toml leaves render.workers at its default (automatic)
+    extra = ("--set", "render.workers=-1") if PAPER_PINS_WORKERS and not a.as_configured else ()
+    rows = headline(robots, a.repeats, a.seconds, a.warmup, log_dir, extra)
+    if a.budget_speed:
+        rows += headline(robots, a.repeats, a.seconds, a.warmup, log_dir, extra, speed=a.budget_speed)
+    out = a.out or ROOT / "bench" / "results" / "speed_headline.json"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps({
+        "bench": "speed_headline", "machine": machine(), "seconds_per_run": a.seconds, "warmup_s": a.warmup,
+        "rows": rows,
+        "note": "the machine is shared with other sessions' test runs: load_avg_before per run; medians over "
+                "the repeats",
+        "targets": {"rtf_16_robots": ">= 0.95", "processed_share_16_robots": ">= 0.95",
+                    "latency_p95_ms_8_robots": "<= 50"}}, indent=2))
+    print_budget(rows)
+    Console().print(f"wrote {out}")
     return 0
 
 

@@ -119,6 +119,8 @@ class FusionState(msgspec.Struct, frozen=True, kw_only=True):
     reloc_robot: dict[int, list[CandidateState]] = {}
     reloc_landmark: dict[int, list[CandidateState]] = {}
     partners: dict[int, list[tuple[int, int]]] = {}
+    reloc_where: dict[int, list[tuple[int, float, float]]] = {}  # (stamp_ns, x_m, y_m) per suspect
+    decoy_sites: dict[int, list[tuple[float, float]]] = {}
     # the view of each pair's newest factor: (a, b, chain a, chain b, odom a (3), odom b (3), rel (3)); a
     # snapshot of an older version (its pair_factors held keyframe keys) restores without them
     pair_views: list[tuple[int, int, int, int, P3, P3, P3]] = []
@@ -205,6 +207,10 @@ def snapshot(fusion: Fusion) -> bytes:
         reloc_robot={rid: [_candidate_state(c) for c in ev] for rid, ev in fusion.recovery.robot_ev.items()},
         reloc_landmark={rid: [_candidate_state(c) for c in ev] for rid, ev in fusion.recovery.landmark_ev.items()},
         partners={rid: [(int(t), int(o)) for t, o in q] for rid, q in fusion.recovery.partners.items()},
+        reloc_where={rid: [(int(t), float(x), float(y)) for t, (x, y) in w.items()]
+                     for rid, w in fusion.recovery.where.items()},
+        decoy_sites={rid: [(float(x), float(y)) for x, y in sites]
+                     for rid, sites in fusion.recovery.decoy_sites.items()},
         pair_views=[(a, b, v.chain_a, v.chain_b, _p3(v.odom_a), _p3(v.odom_b), _p3(v.rel))
                     for (a, b), v in fusion._pair_factors.items()],
         factors=_live_factors(fusion.smoother).serialize() if stamps else "",
@@ -285,6 +291,8 @@ def restore(fusion: Fusion, blob: bytes | FusionState) -> None:
     new.recovery.robot_ev = {rid: [_candidate(c) for c in ev] for rid, ev in state.reloc_robot.items()}
     new.recovery.landmark_ev = {rid: [_candidate(c) for c in ev] for rid, ev in state.reloc_landmark.items()}
     new.recovery.partners = {rid: deque(q, maxlen=256) for rid, q in state.partners.items()}
+    new.recovery.where = {rid: {t: (x, y) for t, x, y in w} for rid, w in state.reloc_where.items()}
+    new.recovery.decoy_sites = {rid: list(sites) for rid, sites in state.decoy_sites.items()}
     new._pair_factors = {(a, b): PairView(ca, cb, oa, ob, rel) for a, b, ca, cb, oa, ob, rel in state.pair_views}
     if state.stamps:
         try:

@@ -90,7 +90,7 @@ class Fusion:
         self.edges: dict[tuple[int, int], int] = {}  # (observer, target) -> last stamp
         self.watermark_ns = -1
         self._init: dict[int, list[Candidate]] = {}
-        self.recovery = Recovery(params, origin_id, anchored_origin=not self.landmarks)
+        self.recovery = Recovery(params, origin_id, anchored_origin=not self.landmarks, counters=self.counters)
         self._pair_factors: dict[tuple[int, int], PairView] = {}  # (a, b) -> the view of its newest factor
         self.relocalisations: list[RelocEvent] = []  # not yet taken by the node
 

@@ -26,6 +26,13 @@ Mangelson et al. 2018; Kimera-Multi) does for loop closures:
   a robot that is still seen where the map has it (a decoy tag of its ID on a
   wall, a spoofed stream) is not moved while more than a third as many
   observations keep agreeing with its estimate;
+- a robot cannot be in two places: evidence older than an accepted observation
+  of the suspect is void (it was seen where the map has it after that), and if
+  the voided evidence agreed on one place, that place is remembered as a *decoy
+  site* of the suspect (a copy of its cube, a poster of its tag): later evidence
+  that puts it there again is dropped for the rest of the run.  Measured on the
+  copy-cube scene: the origin robot saw a static copy of a patrolling robot every
+  frame, and without this rule the copy won six re-localisations;
 - the move must be significant: the consensus of the agreeing evidence (their
   mean, weighted by certainty) must differ from the suspect's estimate by more
   than both can be wrong together (3 σ in position, or more than
@@ -42,7 +49,7 @@ its first pose *is* the map frame.
 from __future__ import annotations
 
 import math
-from collections import deque
+from collections import Counter, deque
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -86,6 +93,11 @@ class Recovery:
     landmark_ev: dict[int, list[Candidate]] = field(default_factory=dict)
     # (stamp_ns, other robot or LANDMARK_WITNESS) of observations accepted lately, per robot
     partners: dict[int, deque[tuple[int, int]]] = field(default_factory=dict)
+    # map position (x_m, y_m) where each piece of robot-pair evidence puts the suspect, by stamp_ns
+    where: dict[int, dict[int, tuple[float, float]]] = field(default_factory=dict)
+    # places where a robot's identity was seen while the map had it elsewhere (x_m, y_m), per robot
+    decoy_sites: dict[int, list[tuple[float, float]]] = field(default_factory=dict)
+    counters: Counter[str] = field(default_factory=Counter)  # the fusion's
 
     def accepted(self, a: int, b: int, stamp_ns: int) -> None:
         """An observation between ``a`` and ``b`` (``b`` = LANDMARK_WITNESS for a landmark) passed the gate."""
@@ -94,6 +106,32 @@ class Recovery:
                 continue
             q = self.partners.setdefault(x, deque(maxlen=256))
             q.append((stamp_ns, y))
+            self._void(x, stamp_ns)
+
+    def _void(self, rid: int, stamp_ns: int) -> None:
+        """``rid`` was seen where the map has it at ``stamp_ns``: its older robot-pair
+        evidence is void, and the place it agreed on becomes a decoy site."""
+        ev = self.robot_ev.get(rid)
+        if not ev or min(c.stamp_ns for c in ev) > stamp_ns:
+            return
+        where = self.where.get(rid, {})
+        old = [where[c.stamp_ns] for c in ev if c.stamp_ns <= stamp_ns and c.stamp_ns in where]
+        kept = [c for c in ev if c.stamp_ns > stamp_ns]
+        self.counters["reloc_evidence_void"] += len(ev) - len(kept)
+        self.robot_ev[rid] = kept
+        self.where[rid] = {c.stamp_ns: where[c.stamp_ns] for c in kept if c.stamp_ns in where}
+        if len(old) >= 2:
+            pts = np.array(old)
+            med = np.median(pts, axis=0)
+            if float(np.max(np.hypot(*(pts - med).T))) < self.p.init_agree_m:
+                sites = self.decoy_sites.setdefault(rid, [])
+                if not any(math.dist(med, s) < self.p.init_agree_m for s in sites):
+                    sites.append((float(med[0]), float(med[1])))
+                    del sites[:-16]
+
+    def at_decoy_site(self, rid: int, x_m: float, y_m: float) -> bool:
+        """Whether (x_m, y_m) in the map is a remembered decoy site of ``rid``."""
+        return any(math.hypot(x_m - sx, y_m - sy) < self.p.init_agree_m for sx, sy in self.decoy_sites.get(rid, ()))
 
     def trusted(self, witness: int, suspect: int, stamp_ns: int) -> bool:
         """Whether ``witness``'s estimate may judge ``suspect`` at ``stamp_ns``."""
@@ -121,7 +159,20 @@ class Recovery:
             return None
         store = self.landmark_ev if landmark else self.robot_ev
         horizon = cand.stamp_ns - int(self.p.reloc_window_s * 1e9)
+        seen = max((t for t, _ in self.partners.get(suspect, ())), default=-1)
+        if cand.stamp_ns <= seen:
+            self.counters["reloc_evidence_void"] += 1  # the suspect was seen where the map has it after this
+            return None
         ev = [c for c in store.get(suspect, []) if c.stamp_ns >= horizon]
+        if not landmark and current is not None:
+            x, y, _ = se2_compose(cand.origin, current[1])
+            if self.at_decoy_site(suspect, x, y):
+                self.counters["reloc_decoy_site"] += 1
+                return None
+            where = self.where.setdefault(suspect, {})
+            where[cand.stamp_ns] = (x, y)
+            for t in [t for t in where if t < horizon]:
+                del where[t]
         ev.append(cand)
         store[suspect] = ev
         need = min(self.p.reloc_min, self.p.reloc_min_single)
@@ -166,6 +217,7 @@ class Recovery:
         self.robot_ev.pop(rid, None)
         self.landmark_ev.pop(rid, None)
         self.partners.pop(rid, None)
+        self.where.pop(rid, None)
         for store in (self.robot_ev,):
             for other, ev in list(store.items()):
                 kept = [c for c in ev if witness_of(other, c) != rid]

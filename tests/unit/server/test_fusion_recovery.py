@@ -192,3 +192,45 @@ def test_a_move_is_significant_only_beyond_what_the_evidence_and_the_estimate_ca
     assert rec.significant(_evidence((0.0, 0.0, 0.3), 0.01, 5, 2), 2, (2.0, 0.0, 0.3), (2.0, 0.0, 0.0), 0.01**2)
     assert not rec.significant(_evidence((0.0, 0.0, 0.3), 0.01, 5, 2), 2, (2 * math.cos(0.3), 2 * math.sin(0.3), 0.3),
                                (2.0, 0.0, 0.0), 0.01**2)
+
+
+def _copy_of_3(stop_real_s: float) -> Fake:
+    """Robot 3 is seen where it is by robot 2 until ``stop_real_s``; from 3 s on the origin
+    sees a static copy of robot 3's cube (and not robot 3), every frame, to the end."""
+    copy_in_0 = se2_between(START[0], (1.0, 1.8, 0.0))
+    true_0 = se2_between(START[0], START[3])
+    true_2 = se2_between(START[2], START[3])
+
+    def fake(k: int, _t: int) -> list[tuple[int, int, Pose2]]:
+        out = []
+        if k < 30:
+            out.append((0, 3, true_0))
+        if k < stop_real_s * 10:
+            out.append((2, 3, true_2))
+        if k >= 30:
+            out.append((0, 3, copy_in_0))
+        return out
+
+    return fake
+
+
+def test_a_copy_cube_seen_by_the_origin_never_moves_the_map_even_when_the_robot_is_not_seen() -> None:
+    sees = {0: (1, 2), 1: (0,), 2: (0,)}
+    clean, _, _ = _run(14.0, sees, fake=_copy_of_3(stop_real_s=14.0))
+    # the real robot 3 is seen until 8 s; from then on only the copy is (a robot cannot be in two places:
+    # while it was seen where the map has it, the copy's place became a decoy site)
+    dirty, _, hist = _run(14.0, sees, fake=_copy_of_3(stop_real_s=8.0))
+    assert dirty.counters["relocalisations"] == 0, dict(dirty.counters)
+    assert dirty.counters["reloc_evidence_void"] > 0 and dirty.counters["reloc_decoy_site"] > 20
+    assert max(e for t, e in hist if t > 3.0) < 0.05
+    assert clean.counters["relocalisations"] == 0
+    sites = dirty.recovery.decoy_sites[3]
+    assert len(sites) == 1 and math.dist(sites[0], (1.0, 1.8)) < 0.05
+
+
+def test_a_robot_kidnapped_onto_nothing_seen_before_is_still_relocalised() -> None:
+    # the void rule must not block a real kidnap: robot 3 carried off at 5 s, nobody sees it at the old place
+    fusion, _, hist = _run(10.0, ALL_SEE_3, kidnap={3: (5.0, (1.0, 1.8, 0.0))})
+    assert fusion.counters["relocalisations"] == 1
+    back = _recovered_after(hist, 5.0)
+    assert back is not None and back < 3.0

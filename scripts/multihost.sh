@@ -11,5 +11,7 @@
 # groups works too (--scenario, --zenoh-lease-ms ...).  Docs: docs/multihost.md.
 set -euo pipefail
 ROOT="$(cd "$(dirname "$0")/.." && pwd)"
+# the project's virtualenv (scripts/setup.sh) unless TAGSWARM_PYTHON names another interpreter
 PY="${TAGSWARM_PYTHON:-$ROOT/.venv/bin/python}"
+[ -x "$PY" ] || PY=python3
 exec "$PY" -m tagswarm.deploy.multihost "$@"

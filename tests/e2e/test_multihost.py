@@ -292,7 +292,8 @@ def test_script_leaves_no_namespace_veth_or_process(tmp_path: Path, how: str) ->
     out = tmp_path / "run"
     proc = subprocess.Popen(["bash", str(ROOT / "scripts" / "multihost.sh"), "--out", str(out), "--robots", "1",
                              "--clock", "lockstep", "--duration", "600", "--seed", "0", "--no-report"],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True,
+                            env=dict(os.environ, TAGSWARM_PYTHON=sys.executable))
     prefix = f"tsw{proc.pid}x1"  # the script execs python: same pid
     try:
         _wait_file_has(out / "logs" / "world.log", "lockstep clock", proc, 120)

@@ -154,19 +154,29 @@ class MultiHost:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
-    def start(self, timeout_s: float = 120.0) -> None:
+    def start(self, timeout_s: float = 120.0, stop: threading.Event | None = None) -> bool:
         """Router, then the recorder, server and agents, then the world (each once the previous are
-        visible to the harness), as compose orders them."""
+        visible to the harness), as compose orders them.  False if ``stop`` was set on the way
+        (Ctrl-C during the start: what was started is stopped by :meth:`close`)."""
+        def stopped() -> bool:
+            return stop is not None and stop.is_set()
+
         self.spawn("router")
         self._open_probe(timeout_s)
         self.spawn("recorder")
-        self.until(lambda: self.alive("recorder/0"), timeout_s, "the recorder never came up")
+        self.until(lambda: stopped() or self.alive("recorder/0"), timeout_s, "the recorder never came up")
+        if stopped():
+            return False
         self.spawn("server")
         for r in self.scenario.robot_ids:
             self.spawn(f"agent/{r}")
         workers = ["server/0", *(f"agent/{r}" for r in self.scenario.robot_ids)]
-        self.until(lambda: all(self.alive(w) for w in workers), timeout_s, "server and agents never all came up")
+        self.until(lambda: stopped() or all(self.alive(w) for w in workers), timeout_s,
+                   "server and agents never all came up")
+        if stopped():
+            return False
         self.spawn("world")
+        return True
 
     def spawn(self, name: str) -> procgroup.Child:
         """Start process ``name`` on its host (again, after :meth:`stop`)."""
@@ -344,9 +354,9 @@ def main(argv: Sequence[str] | None = None) -> int:
                   f"{scenario.clock.mode}, run folder {mh.out}", flush=True)
             failure: str | None = None
             try:
-                mh.start()
-                mh.until(lambda: stop.is_set() or mh.children["world"].poll() is not None, args.timeout,
-                         "the run did not end")
+                if mh.start(stop=stop):
+                    mh.until(lambda: stop.is_set() or mh.children["world"].poll() is not None, args.timeout,
+                             "the run did not end")
                 if stop.is_set():
                     mh.children["recorder"].send(signal.SIGTERM)  # it writes what it has, exit 130
                 mh.until(lambda: mh.children["recorder"].poll() is not None, 120, "the recorder never finished")

@@ -152,8 +152,9 @@ def impair_commands(host: Host, links: Links) -> list[list[str]]:
         cmds.append(["ip", "netns", "exec", host.ns, "iptables", "-w", "-A", "INPUT", "-i", HOST_IF, "-m",
                      "statistic", "--mode", "random", "--probability", f"{links.loss:.6f}", "-j", "DROP"])
     if links.rate_mbit is not None:
-        # burst: at least one MTU plus a 4 ms worth of the rate (tbf refuses a burst below rate/HZ)
-        burst_kbit = max(16, int(links.rate_mbit * 1000 * 0.004))
+        # burst: 10 ms of the rate, and never below 32 KB: veth hands tbf segmentation-offloaded packets
+        # of up to 64 KB, and a burst under the MTU would drop every full-size packet
+        burst_kbit = max(256, int(links.rate_mbit * 1000 * 0.01))
         cmds.append(["ip", "netns", "exec", host.ns, "tc", "qdisc", "replace", "dev", HOST_IF, "root", "tbf",
                      "rate", f"{links.rate_mbit:g}mbit", "burst", f"{burst_kbit}kbit", "latency", "100ms"])
     return cmds

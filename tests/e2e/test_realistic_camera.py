@@ -13,7 +13,7 @@ import numpy as np
 
 from tests.harness import script
 
-DURATION_S = 30.0
+DURATION_S = 60.0
 
 
 def _final_error(run: Path, rid: int) -> float:

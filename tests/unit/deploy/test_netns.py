@@ -125,3 +125,13 @@ def test_bad_flags_exit_2_with_one_line(capsys: pytest.CaptureFixture[str], tmp_
     with pytest.raises(SystemExit) as exc:
         multihost.main(["--loss", "0.1"])  # no --out
     assert exc.value.code == 2
+
+
+def test_help_explains_the_link_flags(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as exc:
+        multihost.main(["--help"])
+    assert exc.value.code == 0
+    text = capsys.readouterr().out
+    for flag in ("--out", "--delay-ms", "--loss", "--rate-mbit", "--robots", "--clock", "--duration"):
+        assert flag in text, flag
+    assert "10.77.0" in text and "network namespaces" in text

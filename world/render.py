@@ -30,6 +30,7 @@ from tagswarm.protocol.scenario import Camera, Scenario
 from tagswarm.world import assets
 from tagswarm.world._pybullet import pb
 from tagswarm.world.camera import mount_transform, vfov_deg
+from tagswarm.world.decoys import build_decoys, robot_visual
 from tagswarm.world.lens import Lens, RenderPlan, lens_for, plan
 from tagswarm.world.sensor import (
     NoiseBank,
@@ -109,26 +110,10 @@ class Renderer:
             pb.createMultiBody(baseMass=0, baseVisualShapeIndex=vis, basePosition=(lm.x_m, lm.y_m, lm.z_m),
                                baseOrientation=pb.getQuaternionFromEuler((0, 0, lm.yaw_rad)),
                                physicsClientId=self.cid)
-        for d in s.decoys:  # a poster: the plate of a landmark, its tag whatever the scenario says
-            obj = assets.landmark_mesh(self.asset_dir, d.family or s.tags.family, d.tag_id, d.size_m)
-            vis = pb.createVisualShape(pb.GEOM_MESH, fileName=str(obj), physicsClientId=self.cid)
-            pb.createMultiBody(baseMass=0, baseVisualShapeIndex=vis, basePosition=(d.x_m, d.y_m, d.z_m),
-                               baseOrientation=pb.getQuaternionFromEuler((0, 0, d.yaw_rad)),
-                               physicsClientId=self.cid)
-        r = s.robot
+        build_decoys(self.cid, s, self.asset_dir, CHASSIS_RGBA)  # posters and copy cubes
         for rid in s.robot_ids:
-            obj = assets.cube_mesh(self.asset_dir, s.tags.family, s.tag_ids(rid), r.cube_edge_m, s.tags.size_m)
             # one body per robot (every body costs ~0.2 ms per image): chassis box + cube mesh
-            vis = pb.createVisualShapeArray(
-                shapeTypes=[pb.GEOM_BOX, pb.GEOM_MESH],
-                halfExtents=[[r.chassis_length_m / 2, r.chassis_width_m / 2, r.chassis_height_m / 2], [0, 0, 0]],
-                fileNames=["", str(obj)],
-                meshScales=[[1, 1, 1], [1, 1, 1]],
-                rgbaColors=[list(CHASSIS_RGBA), [1, 1, 1, 1]],
-                visualFramePositions=[[0, 0, r.ground_clearance_m + r.chassis_height_m / 2],
-                                      [0, 0, r.cube_center_z_m]],
-                physicsClientId=self.cid,
-            )
+            vis = robot_visual(self.cid, s, s.tags.family, s.tag_ids(rid), self.asset_dir, CHASSIS_RGBA)
             self.bodies[rid] = pb.createMultiBody(baseMass=0, baseVisualShapeIndex=vis, basePosition=(0, 0, -10),
                                                   physicsClientId=self.cid)
 

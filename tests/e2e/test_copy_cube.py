@@ -40,8 +40,9 @@ def _agents(counters: dict[str, dict[str, int]], name: str) -> int:
     return sum(c.get(name, 0) for who, c in counters.items() if who.startswith("agent/"))
 
 
-@pytest.mark.xfail(strict=True, reason="needs world/render.py to build copy cubes (world/decoys.py) and the "
-                                       "server's re-localisation to reject a static copy (see the module docstring)")
+# not run until then (two 20 s runs, ~100 s of CI, to fail for a known reason); drop the mark with the changes
+@pytest.mark.xfail(run=False, reason="needs world/render.py to build copy cubes (world/decoys.py) and the "
+                                     "server's re-localisation to reject a static copy (see the module docstring)")
 def test_copy_cubes_are_counted_and_never_move_the_map(tmp_path: Path) -> None:
     plain = _up(tmp_path / "plain")
     copied = _up(tmp_path / "copies", "--set", COPIES)

@@ -4,7 +4,8 @@
 # a host of its own, links impaired as asked; writes the usual run folder to --out.
 #
 #   sudo scripts/multihost.sh --out runs/mh [--robots N] [--clock lockstep|realtime]
-#        [--delay-ms D] [--loss P] [--duration S] [--rate-mbit R] [--seed N] [--set FIELD=VALUE]
+#        [--delay-ms D [--delay-spread-ms J]] [--loss P] [--duration S] [--rate-mbit R] [--seed N]
+#        [--set FIELD=VALUE] [--no-report]
 #
 # Needs root (ip netns, iptables, tc).  Everything it made (namespaces, veths, processes) is
 # removed on exit, on failure and on Ctrl-C.  Any flag of tagswarm up's scenario and network

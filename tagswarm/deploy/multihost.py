@@ -1,7 +1,7 @@
 """A swarm across several "hosts" (network namespaces on this machine) and its run folder.
 
     python -m tagswarm.deploy.multihost --out DIR [--robots N] [--clock lockstep|realtime]
-        [--delay-ms D] [--loss P] [--duration S] [--rate-mbit R]      # scripts/multihost.sh
+        [--delay-ms D [--delay-spread-ms J]] [--loss P] [--duration S] [--rate-mbit R]   # scripts/multihost.sh
 
 Hosts (:mod:`tagswarm.deploy.netns`, ``10.77.0.0/24``): ``router`` (.1: ``tagswarm router``
 and the recorder ``tagswarm record-run``), ``world`` (.2: the world and its render
@@ -13,6 +13,8 @@ plus ``logs/``, ``server.journal`` and ``multihost.json`` (hosts, links, command
 codes, and in realtime the latency image -> correction and the real-time factor).
 
 Link delay is the processes' receive-side fault layer (``--net-delay-ms`` on every key of
+the run; with ``--delay-spread-ms J`` each host's delay is drawn once, seeded, from D ± J:
+links differ, but the fault layer has no per-message jitter;
 the run: this kernel has no ``netem``); loss (``iptables statistic``) and bandwidth
 (``tbf``) are the kernel's, on every host's link.  The harness itself watches the run as
 one more client, through a Unix socket of the router (it cannot reach the namespaces'
@@ -43,6 +45,7 @@ from typing import Any
 import msgspec
 
 from tagswarm.deploy import netns
+from tagswarm.deploy.hostplan import ROUTER_CONFIG, commands, host_delay_ms, host_names, resolve
 from tagswarm.deploy.hostprobe import Probe
 from tagswarm.protocol.bus import Bus, BusConfig, open_bus
 from tagswarm.protocol.errors import TagswarmError
@@ -53,65 +56,12 @@ from tagswarm.runtime.config import ConfigError, OneLineParser, add_common_args,
 from tagswarm.runtime.process import run_main, setup_logging
 
 PROG = "tagswarm multihost"
-PORT = 7447
-#: The router's Zenoh config on top of tagswarm's settings.  A router forwards a BLOCK message
-#: (ticks, encoders, corrections ...) on the receive task of the link it came in on; when a
-#: host is cut off, its link's queue fills and, by Zenoh's default, that task waits up to 5 s
-#: before closing the dead link: meanwhile the router reads nothing from that sender, every
-#: other host's lease of it runs out and the whole swarm drops.  Closing the dead link after
-#: 0.5 s (a third of the default 1.5 s lease) keeps the others running.
-ROUTER_CONFIG = """{
-  // tagswarm multi-host router (docs/multihost.md): give up on a blocked link after 0.5 s
-  transport: { link: { tx: { queue: { congestion_control: { block: { wait_before_close: 500000 } } } } } },
-}
-"""
 BIN = Path(sys.executable).parent
 
 
 class MultiHostError(TagswarmError, RuntimeError):
     """The run failed: a process died unasked, or something did not happen in time (the
     message says what, with the tails of the logs)."""
-
-
-def host_names(robots: Sequence[int]) -> list[str]:
-    """Router first (``10.77.0.1``), then world, server and one host per agent."""
-    return ["router", "world", "server", *(f"agent{r}" for r in robots)]
-
-
-def resolve(scenario: Scenario) -> Scenario:
-    """The scenario as compose runs it: lockstep participants every agent and the server,
-    the recorder an observer (the world waits for it before the first tick)."""
-    table = msgspec.to_builtins(scenario)
-    if not scenario.clock.participants:
-        table["clock"]["participants"] = [f"agent/{r}" for r in scenario.robot_ids] + ["server/0"]
-    if "recorder/0" not in scenario.clock.observers:
-        table["clock"]["observers"] = [*scenario.clock.observers, "recorder/0"]
-    out: Scenario = msgspec.convert(table, Scenario)
-    return out
-
-
-def commands(topo: netns.Topology, *, run: str, scenario_file: Path, out: Path, robots: Sequence[int],
-             delay_ms: float = 0.0, lease_ms: int | None = None, socket: Path | None = None,
-             tagswarm: str = "tagswarm", report: bool = True) -> dict[str, tuple[str, list[str]]]:
-    """Process name -> (host, command line): what runs where.  The same lines work on real
-    hosts with the router's address in place of ``10.77.0.1``."""
-    router = f"tcp/{topo.host('router').addr}:{PORT}"
-    lease = ["--zenoh-lease-ms", str(lease_ms)] if lease_ms is not None else []
-    common = ["--run", run, "--scenario", str(scenario_file), *lease]
-    client = ["--zenoh-mode", "client", "--connect", router, *common]
-    # link delay: every key of the run, on receive, in every process of the swarm (the kernel has no netem)
-    delay = ["--net-delay-ms", f"{delay_ms:g}", "--net-fault-keys", f"tagswarm/{run}/**"] if delay_ms > 0 else []
-    listen = ["--listen", f"tcp/0.0.0.0:{PORT}"] + (["--listen", f"unixsock-stream/{socket}"] if socket else [])
-    cmds: dict[str, tuple[str, list[str]]] = {
-        "router": ("router", [tagswarm, "router", *listen, "--zenoh-config", str(out / "router.json5"), *common]),
-        "recorder": ("router", [tagswarm, "record-run", "--out", str(out), *client,
-                                *([] if report else ["--no-report"])]),
-        "server": ("server", [tagswarm, "server", *client, "--journal", str(out / "server.journal"), *delay]),
-    }
-    for r in robots:
-        cmds[f"agent/{r}"] = (f"agent{r}", [tagswarm, "agent", "--robot-id", str(r), *client, *delay])
-    cmds["world"] = ("world", [tagswarm, "world", *client, *delay])
-    return cmds
 
 
 class MultiHost:
@@ -121,14 +71,14 @@ class MultiHost:
 
     def __init__(self, out: Path, scenario: Scenario, *, run: str | None = None, delay_ms: float = 0.0,
                  loss: float = 0.0, rate_mbit: float | None = None, lease_ms: int | None = None,
-                 latency: bool = False, report: bool = True) -> None:
+                 latency: bool = False, report: bool = True, spread_ms: float = 0.0) -> None:
         self.out = out.resolve()
         self.scenario = resolve(scenario)
         self.topo = netns.plan(netns.new_prefix(), host_names(self.scenario.robot_ids))
         self.run = run or f"mh{self.topo.prefix[3:]}"
         self.keys = Keys(self.run)
         self.links = netns.Links(loss=loss, rate_mbit=rate_mbit)
-        self.delay_ms, self.lease_ms, self.latency = delay_ms, lease_ms, latency
+        self.delay_ms, self.lease_ms, self.latency, self.spread_ms = delay_ms, lease_ms, latency, spread_ms
         self.sockdir = Path(tempfile.mkdtemp(prefix=f"{self.topo.prefix}-"))
         self.net = netns.Network(self.topo, self.links)
         self.children: dict[str, procgroup.Child] = {}
@@ -139,7 +89,8 @@ class MultiHost:
         self.t0 = time.monotonic()
         self.cmds = commands(self.topo, run=self.run, scenario_file=self.out / "scenario.json", out=self.out,
                              robots=self.scenario.robot_ids, delay_ms=delay_ms, lease_ms=lease_ms,
-                             socket=self.sockdir / "router.sock", tagswarm=str(BIN / "tagswarm"), report=report)
+                             socket=self.sockdir / "router.sock", tagswarm=str(BIN / "tagswarm"), report=report,
+                             spread_ms=spread_ms, seed=self.scenario.seed)
 
     # ---- life cycle
     def __enter__(self) -> MultiHost:
@@ -292,7 +243,10 @@ class MultiHost:
         summary = {
             "run": self.run, "prefix": self.topo.prefix, "wall_s": round(time.monotonic() - self.t0, 2),
             "hosts": {h.name: {"namespace": h.ns, "address": h.addr} for h in self.topo.hosts},
-            "links": {"delay_ms": self.delay_ms, "loss": self.links.loss, "rate_mbit": self.links.rate_mbit,
+            "links": {"delay_ms": self.delay_ms, "delay_spread_ms": self.spread_ms,
+                      "host_delay_ms": {h.name: host_delay_ms(h.name, self.delay_ms, self.spread_ms, self.scenario.seed)
+                                        for h in self.topo.hosts if h.name != "router"},
+                      "loss": self.links.loss, "rate_mbit": self.links.rate_mbit,
                       "lease_ms": self.lease_ms, "delay_by": "receive-side fault layer (--net-delay-ms)",
                       "loss_by": "iptables statistic on every host's eth0 input"},
             "commands": {name: {"host": host, "argv": argv} for name, (host, argv) in self.cmds.items()},
@@ -314,6 +268,8 @@ def parser() -> OneLineParser:
     p.add_argument("--out", type=Path, required=True, metavar="DIR", help="the run folder to write")
     p.add_argument("--delay-ms", type=float, default=0.0, metavar="MS",
                    help="one-way delay between hosts, milliseconds (receive-side fault layer; default 0)")
+    p.add_argument("--delay-spread-ms", type=float, default=0.0, metavar="MS",
+                   help="each host's delay drawn once from D +- MS (seeded by the scenario's seed; default 0)")
     p.add_argument("--loss", type=float, default=0.0, metavar="SHARE",
                    help="share of packets each host drops on receive (iptables statistic; default 0)")
     p.add_argument("--rate-mbit", type=float, default=None, metavar="MBIT",
@@ -333,6 +289,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         env = {k: v for k, v in _environ().items() if k.startswith("TAGSWARM_")}
         if not 0.0 <= args.delay_ms <= 60_000:
             raise ConfigError(f"--delay-ms {args.delay_ms:g}: must be 0..60000")
+        if not 0.0 <= args.delay_spread_ms <= args.delay_ms:
+            raise ConfigError(f"--delay-spread-ms {args.delay_spread_ms:g}: must be 0..--delay-ms")
         if not 0.0 <= args.loss < 1.0:
             raise ConfigError(f"--loss {args.loss:g}: must be a share in [0, 1)")
         if args.rate_mbit is not None and not args.rate_mbit > 0:
@@ -348,6 +306,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         signal.signal(signal.SIGINT, lambda *_: stop.set())
         signal.signal(signal.SIGTERM, lambda *_: stop.set())
         with MultiHost(args.out, scenario, run=args.run, delay_ms=args.delay_ms, loss=args.loss,
+                       spread_ms=args.delay_spread_ms,
                        rate_mbit=args.rate_mbit, lease_ms=lease, report=not args.no_report,
                        latency=scenario.clock.mode == "realtime") as mh:
             print(f"{PROG}: {len(mh.topo.hosts)} hosts ({mh.topo.prefix}-*), run {mh.run!r}, "

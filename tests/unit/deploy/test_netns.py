@@ -1,4 +1,4 @@
-"""The multi-host harness's command lines, built without root (tagswarm/deploy/netns.py, multihost.py)."""
+"""The multi-host harness's command lines, built without root (tagswarm/deploy/netns.py, hostplan.py, multihost.py)."""
 
 from __future__ import annotations
 
@@ -6,12 +6,12 @@ from pathlib import Path
 
 import pytest
 
-from tagswarm.deploy import multihost, netns
+from tagswarm.deploy import hostplan, multihost, netns
 from tagswarm.protocol.scenario import load_scenario
 
 
 def topo(robots: int = 2) -> netns.Topology:
-    return netns.plan("tsw42x1", multihost.host_names(list(range(robots))))
+    return netns.plan("tsw42x1", hostplan.host_names(list(range(robots))))
 
 
 def test_plan_gives_each_host_its_namespace_address_and_hub_port() -> None:
@@ -83,7 +83,7 @@ def test_stale_namespaces_are_those_of_dead_owners_only() -> None:
 
 def test_every_process_is_a_client_of_the_router_on_its_own_host(tmp_path: Path) -> None:
     t = topo(2)
-    cmds = multihost.commands(t, run="r1", scenario_file=tmp_path / "s.json", out=tmp_path, robots=[0, 1],
+    cmds = hostplan.commands(t, run="r1", scenario_file=tmp_path / "s.json", out=tmp_path, robots=[0, 1],
                               delay_ms=20, lease_ms=1500)
     assert {n: h for n, (h, _) in cmds.items()} == {"router": "router", "recorder": "router", "server": "server",
                                                     "agent/0": "agent0", "agent/1": "agent1", "world": "world"}
@@ -102,18 +102,18 @@ def test_every_process_is_a_client_of_the_router_on_its_own_host(tmp_path: Path)
     assert "--net-delay-ms" not in router and "--net-delay-ms" not in cmds["recorder"][1]
     assert cmds["agent/1"][1][:4] == ["tagswarm", "agent", "--robot-id", "1"]
     assert cmds["recorder"][1][:4] == ["tagswarm", "record-run", "--out", str(tmp_path)]
-    no_delay = multihost.commands(t, run="r1", scenario_file=tmp_path / "s.json", out=tmp_path, robots=[0, 1])
+    no_delay = hostplan.commands(t, run="r1", scenario_file=tmp_path / "s.json", out=tmp_path, robots=[0, 1])
     assert all("--net-delay-ms" not in argv and "--zenoh-lease-ms" not in argv for _, argv in no_delay.values())
 
 
 def test_the_scenario_is_resolved_as_compose_resolves_it() -> None:
-    scen = multihost.resolve(load_scenario("paper", ["robots.count=3", 'clock.mode="lockstep"']))
+    scen = hostplan.resolve(load_scenario("paper", ["robots.count=3", 'clock.mode="lockstep"']))
     assert list(scen.clock.participants) == ["agent/0", "agent/1", "agent/2", "server/0"]
     assert "recorder/0" in scen.clock.observers
 
 
 def test_the_router_closes_a_blocked_link_well_within_a_lease() -> None:
-    assert "wait_before_close: 500000" in multihost.ROUTER_CONFIG  # microseconds: 0.5 s < the 1.5 s lease
+    assert "wait_before_close: 500000" in hostplan.ROUTER_CONFIG  # microseconds: 0.5 s < the 1.5 s lease
 
 
 def test_bad_flags_exit_2_with_one_line(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
@@ -135,3 +135,18 @@ def test_help_explains_the_link_flags(capsys: pytest.CaptureFixture[str]) -> Non
     for flag in ("--out", "--delay-ms", "--loss", "--rate-mbit", "--robots", "--clock", "--duration"):
         assert flag in text, flag
     assert "10.77.0" in text and "network namespaces" in text
+
+
+def test_a_delay_spread_gives_each_host_its_own_seeded_delay(tmp_path: Path) -> None:
+    t = topo(3)
+    cmds = hostplan.commands(t, run="r1", scenario_file=tmp_path / "s.json", out=tmp_path, robots=[0, 1, 2],
+                             delay_ms=20, spread_ms=5, seed=7)
+    delays = {n: float(argv[argv.index("--net-delay-ms") + 1]) for n, (_, argv) in cmds.items() if n != "router"
+              and n != "recorder"}
+    assert all(15.0 <= d <= 25.0 for d in delays.values()), delays
+    assert len(set(delays.values())) == len(delays)  # links differ
+    again = hostplan.commands(t, run="r1", scenario_file=tmp_path / "s.json", out=tmp_path, robots=[0, 1, 2],
+                              delay_ms=20, spread_ms=5, seed=7)
+    assert again == cmds
+    assert hostplan.host_delay_ms("agent0", 20, 0, 7) == 20
+    assert hostplan.host_delay_ms("agent0", 1, 5, 7) >= 0

@@ -61,6 +61,25 @@ def test_station_keeping_robot_never_searches() -> None:
     assert b.searches == 0
 
 
+def test_station_keeping_robot_never_placed_turns_around_once_then_holds() -> None:
+    b = Behaviour(5, Mission(robot=5, kind="hold"), CFG, ROBOT)
+    wait = 3 * CFG.fix_threshold
+    yaw, commands, placed_at = 0.0, [], wait + 20
+    for k in range(200):
+        placed = k >= placed_at  # seen (and placed) during its turn
+        v, w = b.cycle(t_s=k, map_pose=(1.0, 2.0, yaw) if placed else None, odom_yaw=yaw, moved=False,
+                       fix=k == placed_at)
+        yaw = math.remainder(yaw + w * 0.1, 2 * math.pi)
+        commands.append((v, w))
+    # waits for a placement, then turns on the spot (never drives) a whole sweep, placed on the way or not
+    assert all(c == (0.0, 0.0) for c in commands[:wait])
+    turning = [k for k, (v, w) in enumerate(commands) if w != 0.0]
+    assert all(commands[k][0] == 0.0 for k in turning) and turning[0] == wait
+    assert turning == list(range(wait, wait + len(turning))) and 62 <= len(turning) <= 65  # 6.3 rad at 0.1 rad
+    assert abs(yaw) < 0.15  # back at its own heading (within a step)
+    assert all(c == (0.0, 0.0) for c in commands[turning[-1] + 1:]) and b.searches == 1 and b.lost_events == 0
+
+
 def test_wheel_speeds_respect_limit_and_keep_curvature() -> None:
     left, right = wheel_speeds(2.0, 4.0, ROBOT)
     assert max(abs(left), abs(right)) <= ROBOT.max_wheel_speed_rad_s + 1e-9

@@ -94,3 +94,9 @@ def test_run_follower_follows_one_world_and_accepts_a_new_one_only_after_it_left
     f.world_presence(False)
     assert f.accept("b") == "restart" and f.run_id == "b"
     assert f.accept("c") == "foreign"  # the new world is alive again (no departure since)
+    # the same world cut off and back (a partition, a router restart): followed again, not left for good
+    f.world_presence(False)
+    assert f.world_left and f.accept("b") == "same" and f.world_left  # its token is still gone
+    f.world_presence(True)
+    assert f.accept("b") == "same" and not f.world_left
+    assert f.accept("d") == "foreign"

@@ -30,7 +30,15 @@ rest of the per-frame work, since all of it shares the same cores.
 The camera model (lens remap, motion blur, noise) is measured apart, in one process
 against the render it follows (bench/camera_cost.py; ``--camera-model-only``).
 
+Headline (``--headline``, issue 18): the plain ``tagswarm up --robots N --clock realtime`` at 8 and 16
+robots, ``--repeats`` runs each (medians), with the CPU per role (world, render workers, agents, server,
+up + recorder, router), the frames the workers rendered, the agents' own per-frame account (status
+counters ``cpu_frames_us`` and ``cpu_detect_pose_us``) and, with ``--budget-lockstep`` /
+``--budget-speed``, the core-seconds per simulated second with every frame processed; to
+``bench/results/speed_headline.json``.  ``--wait-load`` waits for a shared machine's load to drop.
+
 Usage: python bench/speed.py [--seconds 10] [--quick] [--camera-model-only]
+       python bench/speed.py --headline [--repeats 3] [--budget-lockstep] [--wait-load 4 120]
 """
 
 from __future__ import annotations
@@ -121,6 +129,10 @@ def measure(robots: int, res: str, workers: int | None, seconds: float, warmup: 
         argv += ["--seed", "0", "--set", 'robots.placement="grid"', "--set", camera_override(w, h, hz), *tick]
         if workers is not None:
             argv += ["--set", f"render.workers={workers}"]
+    if WAIT_LOAD[0] > 0:  # a shared machine: start when the others' load has dropped, or after WAIT_LOAD[1] s
+        until = time.monotonic() + WAIT_LOAD[1]
+        while os.getloadavg()[0] > WAIT_LOAD[0] and time.monotonic() < until:
+            time.sleep(2.0)
     load_before = [round(x, 2) for x in os.getloadavg()]
     log = open((log_dir or out) / f"up_{robots}_{res}_{workers}{'_headline' if headline else ''}.log", "w")
     up = subprocess.Popen(argv, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
@@ -241,11 +253,12 @@ def measure(robots: int, res: str, workers: int | None, seconds: float, warmup: 
     }
 
 
+WAIT_LOAD = [0.0, 0.0]  # --wait-load: 1-minute load average to wait for before each run, and for how long at most
 ROLES = ("world", "render_worker", "agent", "server", "up_and_recorder", "router")
 
 
 def headline(robots: list[int], repeats: int, seconds: float, warmup: float, log_dir: Path,
-             extra: tuple[str, ...] = (), speed: float = 1.0) -> list[dict[str, Any]]:
+             extra: tuple[str, ...] = (), speed: float = 1.0, lockstep: bool = False) -> list[dict[str, Any]]:
     """The goal's command, ``tagswarm up --robots N --clock realtime`` and nothing else, ``repeats``
     times per robot count: the median of each figure and the CPU budget per role (cores over the
     window, median over the repeats).  ``tagswarm up`` runs no Zenoh router (its processes are peers
@@ -258,7 +271,7 @@ def headline(robots: list[int], repeats: int, seconds: float, warmup: float, log
         extra = (*extra, "--set", f"clock.speed={speed}")
     for n in robots:
         runs = [measure(n, "320x240@10Hz", None, seconds, warmup, log_dir=log_dir, headline=True,
-                        latency=n <= 8 and speed == 1.0, extra=extra) for _ in range(repeats)]
+                        latency=n <= 8 and speed == 1.0 and not lockstep, extra=extra) for _ in range(repeats)]
 
         def med(get: Any, runs: list[dict[str, Any]] = runs) -> Any:
             vals = [v for v in (get(r) for r in runs) if v is not None]
@@ -266,7 +279,8 @@ def headline(robots: list[int], repeats: int, seconds: float, warmup: float, log
 
         row: dict[str, Any] = {
             "robots": n, "resolution": "320x240@10Hz", "headline": True, "repeats": repeats,
-            "command": " ".join(["tagswarm up --robots", str(n), "--clock realtime", *extra]), "clock_speed": speed,
+            "command": " ".join(["tagswarm up --robots", str(n), "--clock realtime", *extra]),
+            "clock_speed": speed, "lockstep": lockstep,
             "render_workers": runs[0]["render_workers"],
             "rtf": med(lambda r: r["rtf"]), "rtf_all": [r["rtf"] for r in runs],
             "frames_asked_per_s": med(lambda r: r["frames_asked_per_s"]),
@@ -296,8 +310,9 @@ def print_budget(rows: list[dict[str, Any]]) -> None:
     for col in ("robots", "speed", "RTF", "frames processed / asked", "latency p50/p95 ms", *ROLES, "total"):
         t.add_column(col)
     for r in rows:
-        c, lat = r["cpu_cores"] if r["clock_speed"] == 1.0 else r["cpu_core_s_per_sim_s"], r["latency_ms"]
-        t.add_row(str(r["robots"]), f"{r['clock_speed']:g}", f"{r['rtf']:.2f}",
+        budget = r["clock_speed"] != 1.0 or r["lockstep"]
+        c, lat = r["cpu_core_s_per_sim_s"] if budget else r["cpu_cores"], r["latency_ms"]
+        t.add_row(str(r["robots"]), "lockstep" if r["lockstep"] else f"{r['clock_speed']:g}", f"{r['rtf']:.2f}",
                   f"{r['frames_processed_per_s']:.0f} / {r['frames_asked_per_s']:.0f}",
                   "-" if lat["p50"] is None else f"{lat['p50']:.0f} / {lat['p95']:.0f}",
                   *(f"{c[k] or 0:.2f}" for k in ROLES), f"{c['total']:.2f}")
@@ -323,6 +338,11 @@ def main() -> int:
     p.add_argument("--budget-speed", type=float, default=0.5,
                    help="headline: also run each point at this clock.speed, where every frame fits, for the CPU "
                         "budget in core-seconds per simulated second (0: skip)")
+    p.add_argument("--budget-lockstep", action="store_true",
+                   help="headline: also run each point in lockstep (every frame processed however loaded the "
+                        "machine is) for the CPU budget in core-seconds per simulated second")
+    p.add_argument("--wait-load", type=float, nargs=2, default=[0.0, 0.0], metavar=("LOAD", "SECONDS"),
+                   help="before each run wait until the 1-minute load average is below LOAD, at most SECONDS")
     p.add_argument("--as-configured", action="store_true",
                    help="headline: the command exactly, even while paper.toml pins render.workers = 0")
     p.add_argument("--out", type=Path, default=None,
@@ -330,6 +350,7 @@ def main() -> int:
     a = p.parse_args()
     if a.camera_model_only:
         return camera_model_main(a.out or ROOT / "bench" / "results" / "camera_model.json")
+    WAIT_LOAD[:] = a.wait_load
     if a.headline:
         return headline_main(a)
     if a.out is None:
@@ -416,6 +437,13 @@ def headline_main(a: argparse.Namespace) -> int:
     rows = headline(robots, a.repeats, a.seconds, a.warmup, log_dir, extra)
     if a.budget_speed:
         rows += headline(robots, a.repeats, a.seconds, a.warmup, log_dir, extra, speed=a.budget_speed)
+    if a.budget_lockstep:
+        for n in robots:
+            # every frame processed whatever else loads the machine: the work of a simulated second, with
+            # the render workers the realtime run chose (lockstep alone would render in-process)
+            k = next(r["render_workers"] for r in rows if r["robots"] == n)
+            rows += headline([n], a.repeats, a.seconds, a.warmup, log_dir,
+                             (*extra, "--clock", "lockstep", "--set", f"render.workers={k}"), lockstep=True)
     out = a.out or ROOT / "bench" / "results" / "speed_headline.json"
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps({

@@ -82,7 +82,8 @@ def parser(prog: str = "tagswarm-world") -> argparse.ArgumentParser:
                    help="render in K worker processes (0 = in this process; default: render.workers, whose "
                         "default -1 chooses from the cores and the cameras' load); same as --set render.workers=K")
     p.add_argument("--no-spawn-workers", action="store_true",
-                   help="do not start render workers; expect them to be started separately (compose)")
+                   help="do not start render workers; expect them to be started separately (compose): give their "
+                        "number with --render-workers (the automatic render.workers means 0 here)")
     p.add_argument("--status-period", type=float, default=1.0, metavar="SECONDS",
                    help="simulated seconds between status messages (default 1)")
     return p
@@ -97,7 +98,11 @@ def build_config(argv: Sequence[str] | None = None, environ: Mapping[str, str] |
         if args.render_workers < 0:
             raise ConfigError("--render-workers must be >= 0")
         args.overrides.append(f"render.workers={args.render_workers}")
-    scenario = resolve_render_workers(inv.scenario())
+    scenario = inv.scenario()
+    if args.no_spawn_workers and scenario.render.workers == AUTO_WORKERS:
+        # workers started by someone else: only a number they were told is theirs to match
+        scenario = msgspec.structs.replace(scenario, render=msgspec.structs.replace(scenario.render, workers=0))
+    scenario = resolve_render_workers(scenario)
     run = inv.run()
     if args.status_period <= 0:
         raise ConfigError("--status-period must be > 0")

@@ -49,3 +49,9 @@ def test_the_world_config_holds_a_resolved_number() -> None:
     assert c.scenario.render.workers == 0
     c = build_config(["--scenario", "hall", "--robots", "3", "--render-workers", "3"], {})
     assert c.scenario.render.workers == 3
+
+
+def test_without_spawned_workers_automatic_means_in_process() -> None:
+    # workers started by hand (compose) must be told their number: auto would wait for workers nobody starts
+    c = build_config(["--scenario", "hall", "--robots", "16", "--clock", "realtime", "--no-spawn-workers"], {})
+    assert c.scenario.render.workers == 0

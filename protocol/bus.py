@@ -82,7 +82,8 @@ class BusConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields
     Fault injection (receive side, see :mod:`tagswarm.protocol.netfaults`): samples that
     arrive on keys matching ``fault_keys`` (key expressions; empty = the
     :func:`default_fault_keys`) are lost with probability ``loss`` (0..1) and
-    delivered ``delay_ms`` milliseconds late; ``fault_seed`` fixes the pattern.
+    delivered ``delay_ms`` milliseconds late (± ``jitter_ms``, per-key order kept);
+    ``fault_seed`` fixes the pattern.
 
     ``lease_ms`` is the Zenoh link lease this process announces (applied on top of a
     config file, like the other fields): its peers drop it, and its liveliness tokens,
@@ -100,6 +101,7 @@ class BusConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields
     access_control: str | None = None
     loss: Annotated[float, msgspec.Meta(ge=0.0, le=1.0)] = 0.0
     delay_ms: Annotated[float, msgspec.Meta(ge=0.0, le=MAX_DELAY_MS)] = 0.0
+    jitter_ms: Annotated[float, msgspec.Meta(ge=0.0, le=MAX_DELAY_MS)] = 0.0
     fault_keys: tuple[str, ...] = ()
     fault_seed: int = 0
     lease_ms: Annotated[int, msgspec.Meta(ge=MIN_LEASE_MS, le=MAX_LEASE_MS)] = DEFAULT_LEASE_MS
@@ -194,7 +196,8 @@ def net_faults(cfg: BusConfig) -> NetFaults:
         return any(p.intersects(ke) for p in patterns)
 
     try:
-        return NetFaults(loss=cfg.loss, delay_s=cfg.delay_ms / 1000.0, seed=cfg.fault_seed, matches=matches)
+        return NetFaults(loss=cfg.loss, delay_s=cfg.delay_ms / 1000.0, seed=cfg.fault_seed, matches=matches,
+                         jitter_s=cfg.jitter_ms / 1000.0)
     except ValueError as exc:
         raise BusError(f"network faults: {exc}") from None
 
@@ -482,8 +485,9 @@ def open_bus(cfg: BusConfig) -> Iterator[Bus]:
         raise BusError(f"cannot open Zenoh session ({cfg.mode}, listen={list(cfg.listen)}, "
                        f"connect={list(cfg.connect)}{who}): {exc}") from None
     if faults.active:
-        log.warning("injecting network faults on receive: loss %.3g, delay %.3g ms, seed %d, keys %s",
-                    cfg.loss, cfg.delay_ms, cfg.fault_seed, ", ".join(cfg.fault_keys or default_fault_keys()))
+        log.warning("injecting network faults on receive: loss %.3g, delay %.3g ± %.3g ms, seed %d, keys %s",
+                    cfg.loss, cfg.delay_ms, cfg.jitter_ms, cfg.fault_seed,
+                    ", ".join(cfg.fault_keys or default_fault_keys()))
     with session:
         bus = Bus(session, faults)
         try:

@@ -35,15 +35,24 @@ Deliver = Callable[[], None]
 
 class NetFaults:
     """Loss share ``loss`` (0..1) and added delay ``delay_s`` (seconds) for the keys
-    that ``matches`` accepts (concrete sample keys), seeded with ``seed``."""
+    that ``matches`` accepts (concrete sample keys), seeded with ``seed``.  ``jitter_s``
+    spreads each sample's delay uniformly over ``delay_s ± jitter_s`` (seeded per key)
+    while the samples of one key keep their order, as on one link: a sample is never
+    due before the one of its key that arrived before it."""
 
-    def __init__(self, *, loss: float, delay_s: float, seed: int, matches: Callable[[str], bool]) -> None:
+    def __init__(self, *, loss: float, delay_s: float, seed: int, matches: Callable[[str], bool],
+                 jitter_s: float = 0.0) -> None:
         if not 0.0 <= loss <= 1.0:
             raise ValueError(f"loss {loss!r} must be a share between 0 and 1")
         if not delay_s >= 0.0:
             raise ValueError(f"delay {delay_s!r} s must be >= 0")
+        if not 0.0 <= jitter_s <= delay_s:
+            raise ValueError(f"jitter {jitter_s!r} s must be between 0 and the delay ({delay_s!r} s)")
         self.loss = loss
         self.delay_s = delay_s
+        self.jitter_s = jitter_s
+        self._jitter: dict[str, random.Random] = {}
+        self._last_due: dict[str, float] = {}
         self.seed = seed
         self._matches = matches
         self._lock = threading.Lock()
@@ -85,12 +94,21 @@ class NetFaults:
         if self.delay_s <= 0.0 or not self.matches(key):
             deliver()
             return
+        now = time.monotonic()
         with self._lock:
             if self._line is None:
                 self._line = _DelayLine()
             line = self._line
             self.delayed += 1
-        line.push(time.monotonic() + self.delay_s, deliver)
+            due = now + self.delay_s
+            if self.jitter_s > 0.0:
+                stream = self._jitter.get(key)
+                if stream is None:
+                    stream = self._jitter[key] = random.Random(f"{self.seed}/jitter/{_without_run(key)}")
+                due = max(self._last_due.get(key, 0.0), due + stream.uniform(-self.jitter_s, self.jitter_s))
+                if len(self._last_due) < 65536:
+                    self._last_due[key] = due
+        line.push(due, deliver)
 
     def close(self) -> None:
         """Stop the timer thread; samples still held are discarded."""

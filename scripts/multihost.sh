@@ -4,7 +4,7 @@
 # a host of its own, links impaired as asked; writes the usual run folder to --out.
 #
 #   sudo scripts/multihost.sh --out runs/mh [--robots N] [--clock lockstep|realtime]
-#        [--delay-ms D [--delay-spread-ms J]] [--loss P] [--duration S] [--rate-mbit R] [--seed N]
+#        [--delay-ms D [--jitter-ms J] [--delay-spread-ms S]] [--loss P] [--duration S] [--rate-mbit R] [--seed N]
 #        [--set FIELD=VALUE] [--no-report]
 #
 # Needs root (ip netns, iptables, tc).  Everything it made (namespaces, veths, processes) is

@@ -298,7 +298,7 @@ def net_flags(args: Any) -> list[str]:
     """The fault-injection and Zenoh lease flags given to ``up``, for its children (the
     environment variables reach them anyway); ``up``'s own recorder is never impaired."""
     out: list[str] = []
-    for flag in ("net_loss", "net_delay_ms", "net_seed", "zenoh_lease_ms"):
+    for flag in ("net_loss", "net_delay_ms", "net_jitter_ms", "net_seed", "zenoh_lease_ms"):
         if getattr(args, flag, None) is not None:
             out += ["--" + flag.replace("_", "-"), str(getattr(args, flag))]
     for key in getattr(args, "net_fault_keys", None) or []:

@@ -50,7 +50,7 @@ def resolve(scenario: Scenario) -> Scenario:
 def commands(topo: netns.Topology, *, run: str, scenario_file: Path, out: Path, robots: Sequence[int],
              delay_ms: float = 0.0, lease_ms: int | None = None, socket: Path | None = None,
              tagswarm: str = "tagswarm", report: bool = True,
-             spread_ms: float = 0.0, seed: int = 0) -> dict[str, tuple[str, list[str]]]:
+             spread_ms: float = 0.0, seed: int = 0, jitter_ms: float = 0.0) -> dict[str, tuple[str, list[str]]]:
     """Process name -> (host, command line): what runs where.  The same lines work on real
     hosts with the router's address in place of ``10.77.0.1``."""
     router = f"tcp/{topo.host('router').addr}:{PORT}"
@@ -60,7 +60,8 @@ def commands(topo: netns.Topology, *, run: str, scenario_file: Path, out: Path, 
     def delay(host: str) -> list[str]:
         # link delay: every key of the run, on receive, in every process of the swarm (the kernel has no netem)
         d = host_delay_ms(host, delay_ms, spread_ms, seed)
-        return ["--net-delay-ms", f"{d:g}", "--net-fault-keys", f"tagswarm/{run}/**"] if d > 0 else []
+        jitter = ["--net-jitter-ms", f"{min(jitter_ms, d):g}"] if jitter_ms > 0 else []
+        return ["--net-delay-ms", f"{d:g}", *jitter, "--net-fault-keys", f"tagswarm/{run}/**"] if d > 0 else []
 
     listen = ["--listen", f"tcp/0.0.0.0:{PORT}"] + (["--listen", f"unixsock-stream/{socket}"] if socket else [])
     cmds: dict[str, tuple[str, list[str]]] = {

@@ -1,7 +1,8 @@
 """A swarm across several "hosts" (network namespaces on this machine) and its run folder.
 
     python -m tagswarm.deploy.multihost --out DIR [--robots N] [--clock lockstep|realtime]
-        [--delay-ms D [--delay-spread-ms J]] [--loss P] [--duration S] [--rate-mbit R]   # scripts/multihost.sh
+        [--delay-ms D [--jitter-ms J] [--delay-spread-ms S]] [--loss P] [--duration S] [--rate-mbit R]
+        # scripts/multihost.sh
 
 Hosts (:mod:`tagswarm.deploy.netns`, ``10.77.0.0/24``): ``router`` (.1: ``tagswarm router``
 and the recorder ``tagswarm record-run``), ``world`` (.2: the world and its render
@@ -13,8 +14,9 @@ plus ``logs/``, ``server.journal`` and ``multihost.json`` (hosts, links, command
 codes, and in realtime the latency image -> correction and the real-time factor).
 
 Link delay is the processes' receive-side fault layer (``--net-delay-ms`` on every key of
-the run; with ``--delay-spread-ms J`` each host's delay is drawn once, seeded, from D ± J:
-links differ, but the fault layer has no per-message jitter;
+the run; ``--jitter-ms J`` spreads every message's delay over D ± J, seeded, each key's
+order kept; with ``--delay-spread-ms S`` each host's delay is drawn once, seeded, from D ± S:
+links differ;
 the run: this kernel has no ``netem``); loss (``iptables statistic``) and bandwidth
 (``tbf``) are the kernel's, on every host's link.  The harness itself watches the run as
 one more client, through a Unix socket of the router (it cannot reach the namespaces'
@@ -71,7 +73,7 @@ class MultiHost:
 
     def __init__(self, out: Path, scenario: Scenario, *, run: str | None = None, delay_ms: float = 0.0,
                  loss: float = 0.0, rate_mbit: float | None = None, lease_ms: int | None = None,
-                 latency: bool = False, report: bool = True, spread_ms: float = 0.0) -> None:
+                 latency: bool = False, report: bool = True, spread_ms: float = 0.0, jitter_ms: float = 0.0) -> None:
         self.out = out.resolve()
         self.scenario = resolve(scenario)
         self.topo = netns.plan(netns.new_prefix(), host_names(self.scenario.robot_ids))
@@ -79,6 +81,7 @@ class MultiHost:
         self.keys = Keys(self.run)
         self.links = netns.Links(loss=loss, rate_mbit=rate_mbit)
         self.delay_ms, self.lease_ms, self.latency, self.spread_ms = delay_ms, lease_ms, latency, spread_ms
+        self.jitter_ms = jitter_ms
         self.sockdir = Path(tempfile.mkdtemp(prefix=f"{self.topo.prefix}-"))
         self.net = netns.Network(self.topo, self.links)
         self.children: dict[str, procgroup.Child] = {}
@@ -90,7 +93,7 @@ class MultiHost:
         self.cmds = commands(self.topo, run=self.run, scenario_file=self.out / "scenario.json", out=self.out,
                              robots=self.scenario.robot_ids, delay_ms=delay_ms, lease_ms=lease_ms,
                              socket=self.sockdir / "router.sock", tagswarm=str(BIN / "tagswarm"), report=report,
-                             spread_ms=spread_ms, seed=self.scenario.seed)
+                             spread_ms=spread_ms, seed=self.scenario.seed, jitter_ms=jitter_ms)
 
     # ---- life cycle
     def __enter__(self) -> MultiHost:
@@ -243,7 +246,7 @@ class MultiHost:
         summary = {
             "run": self.run, "prefix": self.topo.prefix, "wall_s": round(time.monotonic() - self.t0, 2),
             "hosts": {h.name: {"namespace": h.ns, "address": h.addr} for h in self.topo.hosts},
-            "links": {"delay_ms": self.delay_ms, "delay_spread_ms": self.spread_ms,
+            "links": {"delay_ms": self.delay_ms, "jitter_ms": self.jitter_ms, "delay_spread_ms": self.spread_ms,
                       "host_delay_ms": {h.name: host_delay_ms(h.name, self.delay_ms, self.spread_ms, self.scenario.seed)
                                         for h in self.topo.hosts if h.name != "router"},
                       "loss": self.links.loss, "rate_mbit": self.links.rate_mbit,
@@ -268,6 +271,8 @@ def parser() -> OneLineParser:
     p.add_argument("--out", type=Path, required=True, metavar="DIR", help="the run folder to write")
     p.add_argument("--delay-ms", type=float, default=0.0, metavar="MS",
                    help="one-way delay between hosts, milliseconds (receive-side fault layer; default 0)")
+    p.add_argument("--jitter-ms", type=float, default=0.0, metavar="MS",
+                   help="every message's delay drawn from D +- MS (uniform, seeded, each key's order kept; default 0)")
     p.add_argument("--delay-spread-ms", type=float, default=0.0, metavar="MS",
                    help="each host's delay drawn once from D +- MS (seeded by the scenario's seed; default 0)")
     p.add_argument("--loss", type=float, default=0.0, metavar="SHARE",
@@ -289,6 +294,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         env = {k: v for k, v in _environ().items() if k.startswith("TAGSWARM_")}
         if not 0.0 <= args.delay_ms <= 60_000:
             raise ConfigError(f"--delay-ms {args.delay_ms:g}: must be 0..60000")
+        if not 0.0 <= args.jitter_ms <= args.delay_ms:
+            raise ConfigError(f"--jitter-ms {args.jitter_ms:g}: must be 0..--delay-ms")
         if not 0.0 <= args.delay_spread_ms <= args.delay_ms:
             raise ConfigError(f"--delay-spread-ms {args.delay_spread_ms:g}: must be 0..--delay-ms")
         if not 0.0 <= args.loss < 1.0:
@@ -306,7 +313,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         signal.signal(signal.SIGINT, lambda *_: stop.set())
         signal.signal(signal.SIGTERM, lambda *_: stop.set())
         with MultiHost(args.out, scenario, run=args.run, delay_ms=args.delay_ms, loss=args.loss,
-                       spread_ms=args.delay_spread_ms,
+                       spread_ms=args.delay_spread_ms, jitter_ms=args.jitter_ms,
                        rate_mbit=args.rate_mbit, lease_ms=lease, report=not args.no_report,
                        latency=scenario.clock.mode == "realtime") as mh:
             print(f"{PROG}: {len(mh.topo.hosts)} hosts ({mh.topo.prefix}-*), run {mh.run!r}, "

@@ -78,6 +78,9 @@ def add_common_args(p: argparse.ArgumentParser) -> None:
     f.add_argument("--net-loss", metavar="SHARE", help="share of matching messages lost, 0..1 (env TAGSWARM_NET_LOSS)")
     f.add_argument("--net-delay-ms", metavar="MS", help="delay added to matching messages in milliseconds "
                                                        "(env TAGSWARM_NET_DELAY_MS)")
+    f.add_argument("--net-jitter-ms", metavar="MS", help="spread of that delay: each message late by delay ± jitter "
+                                                        "(uniform, seeded; per-key order kept; env "
+                                                        "TAGSWARM_NET_JITTER_MS)")
     f.add_argument("--net-fault-keys", action="append", metavar="KEYEXPR",
                    help="key expression the faults apply to (repeatable; env TAGSWARM_NET_FAULT_KEYS, comma-separated; "
                         "default: encoders, wheel commands, goals, observations, odometry and the map; never "
@@ -164,7 +167,7 @@ def _credentials(args: argparse.Namespace, env: Mapping[str, str]) -> dict[str, 
 
 
 def _faults(args: argparse.Namespace, env: Mapping[str, str]) -> dict[str, Any]:
-    """``loss``, ``delay_ms``, ``fault_keys`` and ``fault_seed``, validated with the flag's name."""
+    """``loss``, ``delay_ms``, ``jitter_ms``, ``fault_keys`` and ``fault_seed``, validated with the flag's name."""
     out: dict[str, Any] = {}
     loss = pick(args, env, "net_loss")
     if loss is not None:
@@ -172,6 +175,10 @@ def _faults(args: argparse.Namespace, env: Mapping[str, str]) -> dict[str, Any]:
     delay = pick(args, env, "net_delay_ms")
     if delay is not None:
         out["delay_ms"] = _number(delay, "--net-delay-ms", 0.0, MAX_DELAY_MS, f"milliseconds, 0..{MAX_DELAY_MS:g}")
+    jitter = pick(args, env, "net_jitter_ms")
+    if jitter is not None:
+        limit = float(out.get("delay_ms", 0.0))
+        out["jitter_ms"] = _number(jitter, "--net-jitter-ms", 0.0, limit, f"milliseconds, 0..the delay ({limit:g})")
     keys = list(args.net_fault_keys or _env_list(env, "NET_FAULT_KEYS")) if hasattr(args, "net_fault_keys") else []
     for k in keys:
         try:

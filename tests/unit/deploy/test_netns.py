@@ -150,3 +150,16 @@ def test_a_delay_spread_gives_each_host_its_own_seeded_delay(tmp_path: Path) -> 
     assert again == cmds
     assert hostplan.host_delay_ms("agent0", 20, 0, 7) == 20
     assert hostplan.host_delay_ms("agent0", 1, 5, 7) >= 0
+
+
+def test_jitter_goes_to_every_delayed_process(tmp_path: Path) -> None:
+    cmds = hostplan.commands(topo(2), run="r1", scenario_file=tmp_path / "s.json", out=tmp_path, robots=[0, 1],
+                             delay_ms=20, jitter_ms=5)
+    for name, (_, argv) in cmds.items():
+        if name in ("router", "recorder"):
+            assert "--net-jitter-ms" not in argv
+        else:
+            assert argv[argv.index("--net-jitter-ms") + 1] == "5", name
+    none = hostplan.commands(topo(2), run="r1", scenario_file=tmp_path / "s.json", out=tmp_path, robots=[0, 1],
+                             delay_ms=20)
+    assert all("--net-jitter-ms" not in argv for _, argv in none.values())

@@ -107,6 +107,41 @@ def test_delay_holds_each_sample_at_least_the_delay_and_keeps_order() -> None:
         f.close()
 
 
+class _Line:
+    """Stands in for the delay line: records each sample's due time."""
+
+    def __init__(self) -> None:
+        self.dues: list[float] = []
+
+    def push(self, due: float, _deliver: object) -> None:
+        self.dues.append(due)
+
+    def close(self) -> None:
+        pass
+
+
+def _jittered_dues(seed: int, key: str, n: int, monkeypatch: pytest.MonkeyPatch) -> tuple[list[float], list[float]]:
+    """Delays (s after the sample arrived) and due times of ``n`` samples on ``key`` arriving 1 ms apart."""
+    clock = iter(k * 0.001 for k in range(n))
+    monkeypatch.setattr("tagswarm.protocol.netfaults.time.monotonic", lambda: next(clock))
+    f = NetFaults(loss=0.0, delay_s=0.020, jitter_s=0.005, seed=seed, matches=everything)
+    line = f._line = _Line()  # type: ignore[assignment]
+    for _ in range(n):
+        f.hold(key, lambda: None)
+    return [due - k * 0.001 for k, due in enumerate(line.dues)], line.dues
+
+
+def test_jitter_spreads_the_delay_keeps_each_keys_order_and_repeats_per_seed(monkeypatch: pytest.MonkeyPatch) -> None:
+    late, dues = _jittered_dues(4, "tagswarm/r1/robot/1/encoders", 400, monkeypatch)
+    assert dues == sorted(dues)  # never overtakes a sample of its key that arrived earlier
+    assert 0.015 - 1e-9 <= min(late) and max(late) <= 0.025 + 0.002  # delay ± jitter (+ order hold-back)
+    assert max(late) - min(late) > 0.008  # really spread, not a fixed delay
+    assert dues == _jittered_dues(4, "tagswarm/r2/robot/1/encoders", 400, monkeypatch)[1]  # seeded, run id left out
+    assert dues != _jittered_dues(5, "tagswarm/r1/robot/1/encoders", 400, monkeypatch)[1]
+    with pytest.raises(ValueError, match="jitter"):
+        NetFaults(loss=0.0, delay_s=0.01, jitter_s=0.02, seed=0, matches=everything)
+
+
 def test_close_discards_what_is_still_held() -> None:
     f = NetFaults(loss=0.0, delay_s=30.0, seed=0, matches=everything)
     got: list[int] = []
@@ -164,6 +199,8 @@ def test_flags_and_environment_reach_the_bus_config() -> None:
     assert build_config(["--net-loss", "0.3"], env).bus.loss == 0.3  # flag beats environment
     d = build_config([], {}).bus
     assert (d.loss, d.delay_ms, d.fault_keys, d.fault_seed) == (0.0, 0.0, (), 0)
+    assert build_config(["--net-delay-ms", "20", "--net-jitter-ms", "5"], {}).bus.jitter_ms == 5.0
+    assert build_config([], {"TAGSWARM_NET_DELAY_MS": "20", "TAGSWARM_NET_JITTER_MS": "5"}).bus.jitter_ms == 5.0
 
 
 @pytest.mark.parametrize("argv,env,flag", [
@@ -173,6 +210,8 @@ def test_flags_and_environment_reach_the_bus_config() -> None:
     (["--net-loss", "nan"], {}, "--net-loss"),
     (["--net-delay-ms", "-3"], {}, "--net-delay-ms"),
     (["--net-delay-ms", "1e9"], {}, "--net-delay-ms"),
+    (["--net-delay-ms", "10", "--net-jitter-ms", "15"], {}, "--net-jitter-ms"),
+    (["--net-jitter-ms", "-1"], {}, "--net-jitter-ms"),
     (["--net-fault-keys", "a//b"], {}, "--net-fault-keys"),
     (["--net-seed", "x"], {}, "--net-seed"),
 ])

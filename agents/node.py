@@ -102,7 +102,7 @@ class AgentNode:
         self._camera_models: dict[str, tuple[tuple[object, ...], CameraModel]] = {}
         # CPU seconds (this thread) handling frames, and of that in the detector and the pose estimate:
         # the status reports them (cpu_frames_us, cpu_detect_pose_us) for bench/speed.py's overhead ratio
-        self._cpu_s: Counter[str] = Counter()
+        self._cpu_s: dict[str, float] = {"frames": 0.0, "detect_pose": 0.0}
         self.enc_in = bus.subscribe(self.keys.encoders(rid))
         # realtime: only encoders (a control cycle) and frames wake the loop; ticks, corrections, goals and
         # maps are read at the next wake-up, which is where they are used anyway (one pass of the loop

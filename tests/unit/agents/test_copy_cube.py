@@ -1,7 +1,7 @@
 """Copy cubes (``[[decoys]] kind = "cube"``): a second robot carrying copies of a robot's tag
 IDs.  Seen in one image with the robot it copies, neither is trusted (two plausible robots of
 one identity: ``duplicate``); seen alone it is, in the images, that robot -- the server's gate
-keeps it out of the map (tests/e2e/test_copy_cube.py)."""
+keeps it out of the map (tests/e2e/test_copy_cube_run.py)."""
 
 from __future__ import annotations
 

@@ -8,6 +8,7 @@ import math
 
 import numpy as np
 
+from tagswarm.protocol.freespace import segment_box_distance
 from tagswarm.protocol.geometry import se2_inverse
 from tagswarm.protocol.scenario_schema import Arena, Robot, Scenario
 
@@ -45,10 +46,13 @@ def start_poses(s: Scenario) -> list[tuple[float, float, float]]:
         return out
     out = []
     min_gap = 2 * footprint_radius(s.robot) + 0.1
+    # clear of the obstacles too (without it a 22nd robot of the warehouse scene landed on a pallet)
+    min_clear = footprint_radius(s.robot) + 0.1
     for _ in range(n):
         for _attempt in range(10_000):
             x, y = float(rng.uniform(-wx, wx)), float(rng.uniform(-wy, wy))
-            if all(math.dist((x, y), p[:2]) >= min_gap for p in out):
+            if all(math.dist((x, y), p[:2]) >= min_gap for p in out) and all(
+                    segment_box_distance((x, y), (x, y), ob) >= min_clear for ob in s.arena.obstacles):
                 break
         out.append((x, y, float(rng.uniform(-math.pi, math.pi))))
     return out

@@ -46,7 +46,7 @@ def test_paper_scenario() -> None:
     assert [c.name for c in s.robot.cameras] == ["front"]
     assert (s.robot.cameras[0].width, s.robot.cameras[0].height) == (320, 240)
     assert s.clock.mode == "realtime"
-    assert s.render.workers == 0
+    assert s.render.workers == -1  # automatic: in-process in lockstep and for a few robots
 
 
 def test_paper_tag_ids() -> None:

@@ -16,7 +16,7 @@ from tagswarm.protocol import layout, robotfill, tags
 from tagswarm.protocol import scenario as sc
 from tagswarm.protocol.freespace import obstacle_clearance, segment_distance, wall_clearance
 from tagswarm.protocol.scenario import ScenarioError, load_scenario
-from tagswarm.world.config import build_config
+from tagswarm.world.config import build_config, resolve_render_workers
 
 COUNTS = (1, 2, 5, 8, 16, 32, 64)
 
@@ -115,7 +115,8 @@ def test_fewer_robots_than_the_list_keeps_the_first() -> None:
 
 
 def test_robots_flag_environment_and_set_agree() -> None:
-    want = load_scenario("paper", ["robots.count=8"])
+    # the world resolves the automatic render.workers for its machine
+    want = resolve_render_workers(load_scenario("paper", ["robots.count=8"]))
     assert build_config(["--robots", "8"], {}).scenario == want
     assert build_config([], {"TAGSWARM_ROBOTS": "8"}).scenario == want
     assert build_config(["--set", "robots.count=8"], {}).scenario == want

@@ -129,3 +129,10 @@ def test_corridor() -> None:
     for k in s.robot_ids:  # the patrols run along the corridor
         for a, b in _legs(s, k):
             assert a[1] == b[1]
+
+
+def test_random_placement_keeps_clear_of_obstacles() -> None:
+    s = load_scenario("warehouse", ['robots.placement="random"', "robots.count=40", "missions=[]"])
+    r = layout.footprint_radius(s.robot)
+    for k, (x, y, _) in enumerate(layout.start_poses(s)):
+        assert obstacle_clearance((x, y), (x, y), s.arena) >= r + 0.1 - 1e-9, k

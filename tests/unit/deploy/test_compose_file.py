@@ -334,6 +334,9 @@ def test_service_environments_build_valid_process_configs(tmp_path: Path) -> Non
     assert s.clock.participants == (*(f"agent/{r}" for r in s.robot_ids), "server/0")
     assert s.clock.observers == ("recorder/0",)
     server = server_config([], env("server", host))
+    # the same scenario everywhere; only the world resolves the automatic render.workers (lockstep: 0)
+    assert s.render.workers == 0 and server.scenario.render.workers == -1
+    s = msgspec.structs.replace(s, render=server.scenario.render)
     assert server.scenario == s and server.bus == msgspec.structs.replace(world.bus, user="server")
     # an agent replica after `tagswarm claim` gave it robot 2: what claim adds to its environment
     claimed = {**env("agent", host), "TAGSWARM_ROBOT_ID": "2", "TAGSWARM_ZENOH_USER": "agent2"}

@@ -14,7 +14,7 @@ from tagswarm.protocol.keys import KeyNameError
 from tagswarm.protocol.scenario import ScenarioError, load_scenario
 from tagswarm.runtime.config import ConfigError, env_of
 from tagswarm.world import node
-from tagswarm.world.config import WorldConfig, build_config
+from tagswarm.world.config import WorldConfig, build_config, resolve_render_workers
 
 CONFIG_ERRORS = (ConfigError, ScenarioError)
 
@@ -28,7 +28,7 @@ def cfg(argv: Sequence[str] = (), **env: str) -> WorldConfig:
 
 def test_defaults_without_env_or_flags() -> None:
     c = cfg()
-    assert c.scenario == load_scenario("paper")
+    assert c.scenario == resolve_render_workers(load_scenario("paper"))  # the world picks its render workers
     assert c.run == "default"
     assert c.log_level == "INFO"
     assert c.status_period_s == 1.0

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import itertools
+import json
 import os
 import signal
 import socket
@@ -119,3 +120,18 @@ def wait_alive(bus: Bus, keys: Keys, participant: str, timeout_s: float = 20.0) 
         return seen
 
     assert bus.wait_for(up, timeout_s), f"{participant} never came up"
+
+
+def paper_counters(out: Path, duration_s: float, *extra: str) -> dict[str, dict[str, int]]:
+    """``tagswarm up`` of the paper scenario (lockstep, seed 0) into ``out``; its counters per process."""
+    res = subprocess.run([script("tagswarm"), "up", "--scenario", "paper", "--clock", "lockstep", "--seed", "0",
+                          "--duration", str(duration_s), "--out", str(out), "--no-live", *extra],
+                         capture_output=True, text=True, timeout=1200)
+    assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
+    counters: dict[str, dict[str, int]] = json.loads((out / "run.json").read_text())["counters"]
+    return counters
+
+
+def agents_total(counters: dict[str, dict[str, int]], name: str) -> int:
+    """Counter ``name`` summed over every agent."""
+    return sum(c.get(name, 0) for who, c in counters.items() if who.startswith("agent/"))

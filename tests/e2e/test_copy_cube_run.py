@@ -9,30 +9,15 @@ that sees a copy where its map has nobody steers as it sees fit."""
 
 from __future__ import annotations
 
-import json
-import subprocess
 from pathlib import Path
 
 import numpy as np
 
-from tests.harness import script
+from tests.harness import agents_total, paper_counters
 
 COPIES = ('decoys=[{kind="cube", tag_id=21, x_m=-2.8, y_m=-1.2, yaw_rad=0.0}, '
           '{kind="cube", tag_id=11, x_m=2.6, y_m=2.0, yaw_rad=3.1416}]')
 RUN_S = 20.0
-
-
-def _up(out: Path, *extra: str) -> dict[str, dict[str, int]]:
-    res = subprocess.run([script("tagswarm"), "up", "--scenario", "paper", "--clock", "lockstep", "--seed", "0",
-                          "--duration", str(RUN_S), "--out", str(out), "--no-live", "--no-report", *extra],
-                         capture_output=True, text=True, timeout=1200)
-    assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
-    counters: dict[str, dict[str, int]] = json.loads((out / "run.json").read_text())["counters"]
-    return counters
-
-
-def _agents(counters: dict[str, dict[str, int]], name: str) -> int:
-    return sum(c.get(name, 0) for who, c in counters.items() if who.startswith("agent/"))
 
 
 def _fused_errors(run: Path, rid: int) -> np.ndarray:
@@ -44,9 +29,9 @@ def _fused_errors(run: Path, rid: int) -> np.ndarray:
 
 
 def test_copy_cubes_are_counted_and_never_move_the_map(tmp_path: Path) -> None:
-    plain = _up(tmp_path / "plain")
-    copied = _up(tmp_path / "copies", "--set", COPIES)
-    assert _agents(copied, "pose_rejected_duplicate") > _agents(plain, "pose_rejected_duplicate")
+    plain = paper_counters(tmp_path / "plain", RUN_S, "--no-report")
+    copied = paper_counters(tmp_path / "copies", RUN_S, "--no-report", "--set", COPIES)
+    assert agents_total(copied, "pose_rejected_duplicate") > agents_total(plain, "pose_rejected_duplicate")
     server = copied["server"]
     assert server.get("fusion_rejected_gate", 0) > plain["server"].get("fusion_rejected_gate", 0)
     assert server.get("fusion_reloc_decoy_site", 0) > 0  # the copies' places were recognised

@@ -25,6 +25,7 @@ from typing import Any
 import pytest
 
 from tagswarm.deploy import netns
+from tagswarm.deploy.hostprobe import Probe
 from tagswarm.deploy.multihost import MultiHost
 from tagswarm.protocol import codec
 from tagswarm.protocol import messages as m
@@ -98,6 +99,17 @@ def _localised(mh: MultiHost, rid: int, after_sim_s: float = 0.0) -> bool:
         and err < LOCALISED_M
 
 
+def _localised_swarm(hosts: Make, duration_s: float) -> tuple[MultiHost, Probe]:
+    """A realtime swarm across the hosts, started and run until every robot is localised (>= 4 s)."""
+    mh = hosts("realtime", duration_s, report=False)
+    mh.start()
+    p = mh.probe
+    assert p is not None
+    mh.until(lambda: p.sim_s() >= 4.0 and all(_localised(mh, r) for r in ROBOTS), 120,
+             "the swarm never got localised")
+    return mh, p
+
+
 def _all_exited_0(codes: dict[str, int | None]) -> None:
     assert {n: c for n, c in codes.items() if n != "router"} == {n: 0 for n in codes if n != "router"}, codes
 
@@ -130,12 +142,9 @@ def test_lockstep_across_hosts_is_byte_identical_to_one_host(hosts: Make, tmp_pa
 
 def test_agent_host_partitioned_is_dropped_stops_and_rejoins(hosts: Make) -> None:
     victim = 2
-    mh = hosts("realtime", 20.0, report=False)
-    mh.start()
-    p, bus = mh.probe, mh.bus
-    assert p is not None and bus is not None
-    mh.until(lambda: p.sim_s() >= 4.0 and all(_localised(mh, r) for r in ROBOTS), 120,
-             "the swarm never got localised")
+    mh, p = _localised_swarm(hosts, 20.0)
+    bus = mh.bus
+    assert bus is not None
     asked_at = [0.0]
     answer: list[bool | None] = [None]
 
@@ -187,12 +196,7 @@ def test_agent_host_partitioned_is_dropped_stops_and_rejoins(hosts: Make) -> Non
 
 
 def test_server_host_partitioned_agents_run_on_odometry_then_recover(hosts: Make) -> None:
-    mh = hosts("realtime", 16.0, report=False)
-    mh.start()
-    p = mh.probe
-    assert p is not None
-    mh.until(lambda: p.sim_s() >= 4.0 and all(_localised(mh, r) for r in ROBOTS), 120,
-             "the swarm never got localised")
+    mh, p = _localised_swarm(hosts, 16.0)
     sim_cut, t_cut = p.sim_s(), p.now()
     mh.partition("server")
 
@@ -219,12 +223,7 @@ def test_server_host_partitioned_agents_run_on_odometry_then_recover(hosts: Make
 
 
 def test_router_restarted_everyone_reconnects_and_the_run_goes_on(hosts: Make) -> None:
-    mh = hosts("realtime", 14.0, report=False)
-    mh.start()
-    p = mh.probe
-    assert p is not None
-    mh.until(lambda: p.sim_s() >= 4.0 and all(_localised(mh, r) for r in ROBOTS), 120,
-             "the swarm never got localised")
+    mh, p = _localised_swarm(hosts, 14.0)
     everyone = ["router/0", "recorder/0", "world/0", "server/0", *(f"agent/{r}" for r in ROBOTS)]
     t_restart, sim_restart = p.now(), p.sim_s()
     mh.restart("router")

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from tests.harness import script
+from tests.harness import agents_total, paper_counters, script
 
 DURATION_S = 60.0
 
@@ -48,25 +48,14 @@ DECOYS = ('decoys=[{tag_id=21, x_m=3.4, y_m=0.5, z_m=0.6, yaw_rad=3.1416, size_m
 DECOY_RUN_S = 20.0
 
 
-def _up(out: Path, *extra: str) -> dict[str, dict[str, int]]:
-    res = subprocess.run([script("tagswarm"), "up", "--scenario", "paper", "--clock", "lockstep", "--seed", "0",
-                          "--duration", str(DECOY_RUN_S), "--out", str(out), "--no-live", *extra],
-                         capture_output=True, text=True, timeout=1200)
-    assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
-    counters: dict[str, dict[str, int]] = json.loads((out / "run.json").read_text())["counters"]
-    return counters
-
-
-def _total(counters: dict[str, dict[str, int]], name: str) -> int:
-    return sum(c.get(name, 0) for who, c in counters.items() if who.startswith("agent/"))
 
 
 def test_decoys_are_counted_and_do_not_move_the_map(tmp_path: Path) -> None:
-    plain = _up(tmp_path / "plain")
-    decoyed = _up(tmp_path / "decoys", "--set", DECOYS)
-    assert _total(decoyed, "pose_rejected_decoy") > 0  # robot 2's ID beside robot 2: the poster copy is dropped
-    assert _total(decoyed, "unknown_tags") > _total(plain, "unknown_tags")
-    assert _total(decoyed, "pose_rejected_implausible") > _total(plain, "pose_rejected_implausible")
+    plain = paper_counters(tmp_path / "plain", DECOY_RUN_S)
+    decoyed = paper_counters(tmp_path / "decoys", DECOY_RUN_S, "--set", DECOYS)
+    assert agents_total(decoyed, "pose_rejected_decoy") > 0  # robot 2's ID beside robot 2: the poster copy is dropped
+    assert agents_total(decoyed, "unknown_tags") > agents_total(plain, "unknown_tags")
+    assert agents_total(decoyed, "pose_rejected_implausible") > agents_total(plain, "pose_rejected_implausible")
     for rid in range(4):
         a = np.loadtxt(tmp_path / "plain" / "trajectories" / f"fused_{rid}.tum", ndmin=2)
         b = np.loadtxt(tmp_path / "decoys" / "trajectories" / f"fused_{rid}.tum", ndmin=2)

@@ -61,6 +61,7 @@ from tagswarm.protocol.keys import Keys
 from tagswarm.protocol.layout import arena_to_map, footprint_radius
 from tagswarm.runtime import streams
 from tagswarm.runtime.lockstep import Participant
+from tagswarm.runtime.presence import Presence
 from tagswarm.runtime.process import serve_node
 
 log = logging.getLogger("tagswarm.agent")
@@ -115,7 +116,8 @@ class AgentNode:
         self.static_obstacles = static_boxes(s)
         self.server_alive_in = bus.watch_liveliness(self.keys.alive_role("server"))
         self.world_alive_in = bus.watch_liveliness(self.keys.alive_role("world"))
-        self.server_alive = False
+        # the server's token, and (realtime) whether its corrections and maps keep coming
+        self.server_presence: Presence[str] = Presence(0 if self.lockstep else server_silence_ns(config))
         self.runs = streams.RunFollower()  # the world instance whose ticks we follow
         self.wait_for_server = any(p.startswith("server/") for p in s.clock.participants)
         # a user's controller (docs/controllers.md): made anew with every run, like the behaviour
@@ -174,13 +176,18 @@ class AgentNode:
 
     def _drain_presence(self) -> None:
         """Liveliness of the server (corrections possible?) and of the world (may a new run start?)."""
+        was = self.server_alive
         for change in self.server_alive_in.drain():
-            if self.server_alive and not change.value:
-                self.counters["server_lost"] += 1
-                log.warning("the map server is gone: running on odometry until it is back")
-            elif change.value and not self.server_alive and self.counters["server_lost"]:
-                log.info("a map server is back")
-            self.server_alive = change.value
+            self.server_presence.token("server", change.value, self.time_ns)
+        self.server_presence.update(self.time_ns)
+        if was and not self.server_alive:
+            self.counters["server_lost"] += 1
+            silent = "server" in self.server_presence.silent
+            log.warning("the map server is %s: running on odometry until it is back",
+                        "silent (no correction or map for %.1f s)" % (self.server_presence.silence_ns / 1e9)
+                        if silent else "gone")
+        elif self.server_alive and not was and self.counters["server_lost"]:
+            log.info("a map server is back")
         for change in self.world_alive_in.drain():
             self.runs.world_presence(change.value)
 
@@ -207,6 +214,11 @@ class AgentNode:
 
     def _publish(self, key: str, msg: m.Msg) -> None:
         self.bus.put(key, codec.encode(msg))
+
+    @property
+    def server_alive(self) -> bool:
+        """A map server's token is up and (realtime) it keeps talking to us."""
+        return self.server_presence.alive("server")
 
     @property
     def run_id(self) -> str | None:
@@ -278,6 +290,7 @@ class AgentNode:
                 self.rejects.reject("spoofed", f"correction for robot {c.robot_id} on {item.key}")
                 continue
             self.correction_stamp_ns = max(self.correction_stamp_ns, c.stamp_ns)
+            self.server_presence.heard("server", self.time_ns)
             self.gaps.seen(item.key, c.seq, "corrections")
             if not c.localised:
                 continue
@@ -399,6 +412,7 @@ class AgentNode:
             if gmap.stamp_ns > self.time_ns + CORRECTION_AHEAD_NS:
                 self.counters["stale_maps"] += 1  # of a previous world run
                 continue
+            self.server_presence.heard("server", self.time_ns)
             self.neighbours.offer(gmap.stamp_ns, gmap.robots)
         # lockstep: the map of tick k-2 left the server before its correction of tick k-1, which
         # we have waited for; a newer one may or may not be here yet
@@ -551,6 +565,12 @@ class AgentNode:
         self._publish_status()
         log.info("agent %d stopping at t=%.2f s: %s", self.rid, self.time_ns / 1e9, self.status_counters())
         return 0
+
+
+def server_silence_ns(config: AgentConfig) -> int:
+    """How long (simulated ns) a server with a token may send us neither a correction nor a map
+    (2 Hz) before we run on odometry: one Zenoh lease plus a second, plus the receive delay."""
+    return int((config.bus.lease_ms / 1e3 + 1.0 + config.bus.delay_ms / 1e3) * 1e9)
 
 
 def main(argv: Sequence[str] | None = None, environ: Mapping[str, str] | None = None) -> int:

@@ -478,6 +478,8 @@ def open_bus(cfg: BusConfig) -> Iterator[Bus]:
     """Open a Zenoh session for ``cfg`` and close it on exit, whatever happens."""
     conf = zenoh_config(cfg)
     faults = net_faults(cfg)
+    # Zenoh's own log (to stderr, the process's log) only when asked for with RUST_LOG
+    zenoh.try_init_log_from_env()
     try:
         session = zenoh.open(conf)
     except Exception as exc:

@@ -30,6 +30,7 @@ from tagswarm.protocol.keys import Keys
 from tagswarm.runtime import streams
 from tagswarm.runtime.config import ConfigError
 from tagswarm.runtime.lockstep import Participant
+from tagswarm.runtime.presence import Presence
 from tagswarm.runtime.process import serve_node
 from tagswarm.server import journal as jr
 from tagswarm.server import outputs
@@ -52,6 +53,12 @@ RECENT_MAX = 4096
 # message costs the run, instead of ``clock.ack_timeout_s``
 ODOMETRY_GRACE_S = 0.03
 ACKS_KEPT = 8
+
+
+def silence_ns(config: ServerConfig) -> int:
+    """How long (simulated ns) an agent with a token may send no odometry before it counts as
+    gone: one Zenoh lease (what the router would wait) plus half a second, plus the receive delay."""
+    return int((config.bus.lease_ms / 1e3 + 0.5 + config.bus.delay_ms / 1e3) * 1e9)
 
 
 def make_fusion(config: ServerConfig) -> Fusion:
@@ -91,7 +98,8 @@ class ServerNode:
         self._status_wall = 0.0  # when it went out (monotonic s)
         self.seq = streams.Sequencer()
         self.participant = Participant(bus, self.keys, config.participant, self.seq)  # lockstep acks
-        self.alive: set[int] = set()
+        # agents with a token that still send odometry (realtime: see tagswarm/runtime/presence.py)
+        self.presence: Presence[int] = Presence(0 if s.clock.mode == "lockstep" else silence_ns(config))
         self.latest_rx: dict[int, int] = {}
         self.time_ns = 0
         self._next_map_ns = 0
@@ -152,6 +160,11 @@ class ServerNode:
         self.bus.put(key, codec.encode(msg))
 
     # ------------------------------------------------------------------ inputs
+    @property
+    def alive(self) -> set[int]:
+        """Robots whose agent is alive: its token is up and (realtime) its odometry keeps coming."""
+        return self.presence.alive_set()
+
     def _robot_from_key(self, key: str, claimed: int) -> int | None:
         rid = self.keys.robot_id_of(key)
         if rid is None or rid != claimed:
@@ -167,10 +180,8 @@ class ServerNode:
             who = self.keys.participant_of(change.key)
             if who and who.startswith("agent/") and who[6:].isdigit():
                 agent = int(who[6:])
-                if change.value:
-                    self.alive.add(agent)
-                else:
-                    self.alive.discard(agent)
+                self.presence.token(agent, change.value, self.time_ns)
+                if not change.value:
                     log.info("robot %d's agent is gone; its last pose stays in the map", agent)
         # acks before odometry: an agent's odometry of a tick was enqueued before its ack of that tick
         # (one session, one receive thread), so it is drained below, however late this drain runs
@@ -196,6 +207,7 @@ class ServerNode:
             self.gaps.seen(item.key, od.seq, f"odometry_robot{sender}")
             self._accept(jr.Odometry(robot_id=sender, stamp_ns=od.stamp_ns, x_m=od.x_m, y_m=od.y_m,
                                      yaw_rad=od.yaw_rad, distance_m=od.distance_m, slip_m=od.slip_m))
+            self.presence.heard(sender, od.stamp_ns)
             self.counters["odometry"] += 1
         for item, ob in self.rejects.decoded(self.obs_in.drain(), m.RelativeObservation):
             observer = self._robot_from_key(item.key, ob.robot_id)
@@ -212,6 +224,9 @@ class ServerNode:
                                         stamp_ns=ob.stamp_ns, x_m=ob.x_m, y_m=ob.y_m, yaw_rad=ob.yaw_rad,
                                         cov=tuple(float(v) for v in ob.cov)))
             self.counters["observations"] += 1
+        self.presence.update(self.time_ns, log, "robot {}'s agent")
+        if self.presence.silences:
+            self.counters["agent_silences"] = self.presence.silences
         if self.journal is not None:
             self.journal.flush()  # accepted inputs reach the OS before anything they influence goes out
         for q in self.query_in.drain():

@@ -161,13 +161,13 @@ def test_agent_host_partitioned_is_dropped_stops_and_rejoins(hosts: Make) -> Non
     seen: dict[str, float] = {}
 
     def noticed() -> bool:
-        gone = p.went(f"agent/{victim}", False, t_cut)
-        if gone is not None:
-            seen.setdefault("token_gone_s", gone - t_cut)
-        if "server_s" not in seen and server_says_alive() is False:
+        if server_says_alive() is False:
             seen["server_s"] = p.now() - t_cut
-        return len(seen) == 2
+        return "server_s" in seen
 
+    # the server's mark is what counts: its token may outlive the cut by up to Zenoh's 10 s TCP linger
+    # when the router holds unsent bytes for it (tagswarm/runtime/presence.py), so the server also
+    # calls an agent gone once its odometry stops; when the token went is only reported
     mh.until(noticed, 30, "the cut-off agent was never marked not alive")
     mh.until(lambda: p.now() - t_cut >= 5.0, 30, "")
     sim_heal, t_heal = p.sim_s(), p.now()
@@ -183,11 +183,13 @@ def test_agent_host_partitioned_is_dropped_stops_and_rejoins(hosts: Make) -> Non
         return max(abs(a[0] - pts[0][0]) + abs(a[1] - pts[0][1]) for a in pts)
 
     victim_moved, other_moved = moved(victim), moved(1)
+    gone = p.went(f"agent/{victim}", False, t_cut)
+    if gone is not None:
+        seen["token_gone_s"] = gone - t_cut
     codes = mh.wait_end(120)
     _report(mh, "agent_partition", {**seen, "lease_s": LEASE_S, "sim_cut_s": sim_cut, "sim_heal_s": sim_heal,
                                     "localised_again_sim_s": back_sim_s, "localised_again_wall_s": back_wall_s,
                                     "victim_moved_m": victim_moved, "robot1_moved_m": other_moved})
-    assert seen["token_gone_s"] <= LEASE_S + 1.0, seen
     assert seen["server_s"] <= LEASE_S + 1.0, seen
     assert victim_moved < 0.01, victim_moved
     assert other_moved > 0.05, other_moved

@@ -36,13 +36,16 @@ def final_error(run: Path, rid: int) -> float | None:
 
 
 def scene_run(up: Callable[..., Path], work: Path, scene: str, duration: float,
-              seed: int | None = None) -> dict[str, Any]:
-    """One scene end to end with its own seed unless ``seed``; the numbers the README table shows."""
+              seed: int | None = None, overrides: tuple[str, ...] = ()) -> dict[str, Any]:
+    """One scene end to end with its own seed unless ``seed`` and the scenario ``overrides``
+    (``--set`` values); the numbers the README table shows."""
     if seed is None:
         from tagswarm.protocol.scenario import load_scenario
 
         seed = load_scenario(scene).seed  # a random placement is part of the scene
-    run = up(work / f"scene_{scene}_{seed}", "--scenario", scene, "--seed", str(seed), "--duration", str(duration))
+    sets = [arg for o in overrides for arg in ("--set", o)]
+    run = up(work / f"scene_{scene}_{seed}", "--scenario", scene, "--seed", str(seed), "--duration", str(duration),
+             *sets)
     m = json.loads((run / "metrics.json").read_text())
     sw, robots = m["swarm"], m["robots"]
     fused = sw.get("fused") or {}
@@ -109,13 +112,20 @@ def main() -> int:
     p.add_argument("--quick", action="store_true", help="shorter runs (see SCENES)")
     p.add_argument("--scenes", nargs="*", default=list(SCENES))
     p.add_argument("--out", type=Path, default=None)
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="scenario override for every scene (repeatable), e.g. server.obs_sigma_floor_m=0.02")
+    p.add_argument("--keep", type=Path, default=None, help="keep the run folders here (default: deleted)")
     a = p.parse_args()
     root = Path(__file__).resolve().parents[1]
     out = a.out or root / "bench" / "results" / ("scenes_quick.json" if a.quick else "scenes.json")
     t0 = time.monotonic()
     with tempfile.TemporaryDirectory(prefix="tagswarm-scenes-") as tmp:
-        results = [scene_run(up, Path(tmp), s, SCENES[s][1 if a.quick else 0]) for s in a.scenes]
-    out.write_text(json.dumps({"bench": "scenes", "machine": machine(), "targets": TARGETS, "scenes": results,
+        work = Path(tmp) if a.keep is None else a.keep
+        work.mkdir(parents=True, exist_ok=True)
+        results = [scene_run(up, work, s, SCENES[s][1 if a.quick else 0], overrides=tuple(a.set))
+                   for s in a.scenes]
+    out.write_text(json.dumps({"bench": "scenes", "machine": machine(), "targets": TARGETS, "overrides": a.set,
+                               "scenes": results,
                                "wall_time_s": time.monotonic() - t0}, indent=2))
     print_table("scenes", HEADER, table_rows(results))
     return 0

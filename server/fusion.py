@@ -39,7 +39,15 @@ import numpy as np
 
 from tagswarm.protocol.geometry import Pose2, se2_between, se2_compose, se2_inverse
 from tagswarm.server.keyframes import KeyframeGraph, PairView, Robot, repeats
-from tagswarm.server.noise import CHI2_3DOF_999, Cov, FusionParams, inverse_cov, odom_increment_cov, tangent_cov
+from tagswarm.server.noise import (
+    CHI2_3DOF_999,
+    Cov,
+    FusionParams,
+    floored_obs_cov,
+    inverse_cov,
+    odom_increment_cov,
+    tangent_cov,
+)
 from tagswarm.server.placement import Candidate, Placement, choose
 from tagswarm.server.recovery import LANDMARK_WITNESS, Recovery, Verdict
 from tagswarm.server.stitch import Edge, stitch
@@ -132,14 +140,14 @@ class Fusion:
 
     def add_observation(self, observer: int, target: int, stamp_ns: int, rel: Pose2, cov: Cov) -> None:
         """``target``'s base in ``observer``'s base frame at ``stamp_ns``."""
-        self._push(stamp_ns, "obs", (observer, target, rel, np.asarray(cov, float).reshape(3, 3)))
+        self._push(stamp_ns, "obs", (observer, target, rel, floored_obs_cov(cov, self.p)))
 
     def add_landmark_observation(self, observer: int, landmark: int, stamp_ns: int, rel: Pose2, cov: Cov) -> None:
         """Landmark ``landmark``'s frame in ``observer``'s base frame."""
         if landmark not in self.landmarks:
             self.counters["rejected_unknown_landmark"] += 1
             return
-        self._push(stamp_ns, "landmark", (observer, landmark, rel, np.asarray(cov, float).reshape(3, 3)))
+        self._push(stamp_ns, "landmark", (observer, landmark, rel, floored_obs_cov(cov, self.p)))
 
     # ------------------------------------------------------------------ processing
     def latest_odom_ns(self, rid: int) -> int:

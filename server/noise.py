@@ -20,8 +20,11 @@ class FusionParams:
     """Tuning of the fusion; defaults suit the shipped scenarios."""
 
     wheel_base_m: float = 0.22
-    odom_wheel_sigma: float = 0.02  # sqrt(m), as the agents' odometry model
+    odom_wheel_sigma: float = 0.02  # sqrt(m), wheel-travel noise ([server] odom_wheel_sigma, else the agents')
     odom_scale_sigma: float = 0.02  # extra per-metre systematic share (wheel radius/base miscalibration)
+    # no relative observation is trusted better than this (m, position): the detector's systematic error at a
+    # viewpoint, which repeated sightings do not average out ([server] obs_sigma_floor_m)
+    obs_sigma_floor_m: float = 0.0
     kf_dist_m: float = 0.2
     kf_angle_rad: float = 0.2
     kf_max_interval_s: float = 2.0
@@ -75,6 +78,15 @@ def odom_increment_cov(delta: Pose2, p: FusionParams, slip_m: float = 0.0) -> Co
     slip = (p.odom_slip_sigma * max(slip_m, 0.0)) ** 2
     var_s, var_lat, var_th = var_s + slip, var_lat + slip, var_th + slip / (b / 2) ** 2
     return np.diag([var_s + 1e-6, var_lat + 1e-6, var_th + 1e-6])
+
+
+def floored_obs_cov(cov: Cov, p: FusionParams) -> Cov:
+    """(3, 3) observation covariance (x, y, yaw in the observer's axes) with the position floor
+    ``obs_sigma_floor_m`` added isotropically (so it is the same in any frame)."""
+    out = np.array(cov, float).reshape(3, 3)
+    out[0, 0] += p.obs_sigma_floor_m**2
+    out[1, 1] += p.obs_sigma_floor_m**2
+    return out
 
 
 def tangent_cov(rel: Pose2, cov: Cov) -> Cov:

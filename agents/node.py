@@ -61,7 +61,7 @@ from tagswarm.protocol.keys import Keys
 from tagswarm.protocol.layout import arena_to_map, footprint_radius
 from tagswarm.runtime import streams
 from tagswarm.runtime.lockstep import Participant
-from tagswarm.runtime.presence import Presence
+from tagswarm.runtime.presence import Presence, silence_ns
 from tagswarm.runtime.process import serve_node
 
 log = logging.getLogger("tagswarm.agent")
@@ -117,7 +117,9 @@ class AgentNode:
         self.server_alive_in = bus.watch_liveliness(self.keys.alive_role("server"))
         self.world_alive_in = bus.watch_liveliness(self.keys.alive_role("world"))
         # the server's token, and (realtime) whether its corrections and maps keep coming
-        self.server_presence: Presence[str] = Presence(0 if self.lockstep else server_silence_ns(config))
+        # maps come at 2 Hz (corrections only while localised): a second beyond the lease is two missed maps
+        self.server_presence: Presence[str] = Presence(
+            0 if self.lockstep else silence_ns(config.bus.lease_ms, config.bus.delay_ms, 1.0))
         self.runs = streams.RunFollower()  # the world instance whose ticks we follow
         self.wait_for_server = any(p.startswith("server/") for p in s.clock.participants)
         # a user's controller (docs/controllers.md): made anew with every run, like the behaviour
@@ -182,10 +184,9 @@ class AgentNode:
         self.server_presence.update(self.time_ns)
         if was and not self.server_alive:
             self.counters["server_lost"] += 1
-            silent = "server" in self.server_presence.silent
-            log.warning("the map server is %s: running on odometry until it is back",
-                        "silent (no correction or map for %.1f s)" % (self.server_presence.silence_ns / 1e9)
-                        if silent else "gone")
+            how = (f"silent (no correction or map for {self.server_presence.silence_ns / 1e9:.1f} s)"
+                   if "server" in self.server_presence.silent else "gone")
+            log.warning("the map server is %s: running on odometry until it is back", how)
         elif self.server_alive and not was and self.counters["server_lost"]:
             log.info("a map server is back")
         for change in self.world_alive_in.drain():
@@ -565,12 +566,6 @@ class AgentNode:
         self._publish_status()
         log.info("agent %d stopping at t=%.2f s: %s", self.rid, self.time_ns / 1e9, self.status_counters())
         return 0
-
-
-def server_silence_ns(config: AgentConfig) -> int:
-    """How long (simulated ns) a server with a token may send us neither a correction nor a map
-    (2 Hz) before we run on odometry: one Zenoh lease plus a second, plus the receive delay."""
-    return int((config.bus.lease_ms / 1e3 + 1.0 + config.bus.delay_ms / 1e3) * 1e9)
 
 
 def main(argv: Sequence[str] | None = None, environ: Mapping[str, str] | None = None) -> int:

@@ -30,7 +30,7 @@ from tagswarm.protocol.keys import Keys
 from tagswarm.runtime import streams
 from tagswarm.runtime.config import ConfigError
 from tagswarm.runtime.lockstep import Participant
-from tagswarm.runtime.presence import Presence
+from tagswarm.runtime.presence import Presence, silence_ns
 from tagswarm.runtime.process import serve_node
 from tagswarm.server import journal as jr
 from tagswarm.server import outputs
@@ -53,12 +53,6 @@ RECENT_MAX = 4096
 # message costs the run, instead of ``clock.ack_timeout_s``
 ODOMETRY_GRACE_S = 0.03
 ACKS_KEPT = 8
-
-
-def silence_ns(config: ServerConfig) -> int:
-    """How long (simulated ns) an agent with a token may send no odometry before it counts as
-    gone: one Zenoh lease (what the router would wait) plus half a second, plus the receive delay."""
-    return int((config.bus.lease_ms / 1e3 + 0.5 + config.bus.delay_ms / 1e3) * 1e9)
 
 
 def make_fusion(config: ServerConfig) -> Fusion:
@@ -101,7 +95,9 @@ class ServerNode:
         self.seq = streams.Sequencer()
         self.participant = Participant(bus, self.keys, config.participant, self.seq)  # lockstep acks
         # agents with a token that still send odometry (realtime: see tagswarm/runtime/presence.py)
-        self.presence: Presence[int] = Presence(0 if s.clock.mode == "lockstep" else silence_ns(config))
+        # an agent sends odometry at the encoder rate (30 Hz): half a second beyond the lease is plenty
+        self.presence: Presence[int] = Presence(
+            0 if s.clock.mode == "lockstep" else silence_ns(config.bus.lease_ms, config.bus.delay_ms, 0.5))
         self.latest_rx: dict[int, int] = {}
         self.time_ns = 0
         self._next_map_ns = 0

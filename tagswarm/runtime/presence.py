@@ -25,6 +25,13 @@ from typing import Generic, TypeVar
 K = TypeVar("K", bound=Hashable)
 
 
+def silence_ns(lease_ms: int, delay_ms: float, margin_s: float) -> int:
+    """Simulated ns of silence after which a peer with a token counts as gone: one Zenoh lease
+    (what a router waits before it drops a silent session), ``margin_s`` for the peer's own
+    publishing period, and the receive delay (``delay_ms``, injected network delay)."""
+    return int((lease_ms / 1e3 + margin_s + delay_ms / 1e3) * 1e9)
+
+
 @dataclass
 class Presence(Generic[K]):
     """Token and last-heard time of each peer (keyed by anything hashable: a robot id, a role).

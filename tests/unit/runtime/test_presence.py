@@ -6,7 +6,7 @@ import logging
 
 import pytest
 
-from tagswarm.runtime.presence import Presence
+from tagswarm.runtime.presence import Presence, silence_ns
 
 S = 1_000_000_000
 
@@ -93,3 +93,8 @@ def test_a_clock_that_went_back_is_a_new_run() -> None:
     p.update(2 * S)
     p.update(3 * S + 1)
     assert not p.alive(0)  # silent since 1 s of the new run, not since 30 s of the old one
+
+
+def test_silence_is_a_lease_plus_the_margin_plus_the_delay() -> None:
+    assert silence_ns(1500, 0.0, 0.5) == 2 * S
+    assert silence_ns(1500, 250.0, 1.0) == int(2.75 * S)

@@ -34,8 +34,6 @@ import time
 from collections import Counter
 from collections.abc import Mapping, Sequence
 
-import numpy as np
-
 from tagswarm.agents.avoid import Neighbour, static_boxes
 from tagswarm.agents.behaviour import Behaviour, wheel_speeds
 from tagswarm.agents.config import AgentConfig, build_config
@@ -48,11 +46,10 @@ from tagswarm.agents.controller import (
     load_factory,
     make,
 )
-from tagswarm.agents.cubepose import CameraModel, CubePoseEstimator, PoseEstimate
-from tagswarm.agents.detect import TagMap, make_detector
-from tagswarm.agents.landmarkfix import fix_estimates
+from tagswarm.agents.cubepose import PoseEstimate
 from tagswarm.agents.neighbours import NeighbourTracker
 from tagswarm.agents.odometry import DiffDriveOdometry, DiffDriveParams, SlipMonitor
+from tagswarm.agents.vision import Vision
 from tagswarm.protocol import codec
 from tagswarm.protocol import messages as m
 from tagswarm.protocol.bus import Bus, Inbox
@@ -65,7 +62,6 @@ from tagswarm.runtime.presence import Presence, silence_ns
 from tagswarm.runtime.process import serve_node
 
 log = logging.getLogger("tagswarm.agent")
-PRIOR_MAX_AGE_NS = 500_000_000  # robots move ~15 cm in 0.5 s: older relative poses mislead more than help
 LOCKSTEP_FRAME_QUEUE = 16  # per camera, lockstep only (bounded memory under a flood)
 # the server's clock never runs ahead of our odometry by more than its watermark slack (1 s, server/node.py)
 CORRECTION_AHEAD_NS = 1_000_000_000
@@ -82,14 +78,10 @@ class AgentNode:
         self.rid = rid = config.robot_id
         self.bus = bus
         self.keys = Keys(config.run)
-        a = s.agent
-        self.detector = make_detector(s.tags.family, a.detector, max_hamming=a.max_hamming, min_margin=a.min_margin)
-        self.tagmap = TagMap.from_scenario(s)
-        self.estimator = CubePoseEstimator(s, pixel_sigma_px=a.pixel_sigma_px, max_rms_px=a.max_reprojection_px)
-        self.frame_delay_s = config.inject_frame_delay_s
         self.rejects = streams.RejectCounter(log)
         self.gaps = streams.GapCounter()  # messages lost on the way, per sender (lossy networks)
         self.counters: Counter[str] = Counter()
+        self.vision = Vision(s, rid, self.counters, config.inject_frame_delay_s)
         self.seq = streams.Sequencer()
         self.participant = Participant(bus, self.keys, config.participant, self.seq)  # lockstep acks
         self.lockstep = s.clock.mode == "lockstep"
@@ -100,10 +92,6 @@ class AgentNode:
             c.name: bus.subscribe(self.keys.image(rid, c.name), newest_only=not self.lockstep,
                                   capacity=LOCKSTEP_FRAME_QUEUE) for c in s.robot.cameras}
         self._frames_taken = 0  # frames drained from the newest-only inboxes (the rest were overwritten)
-        self._camera_models: dict[str, tuple[tuple[object, ...], CameraModel]] = {}
-        # CPU seconds (this thread) handling frames, and of that in the detector and the pose estimate:
-        # the status reports them (cpu_frames_us, cpu_detect_pose_us) for bench/speed.py's overhead ratio
-        self._cpu_s: dict[str, float] = {"frames": 0.0, "detect_pose": 0.0}
         self.enc_in = bus.subscribe(self.keys.encoders(rid))
         # realtime: only encoders (a control cycle) and frames wake the loop; ticks, corrections, goals and
         # maps are read at the next wake-up, which is where they are used anyway (one pass of the loop
@@ -165,8 +153,7 @@ class AgentNode:
         self._moved = False
         self._fix = False
         self._next_status_ns = 0
-        # last relative pose of each target and when: a prior for single-face ambiguity, only while fresh
-        self._priors: dict[tuple[str, int], tuple[int, tuple[float, float, float]]] = {}
+        self.vision.reset()
         self.pending_frames: dict[str, m.CameraImage] = {}
         self._last_frame_ns: dict[str, int] = {}
         self._last_enc_ns = -1
@@ -341,62 +328,21 @@ class AgentNode:
             return
         t0 = time.thread_time()
         try:
-            self._process_pending()
+            frames = list(self.pending_frames.values())
+            self.pending_frames.clear()
+            if self.custom is not None and self.custom.wants_images:
+                self._frames_seen.update((img.camera, img) for img in frames)
+            estimates = self.vision.process(frames, self.time_ns)
+            stamp = max(img.stamp_ns for img in frames)
+            self.time_ns = max(self.time_ns, stamp)
+            for est in estimates:
+                self._publish_observation(est, stamp)
+                # a sighting corrects our pose only through a server
+                self._fix = self._fix or self.server_alive
         finally:
-            self._cpu_s["frames"] += time.thread_time() - t0
-
-    def _process_pending(self) -> None:
-        frames = list(self.pending_frames.values())
-        self.pending_frames.clear()
-        if self.custom is not None and self.custom.wants_images:
-            self._frames_seen.update((img.camera, img) for img in frames)
-        views = []
-        for img in frames:
-            if self.frame_delay_s > 0:
-                time.sleep(self.frame_delay_s)  # injected overload (tests, demos): a slow detector
-            # how old the frame is when we get to it (simulated time): stays small if frames are skipped, not queued
-            age_ms = max(0, self.time_ns - img.stamp_ns) // 1_000_000
-            self.counters["frame_age_max_ms"] = max(self.counters["frame_age_max_ms"], age_ms)
-            gray = np.frombuffer(img.data, np.uint8).reshape(img.height, img.width)
-            dets = []
-            t0 = time.thread_time()
-            found = self.detector.detect(gray)
-            self._cpu_s["detect_pose"] += time.thread_time() - t0
-            for d in found:
-                owner = self.tagmap.lookup(d.tag_id)
-                if owner is None:
-                    self.counters["unknown_tags"] += 1
-                elif owner[0] == "robot" and owner[1] == self.rid:
-                    self.counters["own_tags"] += 1  # a reflection of ourselves cannot happen; count it
-                else:
-                    dets.append(d)
-            views.append((self._camera_model(img), dets))
-            self.counters["frames_processed"] += 1
-        stamp = max(img.stamp_ns for img in frames)
-        self.time_ns = max(self.time_ns, stamp)
-        fresh = {k: p for k, (t, p) in self._priors.items() if stamp - t <= PRIOR_MAX_AGE_NS}
-        # with several field tags in view, one fix from all of them replaces the per-tag ones
-        t0 = time.thread_time()
-        estimates = fix_estimates(self.estimator, self.s, self.estimator.estimate(views, fresh), views)
-        self._cpu_s["detect_pose"] += time.thread_time() - t0
-        for est in estimates:
-            if np.hypot(est.x_m, est.y_m) > self.s.agent.max_range_m:
-                self.counters["rejected_range"] += 1
-                continue
-            self._priors[(est.target_kind, est.target_id)] = (stamp, (est.x_m, est.y_m, est.yaw_rad))
-            self._publish_observation(est, stamp)
-            # a sighting corrects our pose only through a server
-            self._fix = self._fix or self.server_alive
-
-    def _camera_model(self, img: m.CameraImage) -> CameraModel:
-        """The camera model of ``img``, made once per camera while its calibration stays the same
-        (building one costs ~0.1 ms, a 3x3 and a 4x4 matrix and an inverse, every frame)."""
-        key = (img.camera, img.fx_px, img.fy_px, img.cx_px, img.cy_px, img.width, img.height, img.lens,
-               tuple(img.distortion), img.mount, img.robot_id)
-        cached = self._camera_models.get(img.camera)
-        if cached is None or cached[0] != key:
-            cached = self._camera_models[img.camera] = (key, CameraModel.from_message(img))
-        return cached[1]
+            # CPU seconds (this thread) handling frames, publishing included; of that in the detector and the
+            # pose estimate: the status reports both for bench/speed.py's overhead ratio
+            self.vision.cpu_s["frames"] += time.thread_time() - t0
 
     def _publish_observation(self, est: PoseEstimate, stamp_ns: int) -> None:
         key = self.keys.observation(self.rid)
@@ -459,8 +405,8 @@ class AgentNode:
                    avoiding_cycles=b.avoider.cycles_avoiding, avoid_yields=b.avoider.yields,
                    avoid_side_flips=b.avoider.side_flips, maps_used=self.neighbours.maps_adopted,
                    slip_mm=round(self.slip.slip_m * 1000), slip_events=self.slip.events,
-                   frames_received=received, cpu_frames_us=round(self._cpu_s["frames"] * 1e6),
-                   cpu_detect_pose_us=round(self._cpu_s["detect_pose"] * 1e6),
+                   frames_received=received, cpu_frames_us=round(self.vision.cpu_s["frames"] * 1e6),
+                   cpu_detect_pose_us=round(self.vision.cpu_s["detect_pose"] * 1e6),
                    # overwritten in the newest-only inbox, or replaced while pending
                    frames_skipped=received - self._frames_taken + self.counters["frames_replaced"])
         out.update(self.rejects.as_counters())
@@ -468,7 +414,7 @@ class AgentNode:
         if self.custom is not None:
             out.update(self.custom.counters())
         out.update(self.bus.fault_stats())
-        out.update({f"pose_rejected_{k}": v for k, v in self.estimator.rejects.items()})
+        out.update({f"pose_rejected_{k}": v for k, v in self.vision.estimator.rejects.items()})
         return out
 
     def _publish_status(self) -> None:

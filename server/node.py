@@ -37,6 +37,7 @@ from tagswarm.server import outputs
 from tagswarm.server.config import ServerConfig, build_config
 from tagswarm.server.estimator import Estimator, apply_input
 from tagswarm.server.fusion import Fusion, FusionParams
+from tagswarm.server.intake import Intake
 from tagswarm.server.stitchmap import StitchMap
 
 log = logging.getLogger("tagswarm.server")
@@ -108,6 +109,7 @@ class ServerNode:
         self._recent: deque[jr.Odometry | jr.Observation] = deque(maxlen=RECENT_MAX)
         self._checkpoint_every_ns = int(config.journal_checkpoint_s * 1e9)
         self._next_checkpoint_ns = self._checkpoint_every_ns
+        self.intake = Intake(self.keys, self.roster, self.rejects, self.gaps, self.counters)
         self.obs_in = bus.subscribe(self.keys.observation())
         self.odom_in = bus.subscribe(self.keys.odometry())
         self.tick_in = bus.subscribe(self.keys.tick())
@@ -163,16 +165,6 @@ class ServerNode:
         """Robots whose agent is alive: its token is up and (realtime) its odometry keeps coming."""
         return self.presence.alive_set()
 
-    def _robot_from_key(self, key: str, claimed: int) -> int | None:
-        rid = self.keys.robot_id_of(key)
-        if rid is None or rid != claimed:
-            self.rejects.reject("spoofed", f"{key} carries robot_id {claimed}")
-            return None
-        if rid not in self.roster:
-            self.rejects.reject("unknown_robot", f"{key}: robot {rid} is not in the roster")
-            return None
-        return rid
-
     def _drain(self) -> None:
         for change in self.alive_in.drain():
             who = self.keys.participant_of(change.key)
@@ -184,17 +176,11 @@ class ServerNode:
         # acks before odometry: an agent's odometry of a tick was enqueued before its ack of that tick
         # (one session, one receive thread), so it is drained below, however late this drain runs
         for rid, inbox in self.ack_in.items():
-            for item, ack in self.rejects.decoded(inbox.drain(), m.TickAck):
-                if ack.participant != f"agent/{rid}":
-                    self.rejects.reject("spoofed", f"{item.key} carries participant {ack.participant!r}")
-                    continue
-                # only ever compared with the tick being waited for: an ack of any other step (a forged one
-                # of a future step too) excuses no odometry
-                self.acked[rid].append((ack.step, ack.stamp_ns))
-        for item, od in self.rejects.decoded(self.odom_in.drain(), m.OdometryEstimate):
-            sender = self._robot_from_key(item.key, od.robot_id)
-            if sender is None:
-                continue
+            # only ever compared with the tick being waited for: an ack of any other step (a forged one
+            # of a future step too) excuses no odometry
+            self.acked[rid].extend(self.intake.acks(rid, inbox.drain()))
+        for key, od, seq in self.intake.odometry(self.odom_in.drain()):
+            sender = od.robot_id
             if od.stamp_ns <= self.fusion.latest_odom_ns(sender) and not self._world_left():
                 # older than this robot's odometry already fused (e.g. taken for lost in lockstep, then late):
                 # the poses are cumulative, so the newer one holds its increment; applying it now would put
@@ -202,25 +188,12 @@ class ServerNode:
                 # Once the world has left, an early stamp is a restarted world's: kept, to be carried over.
                 self.counters["odometry_late"] += 1
                 continue
-            self.gaps.seen(item.key, od.seq, f"odometry_robot{sender}")
-            self._accept(jr.Odometry(robot_id=sender, stamp_ns=od.stamp_ns, x_m=od.x_m, y_m=od.y_m,
-                                     yaw_rad=od.yaw_rad, distance_m=od.distance_m, slip_m=od.slip_m))
+            self.gaps.seen(key, seq, f"odometry_robot{sender}")
+            self._accept(od)
             self.presence.heard(sender, od.stamp_ns)
             self.counters["odometry"] += 1
-        for item, ob in self.rejects.decoded(self.obs_in.drain(), m.RelativeObservation):
-            observer = self._robot_from_key(item.key, ob.robot_id)
-            if observer is None:
-                continue
-            if ob.target_kind == "robot" and (ob.target_id not in self.roster or ob.target_id == observer):
-                self.rejects.reject("unknown_robot", f"observation of robot {ob.target_id}")
-                continue
-            self.gaps.seen(item.key, ob.seq, f"observations_robot{observer}")
-            if ob.target_kind == "landmark" and len(set(ob.tag_ids)) > 1:
-                # an agent's self-localisation solved jointly from several field tags (agents/landmarkfix.py)
-                self.counters["multi_landmark_fixes"] += 1
-            self._accept(jr.Observation(observer=observer, target_kind=ob.target_kind, target_id=ob.target_id,
-                                        stamp_ns=ob.stamp_ns, x_m=ob.x_m, y_m=ob.y_m, yaw_rad=ob.yaw_rad,
-                                        cov=tuple(float(v) for v in ob.cov)))
+        for ob in self.intake.observations(self.obs_in.drain()):
+            self._accept(ob)
             self.counters["observations"] += 1
         self.presence.update(self.time_ns, log, "robot {}'s agent")
         if self.presence.silences:

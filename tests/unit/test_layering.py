@@ -177,3 +177,13 @@ def test_relative_and_aliased_imports_resolve(source: str, expected: set[str]) -
     modules = {m: None for m in ("tagswarm.protocol", "tagswarm.protocol.codec", "tagswarm.protocol.messages",
                                  "tagswarm.protocol.bus", "tagswarm.runtime", "tagswarm.runtime.streams")}
     assert imports_of("tagswarm.protocol.bus", source, modules) == expected
+
+
+#: a module past this wants splitting (issue: "no product module over ~500 lines")
+MAX_MODULE_LINES = 540
+
+
+def test_no_product_module_is_too_long() -> None:
+    long = {name: n for name, path in project_modules().items()
+            if (n := len(path.read_text(encoding="utf-8").splitlines())) > MAX_MODULE_LINES}
+    assert not long, f"modules over {MAX_MODULE_LINES} lines: {long}"

@@ -1,0 +1,77 @@
+"""What the map server takes in, checked before anything reaches the fusion.
+
+Decodes the agents' odometry, relative observations and lockstep tick acks (as drained
+from the node's inboxes) and drops (counted, logged once per kind by the
+:class:`~tagswarm.runtime.streams.RejectCounter`) anything malformed, spoofed (the robot id
+in the payload is not the one of its key) or from a robot outside the roster.  What passes
+is handed on as journal records (map frame is not involved: odometry is in the robot's own
+odom frame, observations in the observer's base_link; metres, radians, simulation ns).
+No fusion state lives here; :mod:`tagswarm.server.node` decides what to do with a record.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from collections.abc import Iterator, Sequence
+
+from tagswarm.protocol import messages as m
+from tagswarm.protocol.bus import Received
+from tagswarm.protocol.keys import Keys
+from tagswarm.runtime import streams
+from tagswarm.server import journal as jr
+
+
+class Intake:
+    """The checks on the server's inputs (see the module docstring)."""
+
+    def __init__(self, keys: Keys, roster: set[int], rejects: streams.RejectCounter,
+                 gaps: streams.GapCounter, counters: Counter[str]) -> None:
+        self.keys, self.roster = keys, roster
+        self.rejects, self.gaps, self.counters = rejects, gaps, counters
+
+    def robot_from_key(self, key: str, claimed: int) -> int | None:
+        """The robot id of ``key`` if it is ``claimed`` and in the roster, else None (counted)."""
+        rid = self.keys.robot_id_of(key)
+        if rid is None or rid != claimed:
+            self.rejects.reject("spoofed", f"{key} carries robot_id {claimed}")
+            return None
+        if rid not in self.roster:
+            self.rejects.reject("unknown_robot", f"{key}: robot {rid} is not in the roster")
+            return None
+        return rid
+
+    def acks(self, rid: int, items: Sequence[Received[bytes]]) -> Iterator[tuple[int, int]]:
+        """(step, stamp_ns) of every tick ack in ``items`` (drained from robot ``rid``'s agent's ack key)
+        that its agent sent."""
+        for item, ack in self.rejects.decoded(items, m.TickAck):
+            if ack.participant != f"agent/{rid}":
+                self.rejects.reject("spoofed", f"{item.key} carries participant {ack.participant!r}")
+                continue
+            yield ack.step, ack.stamp_ns
+
+    def odometry(self, items: Sequence[Received[bytes]]) -> Iterator[tuple[str, jr.Odometry, int]]:
+        """(key, record, seq) of every odometry message in ``items`` from a roster robot on its own key."""
+        for item, od in self.rejects.decoded(items, m.OdometryEstimate):
+            sender = self.robot_from_key(item.key, od.robot_id)
+            if sender is None:
+                continue
+            yield item.key, jr.Odometry(robot_id=sender, stamp_ns=od.stamp_ns, x_m=od.x_m, y_m=od.y_m,
+                                        yaw_rad=od.yaw_rad, distance_m=od.distance_m, slip_m=od.slip_m), od.seq
+
+    def observations(self, items: Sequence[Received[bytes]]) -> Iterator[jr.Observation]:
+        """Every relative observation in ``items`` by a roster robot on its own key, of a landmark or
+        of another roster robot (never of itself)."""
+        for item, ob in self.rejects.decoded(items, m.RelativeObservation):
+            observer = self.robot_from_key(item.key, ob.robot_id)
+            if observer is None:
+                continue
+            if ob.target_kind == "robot" and (ob.target_id not in self.roster or ob.target_id == observer):
+                self.rejects.reject("unknown_robot", f"observation of robot {ob.target_id}")
+                continue
+            self.gaps.seen(item.key, ob.seq, f"observations_robot{observer}")
+            if ob.target_kind == "landmark" and len(set(ob.tag_ids)) > 1:
+                # an agent's self-localisation solved jointly from several field tags (agents/landmarkfix.py)
+                self.counters["multi_landmark_fixes"] += 1
+            yield jr.Observation(observer=observer, target_kind=ob.target_kind, target_id=ob.target_id,
+                                 stamp_ns=ob.stamp_ns, x_m=ob.x_m, y_m=ob.y_m, yaw_rad=ob.yaw_rad,
+                                 cov=tuple(float(v) for v in ob.cov))

@@ -281,6 +281,9 @@ def _summary(console: Console, metrics: dict[str, Any]) -> None:
                   f"{kid.get('recovered', 0)}{'' if worst is None else f', slowest {worst:.1f} s'}) · contacts "
                   f"robot-robot {contacts.get('robot_robot', '—')}, obstacle {contacts.get('robot_obstacle', '—')}, "
                   f"wall {contacts.get('robot_wall', '—')}", highlight=False)
+    for w in metrics.get("warnings", []):
+        if "heard nothing from" in w:
+            console.print(f"[yellow]warning: {w}[/]", highlight=False)
 
 
 class _Null:

@@ -53,7 +53,10 @@ the true initial pose, so its error is pure drift).
 - ``run``: ``clock`` ("lockstep"/"realtime"), ``sim_time_s``, ``wall_time_s``,
   ``exit_code``, ``failure`` (the orchestrator's failure message or ``null``),
   ``origin_id``, ``robots`` (ids), copied from ``run.json``; ``method``, the server's
-  ``[server] method`` (``"graph"`` or ``"stitch"``, from the scenario in ``run.json``).
+  ``[server] method`` (``"graph"`` or ``"stitch"``, from the scenario in ``run.json``);
+  ``silent_sources`` ``{source: last heard s}``: the world, server or agents the
+  recorder stopped hearing over 2 s before the end (their data is incomplete; also
+  a warning), from ``run.json`` ``last_heard_s``.
 - ``settings``: ``assoc_max_diff_s`` (timestamp association tolerance, s),
   ``rpe_delta_m`` (RPE segment length, m), ``neighbour_window_s`` (± window for
   error-vs-distance, s), ``distance_bins_m`` (bin edges, m; ``null`` = infinity),
@@ -188,7 +191,7 @@ from tagswarm.evaluation.runfolder import (
     read_observations,
     read_tum,
 )
-from tagswarm.evaluation.runsummary import cost, mode_durations, robot_behaviour, swarm_behaviour
+from tagswarm.evaluation.runsummary import cost, mode_durations, robot_behaviour, silent_sources, swarm_behaviour
 from tagswarm.evaluation.trajerror import (
     ASSOC_MAX_DIFF_S,
     KINDS,
@@ -252,6 +255,7 @@ def evaluate(run: RunData) -> Evaluation:
     if costs["frames_rendered"] is None:
         costs.update(_rendered_by_workers(run))
     events = recovery_metrics(run, tracks, robots_out, swarm, KINDS, warnings)
+    silent = silent_sources(run.info, warnings)
 
     dist = error_vs_distance(run, tracks)
     metrics: dict[str, Any] = {
@@ -259,7 +263,7 @@ def evaluate(run: RunData) -> Evaluation:
         "run": {"clock": run.info.get("clock"), "sim_time_s": costs["sim_time_s"],
                 "wall_time_s": costs["wall_time_s"], "exit_code": run.info.get("exit_code"),
                 "failure": run.info.get("failure"), "origin_id": run.info.get("origin_id"),
-                "robots": list(run.robots), "method": _method(run.info)},
+                "robots": list(run.robots), "method": _method(run.info), "silent_sources": silent},
         "settings": {"assoc_max_diff_s": ASSOC_MAX_DIFF_S, "rpe_delta_m": RPE_DELTA_M,
                      "neighbour_window_s": NEIGHBOUR_WINDOW_S,
                      "distance_bins_m": [e if math.isfinite(e) else None for e in DISTANCE_BINS_M],

@@ -81,6 +81,30 @@ def robot_behaviour(run: RunData, warnings: list[str]) -> dict[int, dict[str, An
     return out
 
 
+#: a source last heard this long (sim s) before the run's end fell silent: its data is incomplete
+SILENT_AFTER_S = 2.0
+
+
+def silent_sources(info: dict[str, Any], warnings: list[str]) -> dict[str, float]:
+    """Sources (``world``, ``server``, ``agent/<k>``) the recorder last heard more than
+    :data:`SILENT_AFTER_S` simulated seconds before the run's end (``run.json``
+    ``sim_time_s``), with that time (s); each also becomes a warning.  A source the
+    recorder lost (e.g. its link dropped under load) leaves trajectories that end early,
+    so metrics computed from them describe only part of the run.  Older run folders
+    (no ``last_heard_s``) give none."""
+    heard = _dict(info.get("last_heard_s"))
+    end = info.get("sim_time_s")
+    if not isinstance(end, (int, float)):
+        return {}
+    out: dict[str, float] = {}
+    for who, t in sorted(heard.items()):
+        if isinstance(t, (int, float)) and end - t > SILENT_AFTER_S:
+            out[str(who)] = float(t)
+            warnings.append(f"the recorder heard nothing from {who} after {t:.1f} s of the run's {end:.1f} s: "
+                            "what it sends ends there, so the metrics cover only part of the run")
+    return out
+
+
 def swarm_behaviour(robots: Sequence[int], per_robot: dict[int, dict[str, Any]]) -> dict[str, Any]:
     """:data:`SWARM_COUNTERS` summed over ``robots`` (``None`` if none reported), and
     ``mode_time_s`` / ``time_lost_s`` summed over them, from :func:`robot_behaviour`."""

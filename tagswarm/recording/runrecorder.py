@@ -70,6 +70,13 @@ class RunRecorder:
         self.sim_ns = 0
         self.rejected = 0
         self.run_id: str | None = None  # the world instance whose ticks set the clock
+        #: newest stamp (sim ns) heard from each source ("world", "server", "agent/<k>"): a source that
+        #: falls silent long before the run ends (a link lost under load) leaves its data incomplete
+        self.last_heard: dict[str, int] = {}
+
+    def _heard(self, who: str, stamp_ns: int) -> None:
+        if stamp_ns > self.last_heard.get(who, -1):
+            self.last_heard[who] = stamp_ns
 
     def poll(self) -> None:
         """Drain every inbox into the in-memory record."""
@@ -86,12 +93,16 @@ class RunRecorder:
             if t is not None:
                 self.truth[t.robot_id].append((t.stamp_ns, se2_compose(self.a2m, (t.x_m, t.y_m, t.yaw_rad))))
                 self.sim_ns = max(self.sim_ns, t.stamp_ns)
+                self._heard("world", t.stamp_ns)
         for it in ib["odom"].drain():
             o = self._decode(m.OdometryEstimate, it.value, it.key)
             if o is not None:
                 self.odom[o.robot_id].append((o.stamp_ns, (o.x_m, o.y_m, o.yaw_rad)))
+                self._heard(f"agent/{o.robot_id}", o.stamp_ns)
         for it in ib["corr"].drain():
             c = self._decode(m.Correction, it.value, it.key)
+            if c is not None:
+                self._heard("server", c.stamp_ns)
             if c is not None and c.localised:
                 self.fused[c.robot_id].append((c.stamp_ns, (c.x_m, c.y_m, c.yaw_rad)))
                 self.fused_cov[c.robot_id].append((c.stamp_ns, tuple(c.cov)))
@@ -115,6 +126,7 @@ class RunRecorder:
                     continue
                 who = f"agent/{st.robot_id}" if st.role == "agent" else st.role
                 self.counters[who] = dict(st.counters)
+                self._heard(who, st.stamp_ns)
                 if st.role == "agent" and st.robot_id is not None:
                     self.modes.append((st.stamp_ns, st.robot_id, st.mode))
                     self.mode_now[st.robot_id] = st.mode
@@ -191,5 +203,6 @@ class RunRecorder:
                         for c, rx in sorted(self.world_commands, key=lambda e: (e[0].stamp_ns, e[0].robot_id)))
         run = {"scenario": msgspec.to_builtins(self.s), "robots": list(self.s.robot_ids),
                "origin_id": self.s.map.origin_id, "clock": self.s.clock.mode, "sim_time_s": self.sim_ns / 1e9,
-               "counters": self.counters, **info}
+               "counters": self.counters,
+               "last_heard_s": {who: ns / 1e9 for who, ns in sorted(self.last_heard.items())}, **info}
         (run_dir / "run.json").write_text(json.dumps(run, indent=2))

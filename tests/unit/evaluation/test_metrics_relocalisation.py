@@ -329,3 +329,36 @@ def test_nominal_nees_window_opens_at_the_kidnap_tick_whatever_the_stamp_roundin
     r1 = compute_metrics(run)["robots"]["1"]["fused"]
     assert r1["nees"]["mean"] > 20  # 15 samples 1 m off (NEES 200 each)
     assert r1["nees_nominal"]["mean"] == 0.0, r1["nees_nominal"]
+
+
+def test_a_source_the_recorder_stopped_hearing_is_named_in_the_metrics(tmp_path: Path) -> None:
+    """The server's corrections stop at 1.5 s of a 6 s run (its link lost under load): the
+    metrics say so instead of reporting a shorter run as if it were whole; the world and an
+    agent heard to the end are not named."""
+    scenario = load_scenario("paper")
+    keys, bus = Keys("rt"), FakeBus()
+    rec = RunRecorder(bus, keys, scenario)  # type: ignore[arg-type]
+    for i in range(61):
+        t = i * 100_000_000
+        bus.inboxes[keys.truth()].put(keys.truth(1), codec.encode(m.GroundTruthPose(
+            seq=i, stamp_ns=t, step=i, robot_id=1, x_m=0.0, y_m=0.0, yaw_rad=0.0,
+            pose=m.Pose3(x_m=0.0, y_m=0.0, z_m=0.0))))
+        bus.inboxes[keys.odometry()].put(keys.odometry(1), codec.encode(m.OdometryEstimate(
+            seq=i, stamp_ns=t, robot_id=1, x_m=0.0, y_m=0.0, yaw_rad=0.0, cov=(0.0,) * 9, distance_m=0.0)))
+        if t <= 1_500_000_000:
+            bus.inboxes[keys.correction()].put(keys.correction(1), codec.encode(m.Correction(
+                seq=i, stamp_ns=t, robot_id=1, map_odom_x_m=0.0, map_odom_y_m=0.0, map_odom_yaw_rad=0.0,
+                x_m=0.0, y_m=0.0, yaw_rad=0.0, cov=(0.0,) * 9)))
+    rec.poll()
+    rec.write(tmp_path, {"wall_time_s": 6.0})
+    metrics = compute_metrics(tmp_path)
+    assert metrics["run"]["silent_sources"] == {"server": 1.5}
+    (warning,) = [w for w in metrics["warnings"] if "heard nothing" in w]
+    assert "server after 1.5 s of the run's 6.0 s" in warning
+
+
+def test_older_run_folders_without_last_heard_name_no_silent_source(tmp_path: Path) -> None:
+    run = make_run(tmp_path, {1: (T10, static(0.0, 0.0, T10))}, sim_time_s=10.0)
+    metrics = compute_metrics(run)
+    assert metrics["run"]["silent_sources"] == {}
+    assert not [w for w in metrics["warnings"] if "heard nothing" in w]

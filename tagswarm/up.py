@@ -281,6 +281,14 @@ def _summary(console: Console, metrics: dict[str, Any]) -> None:
                   f"{kid.get('recovered', 0)}{'' if worst is None else f', slowest {worst:.1f} s'}) · contacts "
                   f"robot-robot {contacts.get('robot_robot', '—')}, obstacle {contacts.get('robot_obstacle', '—')}, "
                   f"wall {contacts.get('robot_wall', '—')}", highlight=False)
+    firsts = {k: (r.get("fused") or {}).get("first_s") for k, r in metrics.get("robots", {}).items()}
+    never = [k for k, f in firsts.items() if f is None]
+    if never:
+        origin = metrics.get("run", {}).get("origin_id")
+        console.print(f"[yellow]never placed: robot(s) {', '.join(never)} of {len(firsts)} (the fused error above is "
+                      f"of the other {len(firsts) - len(never)}): no chain of sightings joined them to the origin "
+                      f"robot {origin} within the run; landmarks, a more central origin or missions that meet help "
+                      "(README, 'Your own scene')[/]", highlight=False)
     for w in metrics.get("warnings", []):
         if "heard nothing from" in w:
             console.print(f"[yellow]warning: {w}[/]", highlight=False)

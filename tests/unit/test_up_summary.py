@@ -1,0 +1,40 @@
+"""What ``tagswarm up`` prints at the end of a run, from its metrics (no processes)."""
+
+from __future__ import annotations
+
+import io
+from typing import Any
+
+from rich.console import Console
+
+from tagswarm.up import _summary
+
+
+def _printed(metrics: dict[str, Any]) -> str:
+    out = io.StringIO()
+    _summary(Console(file=out, width=400, color_system=None), metrics)
+    return out.getvalue()
+
+
+def _metrics(firsts: dict[str, float | None], warnings: list[str]) -> dict[str, Any]:
+    ate = {"rmse": 0.01, "max": 0.02}
+    return {"run": {"origin_id": 0}, "swarm": {"fused": {"ate_unaligned": ate, "time_localised": 0.5},
+                                               "odom": {"ate_unaligned": ate}},
+            "robots": {k: {"fused": {"first_s": f}} for k, f in firsts.items()}, "warnings": warnings}
+
+
+def test_robots_never_placed_are_named_with_what_helps() -> None:
+    text = _printed(_metrics({"0": 0.0, "1": 2.5, "2": None, "3": None}, []))
+    assert "never placed: robot(s) 2, 3 of 4" in text
+    assert "the other 2" in text and "origin robot 0" in text
+
+
+def test_a_run_where_every_robot_was_placed_prints_no_such_line() -> None:
+    assert "never placed" not in _printed(_metrics({"0": 0.0, "1": 2.5}, []))
+
+
+def test_a_silent_source_is_printed_other_warnings_are_not() -> None:
+    text = _printed(_metrics({"0": 0.0}, ["the recorder heard nothing from server after 15.9 s of the run's 60.0 s: x",
+                                          "no mode samples: time_lost_s is 0"]))
+    assert "warning: the recorder heard nothing from server after 15.9 s" in text
+    assert "no mode samples" not in text

@@ -55,6 +55,8 @@ def scene_run(up: Callable[..., Path], work: Path, scene: str, duration: float,
 
     per_robot = {rid: {"rmse_m": rmse(r), "final_m": final_error(run, int(rid)),
                        "time_localised": (r.get("fused") or {}).get("time_localised"),
+                       "time_localised_placed": (r.get("fused") or {}).get("time_localised_placed"),
+                       "first_placed_s": (r.get("fused") or {}).get("first_s"),
                        "relocalisations": r.get("relocalisations"), "contacts": r.get("contacts")}
                  for rid, r in robots.items()}
     worst_rmse = max((v["rmse_m"] for v in per_robot.values() if v["rmse_m"] is not None), default=None)
@@ -69,6 +71,9 @@ def scene_run(up: Callable[..., Path], work: Path, scene: str, duration: float,
         "time_localised": fused.get("time_localised"),
         "time_localised_min_robot": min((v["time_localised"] for v in per_robot.values()
                                          if v["time_localised"] is not None), default=None),
+        "time_localised_placed": fused.get("time_localised_placed"),
+        "last_first_placement_s": max((v["first_placed_s"] for v in per_robot.values()
+                                       if v["first_placed_s"] is not None), default=None),
         "relocalisations": sw.get("relocalisations"), "kidnaps": sw.get("kidnaps"), "contacts": sw.get("contacts"),
         "nees": fused.get("nees"), "nees_nominal": fused.get("nees_nominal"),
         "searches": sw.get("searches"), "rtf": m["cost"].get("real_time_factor"),
@@ -77,8 +82,9 @@ def scene_run(up: Callable[..., Path], work: Path, scene: str, duration: float,
 
 
 def table_rows(results: list[dict[str, Any]]) -> list[list[str]]:
-    """README-style rows: scene, robots, s, swarm RMSE, worst robot RMSE, worst final, time localised (swarm / worst
-    robot), re-localisations, kidnap recovery, robot-robot contacts, NEES mean (outside kidnaps)."""
+    """README-style rows: scene, robots, s, swarm RMSE, worst robot RMSE, worst final, time localised (swarm /
+    worst robot), time localised once placed (swarm), re-localisations, kidnap recovery, robot-robot contacts,
+    NEES mean (outside kidnaps)."""
     def cm(v: float | None) -> str:
         return "-" if v is None else f"{100 * v:.1f}"
 
@@ -87,11 +93,12 @@ def table_rows(results: list[dict[str, Any]]) -> list[list[str]]:
         kid = r.get("kidnaps") or {}
         rec = "-" if not kid.get("count") else f"{kid.get('recovered')}/{kid.get('count')}, max " \
               f"{kid.get('max_time_to_relocalise_s') or float('nan'):.1f} s"
-        tl, tlm = r.get("time_localised"), r.get("time_localised_min_robot")
+        tl, tlm, tlp = r.get("time_localised"), r.get("time_localised_min_robot"), r.get("time_localised_placed")
         nees = (r.get("nees_nominal") or r.get("nees") or {}).get("mean")
         rows.append([r["scene"], str(r["robots"]), f"{r['duration_s']:.0f}", cm(r["fused_ate_rmse_m"]),
                      cm(r["worst_robot_rmse_m"]), cm(r["worst_final_m"]),
                      "-" if tl is None else f"{100 * tl:.1f} / {100 * (tlm or 0):.1f} %",
+                     "-" if tlp is None else f"{100 * tlp:.1f} %",
                      str(r.get("relocalisations") or 0), rec,
                      str((r.get("contacts") or {}).get("robot_robot", "-")),
                      "-" if nees is None else f"{nees:.2f}"])
@@ -99,6 +106,7 @@ def table_rows(results: list[dict[str, Any]]) -> list[list[str]]:
 
 
 HEADER = ["scene", "robots", "s", "swarm RMSE cm", "worst robot RMSE cm", "worst final cm", "time localised",
+          "once placed",
           "re-loc.", "kidnaps", "robot contacts", "NEES mean"]
 
 

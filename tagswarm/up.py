@@ -274,9 +274,10 @@ def _summary(console: Console, metrics: dict[str, Any]) -> None:
         t.add_row(name, f"{ate.get('rmse', float('nan')):.3f}", f"{ate.get('max', float('nan')):.3f}")
     console.print(t)
     fused, kid, contacts = swarm.get("fused", {}), swarm.get("kidnaps") or {}, swarm.get("contacts") or {}
-    tl = fused.get("time_localised")
+    tl, tlp = fused.get("time_localised"), fused.get("time_localised_placed")
     worst = kid.get("max_time_to_relocalise_s")
-    console.print(f"time localised (< 10 cm) {'—' if tl is None else f'{tl:.1%}'} · re-localisations "
+    once = "" if tlp is None else f" ({tlp:.1%} once placed)"
+    console.print(f"time localised (< 10 cm) {'—' if tl is None else f'{tl:.1%}'}{once} · re-localisations "
                   f"{swarm.get('relocalisations', 0)} · kidnaps {kid.get('count', 0)} (recovered "
                   f"{kid.get('recovered', 0)}{'' if worst is None else f', slowest {worst:.1f} s'}) · contacts "
                   f"robot-robot {contacts.get('robot_robot', '—')}, obstacle {contacts.get('robot_obstacle', '—')}, "

@@ -90,6 +90,9 @@ the true initial pose, so its error is pure drift).
       robot with at least two truth poses (time-weighted: each robot's evaluated
       time is its truth span); for ``odom``, how long dead reckoning alone stays
       within ``localised_m``.  ``null`` if no robot has a truth span.
+    - ``fused.time_localised_placed``: the same share counted only from each
+      robot's first fused estimate on (start-up acquisition left out; robots never
+      placed add no time): tracking quality once placed.
   - ``fused.nees``: ``{"mean", "median", "count"}`` of the normalised estimation
     error squared of the fused 2-D position, pooled over robots: e^T P^-1 e / 2
     per fused sample, e the map-frame position error and P the 2x2 position block
@@ -125,7 +128,8 @@ the true initial pose, so its error is pure drift).
     from a reported counter set counts 0; all ``null`` if the agent reported none).
   - ``fused.time_localised`` / ``odom.time_localised``: that robot's share of its
     truth span spent localised (``null`` with fewer than two truth poses); a
-    robot never localised scores 0.
+    robot never localised scores 0; ``fused.time_localised_placed`` from its first
+    fused estimate on (``null`` if never placed).
   - ``fused.nees``: ``{"mean", "median", "count"}`` as in ``swarm`` for this robot.
   - ``relocalisations``, ``kidnaps``: how many of the top-level events are this robot's.
   - ``contacts``: the world's ``contacts_robot_<k>`` counter (``null`` as in ``swarm``).

@@ -60,6 +60,11 @@ class LocalisedSignal:
         d = self.durations_s
         return float(np.sum(d[self.ok])), float(np.sum(d))
 
+    def since(self, t0_s: float) -> LocalisedSignal:
+        """The signal from the first truth stamp at or after ``t0_s`` on."""
+        keep = self.stamp_s >= t0_s - 1e-9
+        return LocalisedSignal(self.stamp_s[keep], self.ok[keep])
+
     def recovered_at(self, t0_s: float, stay_s: float = RECOVERED_STAY_S) -> float | None:
         """The first truth stamp t >= ``t0_s`` from which the robot stays localised for
         ``stay_s`` (every sample in [t, t + stay_s) localised, the record reaching
@@ -290,6 +295,15 @@ def recovery_metrics(run: RunData, tracks: dict[tuple[int, str], Track], robots_
             if kind == "fused":
                 fused_signals[k] = sig
         swarm[kind]["time_localised"] = time_localised(signals)
+    # once placed: the same share from each robot's first fused estimate on (acquisition left out, so
+    # tracking and start-up can be told apart; a robot never placed adds no time)
+    placed = []
+    for k in run.robots:
+        sig, track = fused_signals.get(k), tracks.get((k, "fused"))
+        after = None if sig is None or track is None else sig.since(float(track.stamps_s[0]))
+        robots_out[str(k)]["fused"]["time_localised_placed"] = time_localised([after])
+        placed.append(after)
+    swarm["fused"]["time_localised_placed"] = time_localised(placed)
 
     relocs = relocalisation_events([e for e in run.relocalisations if e.robot in run.robots], tracks)
     kidnaps = kidnap_records(run, kidnaps_of(run, warnings), fused_signals, run.relocalisations)

@@ -89,6 +89,21 @@ def test_time_before_the_first_fix_is_not_localised(tmp_path: Path) -> None:
     late = T10 >= 2.5 - 1e-9
     m = compute_metrics(make_run(tmp_path, truth, fused={0: (T10[late], truth[0][1][late])}))
     assert m["robots"]["0"]["fused"]["time_localised"] == pytest.approx(0.75, abs=1e-9)
+    assert m["robots"]["0"]["fused"]["time_localised_placed"] == pytest.approx(1.0)
+
+
+def test_time_localised_once_placed_leaves_out_start_up_and_robots_never_placed(tmp_path: Path) -> None:
+    """Robot 0 is placed at 2.5 s and 20 cm off from 7.5 s on; robot 1 is never placed."""
+    truth = {0: (T10, static(0.0, 0.0, T10)), 1: (T10, static(1.0, 0.0, T10))}
+    late = T10 >= 2.5 - 1e-9
+    est = offset_where(truth[0][1], T10, 7.5, 11.0, 0.2)[late]
+    m = compute_metrics(make_run(tmp_path, truth, fused={0: (T10[late], est)}))
+    r0, r1 = m["robots"]["0"]["fused"], m["robots"]["1"]["fused"]
+    assert r0["time_localised"] == pytest.approx(0.5, abs=1e-9)  # 2.5 .. 7.5 s of 10 s
+    assert r0["time_localised_placed"] == pytest.approx(5.0 / 7.5, abs=1e-9)  # 2.5 .. 7.5 s of 2.5 .. 10 s
+    assert r1["time_localised"] == 0.0 and r1["time_localised_placed"] is None
+    assert m["swarm"]["fused"]["time_localised"] == pytest.approx(5.0 / 20.0, abs=1e-9)
+    assert m["swarm"]["fused"]["time_localised_placed"] == pytest.approx(5.0 / 7.5, abs=1e-9)
 
 
 # --------------------------------------------------------------------------- kidnaps and events

@@ -139,13 +139,13 @@ def test_fails(swarm):
         assert s.sim_time_s < 0, "fails on purpose"
 
 
-@pytest.mark.timeout(40, method="signal")
+@pytest.mark.timeout(25, method="signal")
 def test_times_out(swarm):
     s = _up(swarm)
     s.wait_sim(1e9, timeout_s=1e9)
 
 
-@pytest.mark.timeout(40, method="thread")
+@pytest.mark.timeout(25, method="thread")
 def test_times_out_hard(swarm):
     s = _up(swarm)
     s.wait_sim(1e9, timeout_s=1e9)

@@ -35,12 +35,16 @@ def test_sigkilled_up_leaves_no_process_behind(tmp_path: Path) -> None:
         while time.monotonic() < deadline and proc.poll() is None:
             kids = _descendants(proc.pid)
             names = " ".join(" ".join(k.cmdline()) for k in kids if k.is_running())
-            if all(s in names for s in ("tagswarm-world", "tagswarm-server", "tagswarm-agent", "tagswarm-render")):
+            # (the world starts its render workers as ``python -m tagswarm.world.render_worker``)
+            if all(s in names for s in ("tagswarm-world", "tagswarm-server", "tagswarm-agent", "render_worker")):
                 break
             time.sleep(0.2)
         assert proc.poll() is None, (tmp_path / "up.log").read_text()
-        swarm = [k for k in kids if any(s in " ".join(k.cmdline()) for s in ("tagswarm-", "tagswarm.view"))]
+        assert time.monotonic() < deadline, f"the swarm did not start: {names}"
+        swarm = [k for k in kids if any(s in " ".join(k.cmdline())
+                                        for s in ("tagswarm-", "tagswarm.view", "render_worker"))]
         assert len(swarm) >= 5, [k.cmdline() for k in kids]
+        assert any("render_worker" in " ".join(k.cmdline()) for k in swarm)
         proc.send_signal(signal.SIGKILL)
         proc.wait(timeout=10)
         gone, alive = psutil.wait_procs(swarm, timeout=15)

@@ -7,12 +7,13 @@ in the payload is not the one of its key) or from a robot outside the roster.  W
 is handed on as journal records (map frame is not involved: odometry is in the robot's own
 odom frame, observations in the observer's base_link; metres, radians, simulation ns).
 No fusion state lives here; :mod:`tagswarm.server.node` decides what to do with a record.
+:class:`OdometryWait` is the lockstep bookkeeping of whose odometry of a tick is still to come.
 """
 
 from __future__ import annotations
 
 from collections import Counter
-from collections.abc import Iterator, Sequence
+from collections.abc import Container, Iterator, Mapping, Sequence
 
 from tagswarm.protocol import messages as m
 from tagswarm.protocol.bus import Received
@@ -75,3 +76,39 @@ class Intake:
             yield jr.Observation(observer=observer, target_kind=ob.target_kind, target_id=ob.target_id,
                                  stamp_ns=ob.stamp_ns, x_m=ob.x_m, y_m=ob.y_m, yaw_rad=ob.yaw_rad,
                                  cov=tuple(float(v) for v in ob.cov))
+
+
+class OdometryWait:
+    """Lockstep: whose odometry of one world tick (``step``, ``stamp_ns``) the server still
+    waits for (pure bookkeeping; the node drains and sleeps).  A live robot is settled once
+    its odometry stamped at or after the tick is in, or once its agent's ack of the tick
+    (sent after that odometry, on the same session) has been here ``grace_s`` (wall seconds)
+    without it: then it is lost on the way, not late."""
+
+    def __init__(self, step: int, stamp_ns: int, grace_s: float, deadline: float) -> None:
+        self.step, self.stamp_ns, self.grace_s, self.deadline = step, stamp_ns, grace_s, deadline
+        self._acked_at: dict[int, float] = {}  # robot -> when its ack of this tick was first seen here (wall)
+        #: after :meth:`settled`: the earliest moment a grace runs out, else the deadline
+        self.next_at = deadline
+
+    def settled(self, now: float, alive: set[int], latest_rx: Mapping[int, int],
+                acked: Mapping[int, Container[tuple[int, int]]]) -> bool:
+        """Whether no live robot is still worth waiting for at ``now`` (monotonic s)."""
+        self.next_at = self.deadline
+        done = True
+        for r in alive:
+            if latest_rx.get(r, -1) >= self.stamp_ns:
+                continue
+            if (self.step, self.stamp_ns) in acked[r]:
+                until = self._acked_at.setdefault(r, now) + self.grace_s
+                if now >= until:
+                    continue  # lost
+                self.next_at = min(self.next_at, until)
+            done = False
+        return done
+
+    def lost(self, alive: set[int], latest_rx: Mapping[int, int],
+             acked: Mapping[int, Container[tuple[int, int]]]) -> list[int]:
+        """The live robots whose agent acked the tick but whose odometry of it never came."""
+        return [r for r in sorted(alive)
+                if latest_rx.get(r, -1) < self.stamp_ns and (self.step, self.stamp_ns) in acked[r]]

@@ -37,7 +37,7 @@ from tagswarm.server import outputs
 from tagswarm.server.config import ServerConfig, build_config
 from tagswarm.server.estimator import Estimator, apply_input
 from tagswarm.server.fusion import Fusion, FusionParams
-from tagswarm.server.intake import Intake
+from tagswarm.server.intake import Intake, OdometryWait
 from tagswarm.server.stitchmap import StitchMap
 
 log = logging.getLogger("tagswarm.server")
@@ -417,47 +417,30 @@ class ServerNode:
         then merges that increment with the next, see :mod:`tagswarm.server.fusion`).  A robot
         whose agent does not answer at all is waited for up to ``clock.ack_timeout_s``
         (``odometry_wait_timeouts``), as the world waits for its ack."""
-        stamp, step = tick.stamp_ns, tick.step
-        deadline = time.monotonic() + self.s.clock.ack_timeout_s
-        acked_at: dict[int, float] = {}  # robot -> when its ack of this tick was first seen here (wall)
+        wait = OdometryWait(tick.step, tick.stamp_ns, self.odometry_grace_s,
+                            time.monotonic() + self.s.clock.ack_timeout_s)
         done = [False]
-        next_at = [deadline]  # the earliest moment a grace runs out, else the deadline
-        armed = [deadline]  # what the current wait runs until
+        armed = [wait.deadline]  # what the current wait runs until
 
         def settled() -> bool:
             self._drain()
-            now = time.monotonic()
-            next_at[0] = deadline
-            done[0] = True
-            if self._world_left():
-                return True
-            for r in self.alive:
-                if self.latest_rx.get(r, -1) >= stamp:
-                    continue
-                if (step, stamp) in self.acked[r]:
-                    until = acked_at.setdefault(r, now) + self.odometry_grace_s
-                    if now >= until:
-                        continue  # lost
-                    next_at[0] = min(next_at[0], until)
-                done[0] = False
+            done[0] = self._world_left() or wait.settled(time.monotonic(), self.alive, self.latest_rx, self.acked)
             return done[0]
 
         def woken() -> bool:  # settled, or a grace began that ends before the current wait does
-            return settled() or next_at[0] < armed[0]
+            return settled() or wait.next_at < armed[0]
 
         while True:
             arrived = self.bus.wait_for(woken, max(0.0, armed[0] - time.monotonic()))
             if done[0]:
                 break
-            if not arrived and armed[0] >= deadline:
+            if not arrived and armed[0] >= wait.deadline:
                 self.counters["odometry_wait_timeouts"] += 1
                 break
-            armed[0] = next_at[0]
+            armed[0] = wait.next_at
         if self._world_left():
             return
-        for r in sorted(self.alive):
-            if self.latest_rx.get(r, -1) < stamp and (step, stamp) in self.acked[r]:
-                self.counters["odometry_lost"] += 1
+        self.counters["odometry_lost"] += len(wait.lost(self.alive, self.latest_rx, self.acked))
 
     def _step_lockstep(self, ticks: list[m.Tick]) -> bool:
         self.participant.serve(ticks, self._lockstep_tick)

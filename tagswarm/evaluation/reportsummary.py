@@ -53,8 +53,8 @@ def summary_tables(metrics: dict[str, Any]) -> tuple[Table, Table, Table]:
     beh = Table(title="behaviour and cost", box=box.SIMPLE_HEAD)
     for table, names in ((acc, ("fused ATE\nmap", "fused ATE\naligned", "odom ATE\nmap", "odom ATE\naligned",
                                 "fused\nRPE/m", "odom\nRPE/m")),
-                         (loc, ("time\nlocalised", "once\nplaced", "NEES\nmean / median", "re-\nlocalisations", "kidnaps",
-                                "contacts")),
+                         (loc, ("time\nlocalised", "once\nplaced", "NEES\nmean / median", "re-\nlocalisations",
+                                "kidnaps", "contacts")),
                          (beh, ("fixes", "searches", "lost\nevents", "time\nlost (s)", "frames\nprocessed",
                                 "frames\nskipped"))):
         table.add_column("robot", justify="left")
@@ -66,7 +66,8 @@ def summary_tables(metrics: dict[str, Any]) -> tuple[Table, Table, Table]:
         f, o = r["fused"], r["odom"]
         acc.add_row(name, _rmse(f, "ate_unaligned"), _rmse(f, "ate_aligned"), _rmse(o, "ate_unaligned"),
                     _rmse(o, "ate_aligned"), _rmse(f, "rpe_per_m"), _rmse(o, "rpe_per_m"), style=style)
-        loc.add_row(name, _pct(f.get("time_localised")), _pct(f.get("time_localised_placed")), _nees(f), *(_int(v) for v in recovery), style=style)
+        loc.add_row(name, _pct(f.get("time_localised")), _pct(f.get("time_localised_placed")), _nees(f),
+                    *(_int(v) for v in recovery), style=style)
         beh.add_row(name, _int(r["fixes"]), _int(r["searches"]), _int(r["lost_events"]), _m(r["time_lost_s"], 1),
                     _int(frames[0]), _int(frames[1]), style=style)
 

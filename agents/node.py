@@ -47,6 +47,7 @@ from tagswarm.agents.controller import (
     make,
 )
 from tagswarm.agents.cubepose import PoseEstimate
+from tagswarm.agents.intake import AgentIntake
 from tagswarm.agents.neighbours import NeighbourTracker
 from tagswarm.agents.odometry import DiffDriveOdometry, DiffDriveParams, SlipMonitor
 from tagswarm.agents.vision import Vision
@@ -82,6 +83,7 @@ class AgentNode:
         self.gaps = streams.GapCounter()  # messages lost on the way, per sender (lossy networks)
         self.counters: Counter[str] = Counter()
         self.vision = Vision(s, rid, self.counters, config.inject_frame_delay_s)
+        self.intake = AgentIntake(rid, s.encoders.ticks_per_rev, self.rejects, self.counters)
         self.seq = streams.Sequencer()
         self.participant = Participant(bus, self.keys, config.participant, self.seq)  # lockstep acks
         self.lockstep = s.clock.mode == "lockstep"
@@ -155,8 +157,7 @@ class AgentNode:
         self._next_status_ns = 0
         self.vision.reset()
         self.pending_frames: dict[str, m.CameraImage] = {}
-        self._last_frame_ns: dict[str, int] = {}
-        self._last_enc_ns = -1
+        self.intake.reset()
         self.correction_stamp_ns = -1
         # stamp of our first odometry in this run: older corrections were computed without it, in the odom
         # frame of a previous process or run
@@ -252,19 +253,8 @@ class AgentNode:
     # ------------------------------------------------------------------ inputs
     def _handle_encoders(self, upto_ns: int | None = None) -> None:
         """Integrate queued encoder counts; ``upto_ns``: drop any stamped later (see :meth:`_accept_tick`)."""
-        for item, enc in self.rejects.decoded(self.enc_in.drain(), m.EncoderTicks):
-            if enc.robot_id != self.rid:
-                self.rejects.reject("spoofed", f"{item.key} carries robot_id {enc.robot_id}")
-                continue
-            if enc.ticks_per_rev != self.odom.params.ticks_per_rev:
-                self.rejects.reject("inconsistent", f"ticks_per_rev {enc.ticks_per_rev} != configured")
-                continue
-            if enc.stamp_ns < self._last_enc_ns or (upto_ns is not None and enc.stamp_ns > upto_ns):
-                # counts of another world run (its clock restarted): integrating them would jump the pose
-                self.counters["stale_encoders"] += 1
-                continue
-            self._last_enc_ns = enc.stamp_ns
-            self.gaps.seen(item.key, enc.seq, "encoders")
+        for key, enc in self.intake.encoders(self.enc_in.drain(), upto_ns):
+            self.gaps.seen(key, enc.seq, "encoders")
             ds, dth = self.odom.update(enc.left_ticks, enc.right_ticks)
             slip = self.slip.measured(enc.stamp_ns, enc.left_ticks, enc.right_ticks)
             if slip > 0:
@@ -273,13 +263,10 @@ class AgentNode:
             self.time_ns = max(self.time_ns, enc.stamp_ns)
 
     def _handle_corrections(self) -> None:
-        for item, c in self.rejects.decoded(self.corr_in.drain(), m.Correction):
-            if c.robot_id != self.rid:
-                self.rejects.reject("spoofed", f"correction for robot {c.robot_id} on {item.key}")
-                continue
+        for key, c in self.intake.own(self.corr_in.drain(), m.Correction):
             self.correction_stamp_ns = max(self.correction_stamp_ns, c.stamp_ns)
             self.server_presence.heard("server", self.time_ns)
-            self.gaps.seen(item.key, c.seq, "corrections")
+            self.gaps.seen(key, c.seq, "corrections")
             if not c.localised:
                 continue
             if (self._odom_since_ns is None or c.stamp_ns < self._odom_since_ns
@@ -294,10 +281,7 @@ class AgentNode:
             if c.last_fix_ns > self.last_fix_ns:
                 self.last_fix_ns = c.last_fix_ns
                 self._fix = True
-        for item, g in self.rejects.decoded(self.goal_in.drain(), m.Goal):
-            if g.robot_id != self.rid:
-                self.rejects.reject("spoofed", f"goal for robot {g.robot_id} on {item.key}")
-                continue
+        for _, g in self.intake.own(self.goal_in.drain(), m.Goal):
             self._goals += 1
             self.goal = GoalRequest(g.x_m, g.y_m, g.tolerance_m, self._goals)
             if self.custom is None:
@@ -310,16 +294,9 @@ class AgentNode:
         for name, inbox in self.images.items():
             items = inbox.drain()
             self._frames_taken += len(items)
-            for item, img in self.rejects.decoded(items, m.CameraImage):
-                if img.robot_id != self.rid or img.camera != name:
-                    self.rejects.reject("spoofed", f"{item.key} carries robot {img.robot_id}/{img.camera}")
-                    continue
-                if img.stamp_ns < self._last_frame_ns.get(name, -1) or (upto_ns is not None and img.stamp_ns > upto_ns):
-                    self.counters["stale_frames"] += 1  # of another world run
-                    continue
+            for img in self.intake.frames(name, items, upto_ns):
                 if name in self.pending_frames:
                     self.counters["frames_replaced"] += 1
-                self._last_frame_ns[name] = img.stamp_ns
                 self.pending_frames[name] = img
 
     # ------------------------------------------------------------------ vision

@@ -59,7 +59,7 @@ from tagswarm.protocol.keys import Keys
 from tagswarm.protocol.layout import arena_to_map, footprint_radius
 from tagswarm.runtime import streams
 from tagswarm.runtime.lockstep import Participant
-from tagswarm.runtime.presence import Presence, silence_ns
+from tagswarm.runtime.presence import Presence, RunEnd, silence_ns
 from tagswarm.runtime.process import serve_node
 
 log = logging.getLogger("tagswarm.agent")
@@ -483,8 +483,12 @@ class AgentNode:
 
     def run(self, stop_event: threading.Event) -> int:
         end_ns = int(self.s.duration_s * 1e9)
+        end = RunEnd(end_ns)  # realtime: the world left at the end, its last counts lost on the way
         while not stop_event.is_set() and self.time_ns < end_ns:
             if not self.step():
+                if not self.lockstep and end.over(self.time_ns, self.runs.world_alive, time.monotonic()):
+                    log.warning("the world left at the end of the run (t=%.2f s here): stopping", self.time_ns / 1e9)
+                    break
                 self.bus.wait(0.1)
         self._publish_status()
         log.info("agent %d stopping at t=%.2f s: %s", self.rid, self.time_ns / 1e9, self.status_counters())

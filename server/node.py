@@ -30,7 +30,7 @@ from tagswarm.protocol.keys import Keys
 from tagswarm.runtime import streams
 from tagswarm.runtime.config import ConfigError
 from tagswarm.runtime.lockstep import Participant
-from tagswarm.runtime.presence import Presence, silence_ns
+from tagswarm.runtime.presence import Presence, RunEnd, silence_ns
 from tagswarm.runtime.process import serve_node
 from tagswarm.server import journal as jr
 from tagswarm.server import outputs
@@ -465,8 +465,12 @@ class ServerNode:
 
     def run(self, stop_event: threading.Event) -> int:
         end_ns = int(self.s.duration_s * 1e9)
+        end = RunEnd(end_ns)  # realtime: the world left at the end, the agents' last odometry lost on the way
         while not stop_event.is_set() and self.time_ns < end_ns:
             if not self.step():
+                if not self.lockstep and end.over(self.time_ns, not self._world_left(), time.monotonic()):
+                    log.warning("the world left at the end of the run (t=%.2f s here): stopping", self.time_ns / 1e9)
+                    break
                 if self.journal is not None:
                     self.journal.maybe_sync()
                 # status otherwise goes out with the map, i.e. only when data moves the clock on: an

@@ -91,3 +91,30 @@ class Presence(Generic[K]):
     def alive_set(self) -> set[K]:
         """Every peer that is alive now."""
         return self.tokens - self.silent
+
+
+@dataclass
+class RunEnd:
+    """Realtime: whether a node's run is over although its own clock stopped short of the end.
+
+    A realtime agent or server ends when its clock (from the data it receives) reaches the
+    run's duration.  The world's last messages can be lost when it closes at the end (its links
+    stalled by packet loss: the router drops a blocked link after 0.5 s), and then that clock
+    never gets there and the process would run on for ever.  So: once the world's token has
+    been gone ``grace_s`` (wall) while this clock is within ``slack_ns`` of ``end_ns``, the run
+    is over.  A world that comes back within the grace (restarted, or a partition healed)
+    cancels it; one that leaves earlier in the run is waited for, as before.
+    Times: ``end_ns`` / ``time_ns`` simulated ns, ``now`` wall (monotonic) seconds."""
+
+    end_ns: int
+    slack_ns: int = 1_000_000_000
+    grace_s: float = 2.0
+    _gone_since: float | None = field(default=None, repr=False)
+
+    def over(self, time_ns: int, world_alive: bool, now: float) -> bool:
+        if world_alive or time_ns < self.end_ns - self.slack_ns:
+            self._gone_since = None
+            return False
+        if self._gone_since is None:
+            self._gone_since = now
+        return now - self._gone_since >= self.grace_s

@@ -152,3 +152,36 @@ def test_a_restarted_world_resets_the_agent_and_a_foreign_run_is_rejected(rig: R
             # a correction the server made for the previous run is not applied to the new odometry
             rig.correction(server, 80, x=5.0)
             assert node.map_odom is None and node.counters["stale_corrections"] == 1
+
+
+def _run_returns_within(node: AgentNode, timeout_s: float) -> bool:
+    """Start ``node.run`` in a thread; whether it returned by itself within ``timeout_s`` (it is stopped after)."""
+    import threading
+
+    stop = threading.Event()
+    t = threading.Thread(target=node.run, args=(stop,), daemon=True)
+    t.start()
+    t.join(timeout_s)
+    returned = not t.is_alive()
+    stop.set()
+    t.join(10)
+    return returned
+
+
+def test_the_world_leaving_at_the_end_ends_the_run_even_if_its_last_counts_were_lost(rig: Rig) -> None:
+    """The world's last encoder counts (stamped at the run's end) never arrive, e.g. lost when it closed
+    over a lossy link: once it has been gone 2 s, the agent stops instead of running for ever."""
+    keys, near_end = rig.keys, int(59.5e9 / DT)  # 0.5 s before the scenario's 60 s
+    with _peer(rig.ep, "world/0", keys) as world:
+        rig.tick(world, near_end, "w1")
+        rig.encoders(world, near_end, 0)
+    assert rig.node.time_ns < int(60e9)
+    assert _run_returns_within(rig.node, 8.0)
+
+
+def test_the_world_leaving_mid_run_is_waited_for(rig: Rig) -> None:
+    keys = rig.keys
+    with _peer(rig.ep, "world/0", keys) as world:
+        rig.tick(world, 30, "w1")
+        rig.encoders(world, 30, 0)
+    assert not _run_returns_within(rig.node, 4.0)  # a restarted world may come back: the agent waits

@@ -6,7 +6,7 @@ import logging
 
 import pytest
 
-from tagswarm.runtime.presence import Presence, silence_ns
+from tagswarm.runtime.presence import Presence, RunEnd, silence_ns
 
 S = 1_000_000_000
 
@@ -98,3 +98,21 @@ def test_a_clock_that_went_back_is_a_new_run() -> None:
 def test_silence_is_a_lease_plus_the_margin_plus_the_delay() -> None:
     assert silence_ns(1500, 0.0, 0.5) == 2 * S
     assert silence_ns(1500, 250.0, 1.0) == int(2.75 * S)
+
+
+def test_run_end_after_the_world_left_near_the_end_for_the_grace() -> None:
+    end = RunEnd(end_ns=12_000_000_000)
+    assert not end.over(11_900_000_000, world_alive=True, now=0.0)
+    assert not end.over(11_900_000_000, world_alive=False, now=1.0)  # the grace starts
+    assert not end.over(11_900_000_000, world_alive=False, now=2.9)
+    assert end.over(11_900_000_000, world_alive=False, now=3.0)
+
+
+def test_run_end_not_when_the_world_left_early_or_came_back() -> None:
+    end = RunEnd(end_ns=12_000_000_000)
+    assert not end.over(5_000_000_000, world_alive=False, now=0.0)
+    assert not end.over(5_000_000_000, world_alive=False, now=100.0)  # mid-run: a restart is waited for
+    assert not end.over(11_500_000_000, world_alive=False, now=100.0)
+    assert not end.over(11_500_000_000, world_alive=True, now=101.0)  # back: the grace starts again
+    assert not end.over(11_500_000_000, world_alive=False, now=102.0)
+    assert end.over(11_500_000_000, world_alive=False, now=104.0)

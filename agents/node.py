@@ -94,6 +94,9 @@ class AgentNode:
             c.name: bus.subscribe(self.keys.image(rid, c.name), newest_only=not self.lockstep,
                                   capacity=LOCKSTEP_FRAME_QUEUE) for c in s.robot.cameras}
         self._frames_taken = 0  # frames drained from the newest-only inboxes (the rest were overwritten)
+        # CPU seconds (this thread) handling frames, publishing included; the vision reports how much of it
+        # went to the detector and the pose estimate: the status gives both for bench/speed.py's overhead ratio
+        self._cpu_frames_s = 0.0
         self.enc_in = bus.subscribe(self.keys.encoders(rid))
         # realtime: only encoders (a control cycle) and frames wake the loop; ticks, corrections, goals and
         # maps are read at the next wake-up, which is where they are used anyway (one pass of the loop
@@ -317,9 +320,7 @@ class AgentNode:
                 # a sighting corrects our pose only through a server
                 self._fix = self._fix or self.server_alive
         finally:
-            # CPU seconds (this thread) handling frames, publishing included; of that in the detector and the
-            # pose estimate: the status reports both for bench/speed.py's overhead ratio
-            self.vision.cpu_s["frames"] += time.thread_time() - t0
+            self._cpu_frames_s += time.thread_time() - t0
 
     def _publish_observation(self, est: PoseEstimate, stamp_ns: int) -> None:
         key = self.keys.observation(self.rid)
@@ -382,8 +383,8 @@ class AgentNode:
                    avoiding_cycles=b.avoider.cycles_avoiding, avoid_yields=b.avoider.yields,
                    avoid_side_flips=b.avoider.side_flips, maps_used=self.neighbours.maps_adopted,
                    slip_mm=round(self.slip.slip_m * 1000), slip_events=self.slip.events,
-                   frames_received=received, cpu_frames_us=round(self.vision.cpu_s["frames"] * 1e6),
-                   cpu_detect_pose_us=round(self.vision.cpu_s["detect_pose"] * 1e6),
+                   frames_received=received, cpu_frames_us=round(self._cpu_frames_s * 1e6),
+                   cpu_detect_pose_us=round(self.vision.detect_pose_cpu_s * 1e6),
                    # overwritten in the newest-only inbox, or replaced while pending
                    frames_skipped=received - self._frames_taken + self.counters["frames_replaced"])
         out.update(self.rejects.as_counters())

@@ -468,7 +468,8 @@ class ServerNode:
         end = RunEnd(end_ns)  # realtime: the world left at the end, the agents' last odometry lost on the way
         while not stop_event.is_set() and self.time_ns < end_ns:
             if not self.step():
-                if not self.lockstep and end.over(self.time_ns, not self._world_left(), time.monotonic()):
+                self._world_left()  # drains the world's token changes
+                if not self.lockstep and end.over(self.time_ns, self.runs.world_alive, time.monotonic()):
                     log.warning("the world left at the end of the run (t=%.2f s here): stopping", self.time_ns / 1e9)
                     break
                 if self.journal is not None:

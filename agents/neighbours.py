@@ -32,6 +32,8 @@ VELOCITY_MAX_DT_S = 1.5  # two maps further apart than this give no velocity
 SIGMA_WIDEN = 2.0  # the circle grows by this many standard deviations of the position ...
 SIGMA_WIDEN_MAX_M = 0.15  # ... at most
 AGE_WIDEN = 0.25  # ... and by this share of the distance extrapolated (velocity error)
+#: a sighting further than this beyond a robot's circle is one the map contradicts (a copy of its cube)
+SIGHTING_GATE_M = 0.5
 
 
 @dataclass(frozen=True)
@@ -85,17 +87,29 @@ class NeighbourTracker:
         self.adopted_ns = stamp_ns
         self.maps_adopted += 1
 
+    def where(self, robot_id: int, now_ns: int) -> Neighbour | None:
+        """Robot ``robot_id`` predicted to ``now_ns`` from the map in use (none adopted here), or None
+        if that map does not have it."""
+        tr = self.tracks.get(robot_id)
+        return None if tr is None else self._predict(robot_id, tr, now_ns)
+
+    def contradicts(self, robot_id: int, seen_x_m: float, seen_y_m: float, now_ns: int) -> bool:
+        """Whether the map in use has robot ``robot_id`` more than :data:`SIGHTING_GATE_M` beyond its
+        circle from where a sighting puts it (map frame); False if the map does not have it."""
+        n = self.where(robot_id, now_ns)
+        return n is not None and math.hypot(seen_x_m - n.x_m, seen_y_m - n.y_m) > n.radius_m + SIGHTING_GATE_M
+
+    def _predict(self, rid: int, tr: _Track, now_ns: int) -> Neighbour:
+        age = min(max((now_ns - tr.stamp_ns) / 1e9, 0.0), MAX_EXTRAPOLATE_S)
+        speed = math.hypot(tr.vx_m_s, tr.vy_m_s)
+        widen = min(SIGMA_WIDEN * tr.sigma_m, SIGMA_WIDEN_MAX_M) + AGE_WIDEN * speed * age
+        return Neighbour(rid, tr.x_m + tr.vx_m_s * age, tr.y_m + tr.vy_m_s * age, tr.vx_m_s, tr.vy_m_s,
+                         self.footprint_m + widen)
+
     def neighbours(self, now_ns: int, usable_until_ns: int | None = None) -> tuple[Neighbour, ...]:
         """The other robots predicted to ``now_ns``, in robot-id order, after adopting every waiting
         map stamped at or before ``usable_until_ns`` (all of them if None)."""
         while self.pending and (usable_until_ns is None or self.pending[0][0] <= usable_until_ns):
             stamp, entries = self.pending.pop(0)
             self._adopt(stamp, entries)
-        out = []
-        for rid, tr in sorted(self.tracks.items()):
-            age = min(max((now_ns - tr.stamp_ns) / 1e9, 0.0), MAX_EXTRAPOLATE_S)
-            speed = math.hypot(tr.vx_m_s, tr.vy_m_s)
-            widen = min(SIGMA_WIDEN * tr.sigma_m, SIGMA_WIDEN_MAX_M) + AGE_WIDEN * speed * age
-            out.append(Neighbour(rid, tr.x_m + tr.vx_m_s * age, tr.y_m + tr.vy_m_s * age, tr.vx_m_s, tr.vy_m_s,
-                                 self.footprint_m + widen))
-        return tuple(out)
+        return tuple(self._predict(rid, tr, now_ns) for rid, tr in sorted(self.tracks.items()))

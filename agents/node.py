@@ -317,10 +317,22 @@ class AgentNode:
             self.time_ns = max(self.time_ns, stamp)
             for est in estimates:
                 self._publish_observation(est, stamp)
-                # a sighting corrects our pose only through a server
-                self._fix = self._fix or self.server_alive
+                # a sighting corrects our pose only through a server, and not one our map contradicts (a
+                # copy of a robot's cube elsewhere): then only the server's word (last_fix_ns) is a fix
+                if self.server_alive and not self._contradicted(est):
+                    self._fix = True
         finally:
             self._cpu_frames_s += time.thread_time() - t0
+
+    def _contradicted(self, est: PoseEstimate) -> bool:
+        me = self.map_pose
+        if est.target_kind != "robot" or me is None:
+            return False
+        x, y, _ = se2_compose(me, (est.x_m, est.y_m, est.yaw_rad))
+        if not self.neighbours.contradicts(est.target_id, x, y, self.time_ns):
+            return False
+        self.counters["sightings_off_map"] += 1
+        return True
 
     def _publish_observation(self, est: PoseEstimate, stamp_ns: int) -> None:
         key = self.keys.observation(self.rid)

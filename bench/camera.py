@@ -6,14 +6,18 @@ all see the same machine load (median over ``--frames``; wall and process CPU ti
 
 - ``render``: pybullet's ``getCameraImage`` of the ideal pinhole (what an ideal frame costs);
 - ``wide_render``: that of the wider pinhole a lens needs, with its depth buffer (blur needs it);
-- ``lens``: the fixed-point ``cv2.remap`` of a frame without blur;
-- ``blur``: the sub-exposures' maps and their average (replaces ``lens`` when the streak >= 1 px);
-- ``develop``: vignetting, contrast, shot and read noise, rounding.
+- ``lens``: the fixed-point ``cv2.remap`` of the render into the 8-bit lens image (every frame);
+- ``blur``: the camera's twist, the sub-exposures' maps and the blur (a filter per uniform tile
+  of the lens image, the render resampled per sub-exposure elsewhere; nothing under 1 px);
+- ``develop``: the frame's noise draw, vignetting, contrast, shot and read noise, rounding.
 
-``model_share`` = (blur or lens + develop) / render, the issue's target <= 0.2;
-``total_share`` = (wide_render + blur + develop) / render - 1, what a realistic frame adds
+``model_share`` = (lens + blur + develop) / render, the issue's target <= 0.2;
+``model_share_no_blur`` the same for a frame without motion (lens + develop);
+``total_share`` = (wide_render + lens + blur + develop) / render - 1, what a realistic frame adds
 in all; each also from process CPU time (``_cpu``), which a loaded machine distorts less
-than wall time.  Writes ``bench/results/camera.json``.
+than wall time.  OpenCV runs single-threaded here, so CPU time is the work itself (its
+thread pool would add CPU for little wall time on two cores).  Writes
+``bench/results/camera.json``.
 
 Usage: python bench/camera.py [--frames 40] [--out bench/results/camera.json]
 """
@@ -25,6 +29,7 @@ import json
 import os
 import sys
 import time
+from collections import Counter
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -32,19 +37,20 @@ from typing import Any
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
 from tagswarm.protocol.geometry import se2_matrix  # noqa: E402
 from tagswarm.protocol.scenario import load_scenario  # noqa: E402
 from tagswarm.world.render import Renderer  # noqa: E402
 from tagswarm.world.sensor import (  # noqa: E402
+    Exposures,
     NoiseBank,
     camera_twist,
     develop,
     expose,
     exposure_maps,
     frame_rng,
-    linear_depth,
     tone,
     vignetting_gain,
 )
@@ -66,6 +72,18 @@ def _time(fn: Callable[[], Any]) -> tuple[float, float, Any]:
     return (time.perf_counter() - w0) * 1e3, (time.process_time() - c0) * 1e3, out
 
 
+def _blur_path(maps: Exposures | None) -> str:
+    """How a frame was blurred, in words."""
+    if maps is None:
+        return "none (streak < 1 px)"
+    if maps.kernel is not None:
+        return "one filter"
+    if maps.tiles is None:
+        return f"{len(maps)} sub-exposures per pixel"
+    filters = sum(1 for *_, k in maps.tiles if k is not None)
+    return f"a filter in {filters} of {len(maps.tiles)} tiles, {len(maps)} sub-exposures in the others"
+
+
 def camera_row(name: str, override: str, frames: int) -> dict[str, Any]:
     """The stage costs of one camera (see the module docstring)."""
     ideal_s = load_scenario("paper", [override])
@@ -73,7 +91,7 @@ def camera_row(name: str, override: str, frames: int) -> dict[str, Any]:
     cam = s.robot.cameras[0]
     cfg = s.camera.resolved()
     stages: dict[str, list[tuple[float, float]]] = {k: [] for k in ("render", "wide_render", "lens", "blur", "develop")}
-    streaks = []
+    paths: list[str] = []
     with Renderer(ideal_s) as ri, Renderer(s) as rr:
         for r in (ri, rr):
             for rid in s.robot_ids:
@@ -91,28 +109,32 @@ def camera_row(name: str, override: str, frames: int) -> dict[str, Any]:
             stages["render"].append((w, c))
             w, c, (gray, zbuf) = _time(lambda t_wc=t_wc: rr._shoot(p.render_cam, t_wc, True))
             stages["wide_render"].append((w, c))
-            w, c, _ = _time(lambda gray=gray: p.apply(gray.astype(np.float32)))
+            w, c, lensed = _time(lambda gray=gray: p.apply(gray))
             stages["lens"].append((w, c))
-            depth = linear_depth(zbuf, cam.near_m, cam.far_m)
-            twist = camera_twist(prev @ mount, t_wc, DT_S)
 
-            def blur(gray: Any = gray, depth: Any = depth, twist: Any = twist) -> Any:
-                maps = exposure_maps(*p.sample_maps(), depth, p.K_render, twist, (cfg.exposure_ms or 0.0) * 1e-3)
-                streaks.append(0 if maps is None else len(maps))
-                return p.apply(gray.astype(np.float32)) if maps is None else expose(gray.astype(np.float32), maps)
+            def blur(gray: Any = gray, zbuf: Any = zbuf, t_wc: Any = t_wc, prev: Any = prev,
+                     lensed: Any = lensed) -> Any:
+                twist = camera_twist(prev @ mount, t_wc, DT_S)
+                maps = exposure_maps(*p.sample_maps(), zbuf, p.K_render, twist, (cfg.exposure_ms or 0.0) * 1e-3,
+                                     near_far=(cam.near_m, cam.far_m))
+                paths.append(_blur_path(maps))
+                return lensed if maps is None else expose(gray, maps, lensed)
 
             w, c, blurred = _time(blur)
             stages["blur"].append((w, c))
-            rng = frame_rng(s.seed, 0, cam.name, k)
-            w, c, _ = _time(lambda img=blurred, rng=rng: develop(img, cfg, rng, toned=toned, bank=bank))
+
+            def dev(img: Any = blurred, k: int = k) -> Any:
+                return develop(img, cfg, frame_rng(s.seed, 0, cam.name, k), toned=toned, bank=bank)
+
+            w, c, _ = _time(dev)
             stages["develop"].append((w, c))
     med = {k: (float(np.median([x[0] for x in v[2:]])), float(np.median([x[1] for x in v[2:]])))
            for k, v in stages.items()}
     render_w, render_c = med["render"]
-    model_w = med["blur"][0] + med["develop"][0]
-    model_c = med["blur"][1] + med["develop"][1]
+    model_w = med["lens"][0] + med["blur"][0] + med["develop"][0]
+    model_c = med["lens"][1] + med["blur"][1] + med["develop"][1]
     return {"camera": name, "render_size": [p.render_cam.width, p.render_cam.height],
-            "sub_exposures_median": float(np.median(streaks[2:])),
+            "blur_path": Counter(paths[2:]).most_common(1)[0][0],
             "wall_ms": {k: round(v[0], 3) for k, v in med.items()},
             "cpu_ms": {k: round(v[1], 3) for k, v in med.items()},
             "model_share": round(model_w / render_w, 3), "model_share_cpu": round(model_c / max(render_c, 1e-6), 3),
@@ -126,6 +148,7 @@ def main() -> int:
     p.add_argument("--frames", type=int, default=40, help="timed frames per camera (2 more warm up)")
     p.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "camera.json")
     a = p.parse_args()
+    cv2.setNumThreads(1)
     rows = []
     for name, override in CAMERAS.items():
         rows.append(camera_row(name, override, a.frames))

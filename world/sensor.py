@@ -10,6 +10,7 @@ y down); metres, seconds, radians.
 
 from __future__ import annotations
 
+import functools
 import math
 import zlib
 from typing import Any, Final
@@ -54,9 +55,9 @@ def camera_twist(t_wc_prev: Mat, t_wc_now: Mat, dt_s: float) -> NDArray[np.float
     ``dt_s`` apart, or None when the step is a jump rather than motion."""
     if dt_s <= 0:
         return None
-    delta = np.linalg.inv(t_wc_now) @ t_wc_prev  # the previous camera in the current one
-    w = -np.asarray(cv2.Rodrigues(delta[:3, :3])[0], np.float64).ravel() / dt_s
-    v = -delta[:3, 3] / dt_s
+    r_now_t = t_wc_now[:3, :3].T  # rigid inverse: the previous camera in the current one
+    w = -np.asarray(cv2.Rodrigues(r_now_t @ t_wc_prev[:3, :3])[0], np.float64).ravel() / dt_s
+    v = -(r_now_t @ (t_wc_prev[:3, 3] - t_wc_now[:3, 3])) / dt_s
     if np.linalg.norm(v) > MAX_SPEED_M_S or np.linalg.norm(w) > MAX_TURN_RAD_S:
         return None
     return np.concatenate([v, w])
@@ -120,13 +121,19 @@ UNIFORM_STREAK_TOL_PX: Final = 0.25
 _FIXED: dict[int, tuple[F32, tuple[Any, Any]]] = {}
 
 
+#: the streak's uniformity is judged per tile of this many output pixels a side (a multiple of the flow grid)
+TILE_PX: Final = 96
+
+
 class Exposures(list[tuple[F32, F32]]):
     """The sub-exposures of one frame (:func:`exposure_maps`): their sampling maps, or, when the streak
     is the same all over the image, ``kernel``, the blur as one filter over the lens image (the render
-    resampled through ``lens_maps``)."""
+    resampled through ``lens_maps``), or, when it is the same within each of some tiles, ``tiles``:
+    (rows, columns, filter) per tile, the filter None where the tile needs its sub-exposures' maps."""
 
     kernel: F32 | None = None
     lens_maps: tuple[F32, F32] | None = None
+    tiles: list[tuple[slice, slice, F32 | None]] | None = None
 
 
 def streak_kernel(du: float, dv: float, n: int) -> F32:
@@ -180,8 +187,43 @@ def _fixed_maps(map_x: F32, map_y: F32) -> tuple[Any, Any]:
     return fixed[0], fixed[1]
 
 
-def exposure_maps(map_x: F32, map_y: F32, depth_m: F32, K: Mat, twist: NDArray[np.float64] | None,
-                  exposure_s: float) -> Exposures | None:
+@functools.lru_cache(maxsize=4096)
+def _tile_kernel(du16: int, dv16: int, n: int) -> F32:
+    """:func:`streak_kernel` of a half-streak given in 1/16 px (a tile's centre streak, rounded: 1/32 px
+    is nothing next to :data:`UNIFORM_STREAK_TOL_PX`, and neighbouring tiles and frames share filters)."""
+    k = streak_kernel(du16 / 16.0, dv16 / 16.0, n)
+    k.flags.writeable = False
+    return k
+
+
+def _tiles(su: F32, sv: F32, g: int, n: int, shape: tuple[int, int]) -> list[tuple[slice, slice, F32 | None]]:
+    """The :data:`TILE_PX` tiles of an ``shape`` image whose half-streak (``su``, ``sv``: output px on
+    the ``g`` grid) varies by at most :data:`UNIFORM_STREAK_TOL_PX` about its centre, with the filter
+    of that centre (``n`` sub-exposures), the others with None."""
+    t = TILE_PX // g
+    starts = [np.arange(0, su.shape[0] - 1, t), np.arange(0, su.shape[1] - 1, t)]
+
+    def per_tile(a: F32, op: np.ufunc) -> F32:
+        cell = op(op(a[:-1, :-1], a[1:, :-1]), op(a[:-1, 1:], a[1:, 1:]))  # the 4 grid points around each cell
+        return np.asarray(op.reduceat(op.reduceat(cell, starts[0], axis=0), starts[1], axis=1), np.float32)
+
+    umax, umin, vmax, vmin = (per_tile(su, np.maximum), per_tile(su, np.minimum), per_tile(sv, np.maximum),
+                              per_tile(sv, np.minimum))
+    uniform = np.maximum(umax - umin, vmax - vmin) <= 2.0 * UNIFORM_STREAK_TOL_PX
+    cu, cv = (umax + umin) / 2.0, (vmax + vmin) / 2.0
+    h, w = shape
+    tiles = []
+    for i, gy in enumerate(starts[0]):
+        rows = slice(int(gy) * g, h if i == len(starts[0]) - 1 else int(gy + t) * g)
+        for j, gx in enumerate(starts[1]):
+            cols = slice(int(gx) * g, w if j == len(starts[1]) - 1 else int(gx + t) * g)
+            tiles.append((rows, cols, _tile_kernel(round(float(cu[i, j]) * 16), round(float(cv[i, j]) * 16), n)
+                          if uniform[i, j] else None))
+    return tiles
+
+
+def exposure_maps(map_x: F32, map_y: F32, depth_m: NDArray[Any], K: Mat, twist: NDArray[np.float64] | None,
+                  exposure_s: float, near_far: tuple[float, float] | None = None) -> Exposures | None:
     """Sampling maps of the sub-exposures of one frame: the output pixel q of sub-exposure i shows
     the pinhole render (intrinsics ``K``, depth ``depth_m``) at ``map(q) - a_i flow(map(q))``,
     with ``map`` the lens's maps into the render (float (H, W); the pixel grid for a pinhole),
@@ -190,13 +232,17 @@ def exposure_maps(map_x: F32, map_y: F32, depth_m: F32, K: Mat, twist: NDArray[n
     :data:`FLOW_GRID_PX` grid (it is smooth but at depth edges); the depth is the centre
     frame's, so occlusions changing within the exposure are ignored.  Sub-exposures at most
     :data:`SAMPLE_SPACING_PX` output pixels apart (bilinear sampling fills between them), at least
-    2, at most :data:`MAX_BLUR_SAMPLES`; None for a streak under 1 output pixel."""
+    2, at most :data:`MAX_BLUR_SAMPLES`; None for a streak under 1 output pixel.  With ``near_far``
+    (m), ``depth_m`` is the render's OpenGL depth buffer, linearised only where the grid samples it."""
     if twist is None or exposure_s <= 0:
         return None
     g = FLOW_GRID_PX
     depth_at, xn, yn = _flow_grid(map_x, map_y, K, depth_m.shape)
     fx, fy = np.float32(K[0, 0]), np.float32(K[1, 1])
-    dx, dy = blur_flow(xn, yn, depth_m.ravel().take(depth_at), twist, exposure_s / 2.0)
+    depth = depth_m.ravel().take(depth_at)
+    if near_far is not None:
+        depth = linear_depth(depth, *near_far)
+    dx, dy = blur_flow(xn, yn, depth, twist, exposure_s / 2.0)
     du, dv = dx * fx, dy * fy
     # the streak in OUTPUT pixels decides the sub-exposures (the lens may sample the render sparser or
     # denser than one render pixel per output pixel: a fisheye's wide pinhole render is ~2x its image)
@@ -207,30 +253,63 @@ def exposure_maps(map_x: F32, map_y: F32, depth_m: F32, K: Mat, twist: NDArray[n
         return None
     n = min(MAX_BLUR_SAMPLES, max(2, math.ceil(streak / SAMPLE_SPACING_PX)))
     out = Exposures()
-    mu, mv = float(su.mean()), float(sv.mean())
-    if max(float(np.abs(su - mu).max()), float(np.abs(sv - mv).max())) <= UNIFORM_STREAK_TOL_PX:
+    out.lens_maps = (map_x, map_y)
+    u0, u1, v0, v1 = float(su.min()), float(su.max()), float(sv.min()), float(sv.max())
+    if max(u1 - u0, v1 - v0) <= 2.0 * UNIFORM_STREAK_TOL_PX:
         # a turn seen through a narrow lens: one small filter instead of n resamplings of the render
-        out.kernel, out.lens_maps = streak_kernel(mu, mv, n), (map_x, map_y)
+        out.kernel = streak_kernel((u0 + u1) / 2.0, (v0 + v1) / 2.0, n)
         return out
     h, w = map_x.shape
+    # else per tile (a wide or distorting lens, a large image): a filter where the streak is uniform
+    # within it, the sub-exposures' maps only where it is not (a depth edge under translation)
+    tiles = _tiles(su, sv, g, n, (h, w)) if min(su.shape) > 1 else []
+    if tiles and all(k is not None for _, _, k in tiles):
+        out.tiles = tiles
+        return out
     du = np.asarray(cv2.resize(du, (w, h), interpolation=cv2.INTER_LINEAR), np.float32)
     dv = np.asarray(cv2.resize(dv, (w, h), interpolation=cv2.INTER_LINEAR), np.float32)
     for i in range(n):
         weight = -2.0 * ((i + 0.5) / n - 0.5)
         out.append((np.asarray(cv2.scaleAdd(du, weight, map_x), np.float32),  # type: ignore[call-overload]
                     np.asarray(cv2.scaleAdd(dv, weight, map_y), np.float32)))  # type: ignore[call-overload]
+    # else every pixel by its sub-exposures
+    out.tiles = tiles if any(k is not None for _, _, k in tiles) else None
     return out
 
 
-def expose(render: F32, maps: Exposures) -> F32:
-    """The mean of the sub-exposures sampled from ``render`` through ``maps`` (:func:`exposure_maps`)."""
-    if maps.kernel is not None and maps.lens_maps is not None:
+def expose(render: NDArray[Any], maps: Exposures, lensed: NDArray[Any] | None = None) -> F32:
+    """The mean of the sub-exposures sampled from ``render`` (H_r, W_r; 8-bit or float) through
+    ``maps`` (:func:`exposure_maps`), in float; ``lensed``, the render already resampled through the
+    lens's maps (8-bit or float), spares resampling it again where a filter does the blur."""
+    if (maps.kernel is not None or maps.tiles is not None) and lensed is None:
+        assert maps.lens_maps is not None
         lensed = cv2.remap(render, *_fixed_maps(*maps.lens_maps), cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-        return np.asarray(cv2.filter2D(lensed, -1, maps.kernel, borderType=cv2.BORDER_REPLICATE), np.float32)
-    acc = np.zeros(maps[0][0].shape, np.float32)
-    for mx, my in maps:
-        acc += np.asarray(cv2.remap(render, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE), np.float32)
-    return acc / np.float32(len(maps))
+    if maps.kernel is not None:
+        assert lensed is not None
+        return np.asarray(cv2.filter2D(lensed, cv2.CV_32F, maps.kernel, borderType=cv2.BORDER_REPLICATE), np.float32)
+    src = render.astype(np.float32) if len(maps) else render  # float only when it is resampled
+    if maps.tiles is None:
+        acc = np.zeros(maps[0][0].shape, np.float32)
+        for mx, my in maps:
+            acc += np.asarray(cv2.remap(src, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE), np.float32)
+        return acc / np.float32(len(maps))
+    assert lensed is not None
+    out = np.empty(lensed.shape, np.float32)  # every tile is written below
+    h, w = lensed.shape
+    for rows, cols, k in maps.tiles:
+        if k is None:
+            acc = np.zeros((rows.stop - rows.start, cols.stop - cols.start), np.float32)
+            for mx, my in maps:
+                acc += np.asarray(cv2.remap(src, mx[rows, cols], my[rows, cols], cv2.INTER_LINEAR,
+                                            borderMode=cv2.BORDER_REPLICATE), np.float32)
+            out[rows, cols] = acc / np.float32(len(maps))
+            continue
+        # the tile with the filter's reach around it (the image's own border replicates, as for one filter)
+        r = k.shape[0] // 2
+        y0, y1, x0, x1 = max(0, rows.start - r), min(h, rows.stop + r), max(0, cols.start - r), min(w, cols.stop + r)
+        part = cv2.filter2D(lensed[y0:y1, x0:x1], cv2.CV_32F, k, borderType=cv2.BORDER_REPLICATE)
+        out[rows, cols] = part[rows.start - y0:rows.stop - y0, cols.start - x0:cols.stop - x0]
+    return out
 
 
 def motion_blur(img: F32, depth_m: F32, K: Mat, twist: NDArray[np.float64] | None, exposure_s: float) -> F32:
@@ -282,14 +361,14 @@ class NoiseBank:
         return self.samples[off:off + n].reshape(shape)
 
 
-def develop(img: F32, cfg: CameraSensor, rng: np.random.Generator, gain: F32 | None = None,
+def develop(img: NDArray[Any], cfg: CameraSensor, rng: np.random.Generator, gain: F32 | None = None,
             toned: tuple[F32, float] | None = None, bank: NoiseBank | None = None) -> NDArray[np.uint8]:
-    """The 8-bit frame of a light image ``img`` (H, W, DN): vignetting ``gain``, contrast about
+    """The 8-bit frame of a light image ``img`` (H, W, DN; float or 8-bit): vignetting ``gain``, contrast about
     mid-grey and brightness (or their precomputed :func:`tone`), shot noise (variance signal /
     ``electrons_per_dn``, DN^2) and read noise (Gaussian, DN), rounded and clipped.  ``cfg`` is
     a resolved ``[camera]`` section."""
     scale, offset = toned if toned is not None else tone(cfg, gain, img.shape)  # type: ignore[arg-type]
-    out = img * scale
+    out = np.asarray(cv2.multiply(img, scale, dtype=cv2.CV_32F), np.float32)  # type: ignore[call-overload]
     out += np.float32(offset)
     np.clip(out, 0.0, 255.0, out=out)
     read2 = float(cfg.read_noise_dn or 0.0) ** 2

@@ -208,6 +208,26 @@ def test_tracker_extrapolates_and_uses_only_maps_it_may() -> None:
     assert t.neighbours(1_000_000_000)[0].x_m == pytest.approx(0.2)
 
 
+def test_a_sighting_far_from_where_the_map_has_the_robot_is_contradicted() -> None:
+    """The agent's own check before it counts a sighting as a fix: a copy of robot 2's cube 3 m from
+    where the map has robot 2 is contradicted; a sighting within its circle and the gate is not, nor
+    is one of a robot the map does not have yet (only the server can judge it), nor one made before
+    the map was adopted."""
+    from tagswarm.agents.neighbours import SIGHTING_GATE_M
+
+    t = NeighbourTracker(1, FOOT, 0.5)
+    assert not t.contradicts(2, 9.0, 9.0, 0)  # no map yet
+    cov = (0.01**2, 0.0, 0.0, 0.0, 0.01**2, 0.0, 0.0, 0.0, 0.0)
+    t.offer(0, [m.MapEntry(robot_id=2, x_m=1.0, y_m=0.0, yaw_rad=0.0, cov=cov, last_seen_ns=0, alive=True)])
+    assert not t.contradicts(2, 9.0, 9.0, 0)  # offered, not adopted: the control cycle adopts maps
+    t.neighbours(0)
+    radius = t.where(2, 0).radius_m  # type: ignore[union-attr]
+    assert not t.contradicts(2, 1.0 + radius + SIGHTING_GATE_M - 0.01, 0.0, 0)
+    assert t.contradicts(2, 1.0 + radius + SIGHTING_GATE_M + 0.01, 0.0, 0)
+    assert t.contradicts(2, 1.0, 3.0, 0)
+    assert not t.contradicts(3, 9.0, 9.0, 0)  # not in the map
+
+
 def test_static_boxes_are_the_walls_and_obstacles_in_the_map_frame() -> None:
     s = load_scenario("hall")
     boxes = static_boxes(s)

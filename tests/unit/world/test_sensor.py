@@ -165,3 +165,55 @@ def test_sub_exposures_count_output_pixels() -> None:
     fisheye = "robot.cameras=[{name='front', width=320, height=240, hfov_deg=120.0}]"
     assert _turning_exposure([fisheye], 0.004)[0] is None
     assert _turning_exposure([fisheye], 0.020)[0] is not None
+
+
+def test_a_streak_uniform_per_tile_is_a_filter_per_tile_close_to_the_sub_exposures() -> None:
+    """A turn at 640x480: the streak grows towards the image's sides by more than the tolerance, but
+    within each tile it does not, so the blur is a filter per tile, as close to resampling the render
+    per sub-exposure as the one-filter blur is."""
+    cam = "robot.cameras=[{name='front', width=640, height=480, hfov_deg=60.0}]"
+    maps, fast, sharp = _turning_exposure([cam], 0.004)
+    assert maps is not None and maps.kernel is None  # type: ignore[attr-defined]
+    tiles = maps.tiles  # type: ignore[attr-defined]
+    assert tiles is not None and all(k is not None for _, _, k in tiles) and len(maps) == 0  # type: ignore[arg-type]
+    covered = np.zeros(sharp.shape, int)
+    for rows, cols, _ in tiles:
+        covered[rows, cols] += 1
+    assert (covered == 1).all()  # the tiles partition the image
+    per_pixel, slow, _ = _turning_exposure([cam], 0.004, tol_px=-1.0)
+    assert per_pixel is not None and per_pixel.tiles is None and len(per_pixel) >= 2  # type: ignore[attr-defined]
+    blur = float(np.abs(slow - sharp).mean())
+    assert blur > 0.2
+    assert float(np.abs(fast - slow).mean()) < 0.6 * blur
+
+
+def test_tiles_across_a_depth_edge_keep_their_sub_exposures() -> None:
+    """A sideways move past a near wall on the left and a far one on the right: the tiles astride the
+    depth edge blur by their sub-exposures exactly as the per-pixel blur does, the others by a filter."""
+    from tagswarm.world import sensor
+
+    h, w = 192, 384
+    rng = np.random.default_rng(0)
+    img = np.asarray(rng.uniform(0, 255, (h, w)), np.float32)
+    depth = np.full((h, w), 4.0, np.float32)
+    depth[:, : w // 2 + 10] = 0.5
+    k = np.array([[300.0, 0, (w - 1) / 2], [0, 300.0, (h - 1) / 2], [0, 0, 1]])
+    twist = np.array([0.4, 0.0, 0.0, 0.0, 0.0, 0.0])
+    gu, gv = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
+    maps = sensor.exposure_maps(gu, gv, depth, k, twist, 0.02)
+    assert maps is not None and maps.tiles is not None
+    mixed = [(r, c) for r, c, kern in maps.tiles if kern is None]
+    assert mixed and all(c.start <= w // 2 + 10 < c.stop for _, c in mixed)
+    out = sensor.expose(img, maps)
+    kept = sensor.UNIFORM_STREAK_TOL_PX
+    sensor.UNIFORM_STREAK_TOL_PX = -1.0
+    try:
+        every = sensor.exposure_maps(gu, gv, depth, k, twist, 0.02)
+    finally:
+        sensor.UNIFORM_STREAK_TOL_PX = kept
+    assert every is not None and every.tiles is None
+    slow = sensor.expose(img, every)
+    for rows, cols in mixed:
+        np.testing.assert_allclose(out[rows, cols], slow[rows, cols], atol=1e-3)
+    far = (slice(0, h), slice(w - 96, w))  # uniform: a filter, close to the sub-exposures
+    assert float(np.abs(out[far] - slow[far]).mean()) < 0.6 * float(np.abs(slow[far] - img[far]).mean())

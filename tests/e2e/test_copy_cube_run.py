@@ -1,11 +1,13 @@
 """Copy cubes end to end (``[[decoys]] kind = "cube"``; docs/camera.md, Decoys): the paper
 scenario, lockstep, with two static copies of robots (robot 2's cube behind the origin
 robot, robot 1's in the far corner, both in view of the origin robot or the patrols).  The
-agents count them (two plausible robots of one identity in one image: ``duplicate``), the
+agents count them (two plausible robots of one identity in one image: ``duplicate``; a
+sighting far from where the map has that robot: ``sightings_off_map``, no local fix), the
 server gates the copies seen alone and remembers their places as decoy sites (a robot
 cannot be in two places), nothing is re-localised onto a copy, and every robot's fused
-error stays what it is without them.  The trajectories themselves may differ: a patrol
-that sees a copy where its map has nobody steers as it sees fit."""
+error stays what it is without them.  The trajectories themselves differ: a robot beside
+its copy in one image cannot be told from it, so neither is trusted, and the robot loses
+those sightings (placed a tick later here, and a patrol's turns follow its fixes)."""
 
 from __future__ import annotations
 
@@ -36,6 +38,7 @@ def test_copy_cubes_are_counted_and_never_move_the_map(tmp_path: Path) -> None:
     assert server.get("fusion_rejected_gate", 0) > plain["server"].get("fusion_rejected_gate", 0)
     assert server.get("fusion_reloc_decoy_site", 0) > 0  # the copies' places were recognised
     assert server.get("fusion_relocalisations", 0) == plain["server"].get("fusion_relocalisations", 0) == 0
+    assert agents_total(copied, "sightings_off_map") > agents_total(plain, "sightings_off_map")
     for rid in range(4):
         clean, dirty = _fused_errors(tmp_path / "plain", rid), _fused_errors(tmp_path / "copies", rid)
         assert float(np.sqrt(np.mean(dirty**2))) <= float(np.sqrt(np.mean(clean**2))) + 0.01, rid

@@ -161,6 +161,8 @@ class CubePoseEstimator(DecoyResolver):
         self.prior_sigma_yaw_rad = prior_sigma_yaw_rad
         self.max_iterations = max_iterations
         self.rejects: Counter[str] = Counter()
+        self.expected: dict[tuple[str, int], tuple[float, float, float]] = {}
+        self.copies_seen: list[tuple[tuple[str, int], float, float]] = []
         self.tag_map = TagMap.from_scenario(scenario)
         self.lens = LensCorrector(scenario.camera.calibration_error, scenario.seed)
         self._six = SixDofSolver(pixel_sigma_px=pixel_sigma_px, choice_sigma_px=self.choice_sigma_px,
@@ -191,15 +193,21 @@ class CubePoseEstimator(DecoyResolver):
 
     # ------------------------------------------------------------------ public
     def estimate(self, views: list[tuple[CameraModel, list[TagDetection]]],
-                 priors: dict[tuple[str, int], tuple[float, float, float]] | None = None) -> list[PoseEstimate]:
+                 priors: dict[tuple[str, int], tuple[float, float, float]] | None = None,
+                 expected: dict[tuple[str, int], tuple[float, float, float]] | None = None) -> list[PoseEstimate]:
         """Poses of every target seen in ``views`` (one synchronised frame per camera).
 
         Detections of tags that belong to nothing in the scenario are ignored (the
         caller counts them with :class:`~tagswarm.agents.detect.TagMap`).  ``priors`` maps
         ``(kind, target_id)`` to a predicted (x_m, y_m, yaw_rad) of the target in the
         observer's base frame; it only helps choose between the two-fold solutions.
+        ``expected`` maps ``(kind, target_id)`` to where the map has the target, (x_m, y_m,
+        radius_m) in the observer's base frame: it only decides between two plausible copies
+        of one target in one instant (see :meth:`DecoyResolver.resolve`).
         Rejected targets are counted in :attr:`rejects` by reason.
         """
+        self.expected = expected or {}
+        self.copies_seen = []
         # distorted lenses and the believed calibration: from here on every camera is a pinhole
         views = [self.lens.prepare(cam, dets) for cam, dets in views]
         groups: dict[tuple[str, int], list[tuple[int, TagGeom, TagDetection]]] = {}

@@ -24,6 +24,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 from tagswarm.agents.avoid import Neighbour
+from tagswarm.protocol.geometry import Pose2, se2_compose, se2_inverse
 from tagswarm.protocol.messages import MapEntry
 
 MAX_PENDING = 8  # maps not yet usable (bounded memory under a flood)
@@ -98,6 +99,18 @@ class NeighbourTracker:
         circle from where a sighting puts it (map frame); False if the map does not have it."""
         n = self.where(robot_id, now_ns)
         return n is not None and math.hypot(seen_x_m - n.x_m, seen_y_m - n.y_m) > n.radius_m + SIGHTING_GATE_M
+
+    def expected(self, me: Pose2, now_ns: int) -> dict[tuple[str, int], tuple[float, float, float]]:
+        """Where the map in use has the other robots at ``now_ns`` as seen from map pose ``me``:
+        (x_m, y_m, radius_m) in our base frame, the radius their circle plus :data:`SIGHTING_GATE_M`
+        (for :meth:`tagswarm.agents.cubepose.CubePoseEstimator.estimate`)."""
+        back = se2_inverse(me)
+        out = {}
+        for rid, tr in sorted(self.tracks.items()):
+            n = self._predict(rid, tr, now_ns)
+            x, y, _ = se2_compose(back, (n.x_m, n.y_m, 0.0))
+            out[("robot", rid)] = (x, y, n.radius_m + SIGHTING_GATE_M)
+        return out
 
     def _predict(self, rid: int, tr: _Track, now_ns: int) -> Neighbour:
         age = min(max((now_ns - tr.stamp_ns) / 1e9, 0.0), MAX_EXTRAPOLATE_S)

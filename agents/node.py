@@ -47,6 +47,7 @@ from tagswarm.agents.controller import (
     make,
 )
 from tagswarm.agents.cubepose import PoseEstimate
+from tagswarm.agents.decoys import CopySites
 from tagswarm.agents.intake import AgentIntake
 from tagswarm.agents.neighbours import NeighbourTracker
 from tagswarm.agents.odometry import DiffDriveOdometry, DiffDriveParams, SlipMonitor
@@ -148,6 +149,7 @@ class AgentNode:
         self._observed: list[m.RelativeObservation] = []  # since the last control cycle (for a controller)
         self._frames_seen: dict[str, m.CameraImage] = {}
         r = s.robot
+        self.copy_sites = CopySites()
         self.neighbours = NeighbourTracker(rid, footprint_radius(r), r.max_wheel_speed_rad_s * r.wheel_radius_m)
         tick_ns = round(1e9 / s.clock.tick_hz)
         self.slip = SlipMonitor(r.wheel_radius_m, s.encoders.ticks_per_rev, a.odom_wheel_sigma,
@@ -312,27 +314,40 @@ class AgentNode:
             self.pending_frames.clear()
             if self.custom is not None and self.custom.wants_images:
                 self._frames_seen.update((img.camera, img) for img in frames)
-            estimates = self.vision.process(frames, self.time_ns)
+            estimates = self.vision.process(frames, self.time_ns, self._expected())
             stamp = max(img.stamp_ns for img in frames)
             self.time_ns = max(self.time_ns, stamp)
+            me = self.map_pose
+            if me is not None:
+                self.copy_sites.remember(me, self.vision.estimator.copies_seen)
             for est in estimates:
+                off_map = self._off_map(est)
+                if off_map is not None and self.copy_sites.at(est.target_id, *off_map):
+                    self.counters["sightings_at_copy_site"] += 1  # a copy we saw beside its robot, alone now
+                    continue
                 self._publish_observation(est, stamp)
                 # a sighting corrects our pose only through a server, and not one our map contradicts (a
                 # copy of a robot's cube elsewhere): then only the server's word (last_fix_ns) is a fix
-                if self.server_alive and not self._contradicted(est):
+                if self.server_alive and off_map is None:
                     self._fix = True
         finally:
             self._cpu_frames_s += time.thread_time() - t0
 
-    def _contradicted(self, est: PoseEstimate) -> bool:
+    def _expected(self) -> dict[tuple[str, int], tuple[float, float, float]]:
+        """Where the map in use has the other robots: (x_m, y_m, radius_m) in our base frame."""
+        me = self.map_pose
+        return {} if me is None else self.neighbours.expected(me, self.time_ns)
+
+    def _off_map(self, est: PoseEstimate) -> tuple[float, float] | None:
+        """Where (map frame) a sighting puts its robot if our map has that robot far from there."""
         me = self.map_pose
         if est.target_kind != "robot" or me is None:
-            return False
+            return None
         x, y, _ = se2_compose(me, (est.x_m, est.y_m, est.yaw_rad))
         if not self.neighbours.contradicts(est.target_id, x, y, self.time_ns):
-            return False
+            return None
         self.counters["sightings_off_map"] += 1
-        return True
+        return x, y
 
     def _publish_observation(self, est: PoseEstimate, stamp_ns: int) -> None:
         key = self.keys.observation(self.rid)
@@ -405,6 +420,7 @@ class AgentNode:
             out.update(self.custom.counters())
         out.update(self.bus.fault_stats())
         out.update({f"pose_rejected_{k}": v for k, v in self.vision.estimator.rejects.items()})
+        out["duplicates_resolved_by_map"] = self.vision.estimator.resolved_by_map
         return out
 
     def _publish_status(self) -> None:

@@ -45,9 +45,11 @@ class Vision:
         # last relative pose of each target and when: a prior for single-face ambiguity, only while fresh
         self._priors: dict[tuple[str, int], tuple[int, tuple[float, float, float]]] = {}
 
-    def process(self, frames: list[m.CameraImage], time_ns: int) -> list[PoseEstimate]:
+    def process(self, frames: list[m.CameraImage], time_ns: int,
+                expected: dict[tuple[str, int], tuple[float, float, float]] | None = None) -> list[PoseEstimate]:
         """Estimates from ``frames`` (this robot's, of one instant; ``time_ns`` the agent's clock),
-        all stamped with the newest frame's stamp."""
+        all stamped with the newest frame's stamp; ``expected`` where the map has the targets
+        (see :meth:`~tagswarm.agents.cubepose.CubePoseEstimator.estimate`)."""
         views = []
         for img in frames:
             if self.frame_delay_s > 0:
@@ -74,7 +76,7 @@ class Vision:
         fresh = {k: p for k, (t, p) in self._priors.items() if stamp - t <= PRIOR_MAX_AGE_NS}
         # with several field tags in view, one fix from all of them replaces the per-tag ones
         t0 = time.thread_time()
-        estimates = fix_estimates(self.estimator, self.s, self.estimator.estimate(views, fresh), views)
+        estimates = fix_estimates(self.estimator, self.s, self.estimator.estimate(views, fresh, expected), views)
         self.detect_pose_cpu_s += time.thread_time() - t0
         kept = []
         for est in estimates:

@@ -161,8 +161,9 @@ class CubePoseEstimator(DecoyResolver):
         self.prior_sigma_yaw_rad = prior_sigma_yaw_rad
         self.max_iterations = max_iterations
         self.rejects: Counter[str] = Counter()
-        self.expected: dict[tuple[str, int], tuple[float, float, float]] = {}
-        self.copies_seen: list[tuple[tuple[str, int], float, float]] = []
+        self.expected = {}
+        self.copies_seen = []
+        self.resolved_by_map = 0
         self.tag_map = TagMap.from_scenario(scenario)
         self.lens = LensCorrector(scenario.camera.calibration_error, scenario.seed)
         self._six = SixDofSolver(pixel_sigma_px=pixel_sigma_px, choice_sigma_px=self.choice_sigma_px,

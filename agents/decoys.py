@@ -42,10 +42,10 @@ class DecoyResolver:
     rejects: Counter[str]
     single_tag: bool
     #: where the map has each target: (x_m, y_m, radius_m) in the observer's base frame (set per estimate)
-    expected: dict[tuple[str, int], tuple[float, float, float]] = {}
-    resolved_by_map: int = 0  # copies of a target told apart by where the map has it
+    expected: dict[tuple[str, int], tuple[float, float, float]]
+    resolved_by_map: int  # copies of a target told apart by where the map has it
     #: the copies told apart from their target by the map in the last estimate: (key, x_m, y_m), base frame
-    copies_seen: list[tuple[tuple[str, int], float, float]] = []
+    copies_seen: list[tuple[tuple[str, int], float, float]]
 
     def _reject(self, reason: str) -> None:
         self.rejects[reason] += 1
@@ -140,6 +140,9 @@ class DecoyResolver:
 
 #: at most this many copy sites are remembered per target (a flood of them cannot grow memory)
 MAX_COPY_SITES: Final = 8
+#: a copy site not seen again beside its robot for this long (simulated) is forgotten: a site
+#: filed while the map was wrong cannot hide the robot for good
+COPY_SITE_TTL_NS: Final = 20_000_000_000
 
 
 @dataclass
@@ -148,22 +151,22 @@ class CopySites:
     cannot be in two places, so a later sighting of it at such a site, far from where the map
     has it, is the copy seen alone and is not published (the server would otherwise take an
     origin robot's repeated sightings of a static copy for a kidnap).  Sites closer than
-    ``radius_m`` are one."""
+    ``radius_m`` are one; a site lasts :data:`COPY_SITE_TTL_NS` after it was last seen."""
 
     radius_m: float = 0.3
-    sites: dict[int, list[tuple[float, float]]] = field(default_factory=dict)
+    sites: dict[int, list[tuple[float, float, int]]] = field(default_factory=dict)
 
-    def remember(self, me: Pose2, copies: Sequence[tuple[tuple[str, int], float, float]]) -> None:
-        """Copies seen from map pose ``me`` at (x_m, y_m) in our base frame."""
+    def remember(self, me: Pose2, copies: Sequence[tuple[tuple[str, int], float, float]], now_ns: int) -> None:
+        """Copies seen at ``now_ns`` from map pose ``me`` at (x_m, y_m) in our base frame."""
         for (kind, rid), x, y in copies:
             if kind != "robot":
                 continue
             mx, my, _ = se2_compose(me, (x, y, 0.0))
-            sites = self.sites.setdefault(rid, [])
-            if not self.at(rid, mx, my):
-                sites.append((mx, my))
-                del sites[:-MAX_COPY_SITES]
+            sites = [st for st in self.sites.get(rid, []) if math.hypot(mx - st[0], my - st[1]) >= self.radius_m]
+            sites.append((mx, my, now_ns))  # a site seen again is refreshed where it was seen now
+            self.sites[rid] = sites[-MAX_COPY_SITES:]
 
-    def at(self, rid: int, x_m: float, y_m: float) -> bool:
-        """Whether map point (x_m, y_m) is a remembered copy site of robot ``rid``."""
-        return any(math.hypot(x_m - sx, y_m - sy) < self.radius_m for sx, sy in self.sites.get(rid, ()))
+    def at(self, rid: int, x_m: float, y_m: float, now_ns: int) -> bool:
+        """Whether map point (x_m, y_m) is a copy site of robot ``rid`` still remembered at ``now_ns``."""
+        return any(math.hypot(x_m - sx, y_m - sy) < self.radius_m and now_ns - seen <= COPY_SITE_TTL_NS
+                   for sx, sy, seen in self.sites.get(rid, ()))

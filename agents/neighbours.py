@@ -100,16 +100,19 @@ class NeighbourTracker:
         n = self.where(robot_id, now_ns)
         return n is not None and math.hypot(seen_x_m - n.x_m, seen_y_m - n.y_m) > n.radius_m + SIGHTING_GATE_M
 
-    def expected(self, me: Pose2, now_ns: int) -> dict[tuple[str, int], tuple[float, float, float]]:
-        """Where the map in use has the other robots at ``now_ns`` as seen from map pose ``me``:
-        (x_m, y_m, radius_m) in our base frame, the radius their circle plus :data:`SIGHTING_GATE_M`
-        (for :meth:`tagswarm.agents.cubepose.CubePoseEstimator.estimate`)."""
+    def expected(self, me: Pose2, now_ns: int, me_sigma_m: float = 0.0,
+                 ) -> dict[tuple[str, int], tuple[float, float, float]]:
+        """Where the map in use has the other robots at ``now_ns`` as seen from map pose ``me``
+        (position sigma ``me_sigma_m``): (x_m, y_m, radius_m) in our base frame, the radius their
+        circle plus :data:`SIGHTING_GATE_M` plus 3 sigma of both positions, uncapped, so a poorly
+        known robot or observer decides nothing (for
+        :meth:`tagswarm.agents.cubepose.CubePoseEstimator.estimate`)."""
         back = se2_inverse(me)
         out = {}
         for rid, tr in sorted(self.tracks.items()):
             n = self._predict(rid, tr, now_ns)
             x, y, _ = se2_compose(back, (n.x_m, n.y_m, 0.0))
-            out[("robot", rid)] = (x, y, n.radius_m + SIGHTING_GATE_M)
+            out[("robot", rid)] = (x, y, n.radius_m + SIGHTING_GATE_M + 3.0 * math.hypot(tr.sigma_m, me_sigma_m))
         return out
 
     def _predict(self, rid: int, tr: _Track, now_ns: int) -> Neighbour:

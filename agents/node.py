@@ -29,6 +29,7 @@ Faults it rides out:
 from __future__ import annotations
 
 import logging
+import math
 import threading
 import time
 from collections import Counter
@@ -314,15 +315,15 @@ class AgentNode:
             self.pending_frames.clear()
             if self.custom is not None and self.custom.wants_images:
                 self._frames_seen.update((img.camera, img) for img in frames)
-            estimates = self.vision.process(frames, self.time_ns, self._expected())
             stamp = max(img.stamp_ns for img in frames)
+            estimates = self.vision.process(frames, self.time_ns, self._expected(stamp))
             self.time_ns = max(self.time_ns, stamp)
             me = self.map_pose
             if me is not None:
-                self.copy_sites.remember(me, self.vision.estimator.copies_seen)
+                self.copy_sites.remember(me, self.vision.estimator.copies_seen, stamp)
             for est in estimates:
                 off_map = self._off_map(est)
-                if off_map is not None and self.copy_sites.at(est.target_id, *off_map):
+                if off_map is not None and self.copy_sites.at(est.target_id, *off_map, stamp):
                     self.counters["sightings_at_copy_site"] += 1  # a copy we saw beside its robot, alone now
                     continue
                 self._publish_observation(est, stamp)
@@ -333,10 +334,13 @@ class AgentNode:
         finally:
             self._cpu_frames_s += time.thread_time() - t0
 
-    def _expected(self) -> dict[tuple[str, int], tuple[float, float, float]]:
-        """Where the map in use has the other robots: (x_m, y_m, radius_m) in our base frame."""
-        me = self.map_pose
-        return {} if me is None else self.neighbours.expected(me, self.time_ns)
+    def _expected(self, stamp_ns: int) -> dict[tuple[str, int], tuple[float, float, float]]:
+        """Where the map in use has the other robots at ``stamp_ns``: (x_m, y_m, radius_m) in our base
+        frame, the radius widened by both poses' uncertainty (an uncertain map picks no copy)."""
+        me, cov = self.map_pose, self.map_cov
+        if me is None or cov is None or len(cov) != 9:
+            return {}
+        return self.neighbours.expected(me, stamp_ns, math.sqrt(max(cov[0], cov[4], 0.0)))
 
     def _off_map(self, est: PoseEstimate) -> tuple[float, float] | None:
         """Where (map frame) a sighting puts its robot if our map has that robot far from there."""

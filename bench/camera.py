@@ -134,7 +134,7 @@ def camera_row(name: str, override: str, frames: int) -> dict[str, Any]:
     model_w = med["lens"][0] + med["blur"][0] + med["develop"][0]
     model_c = med["lens"][1] + med["blur"][1] + med["develop"][1]
     return {"camera": name, "render_size": [p.render_cam.width, p.render_cam.height],
-            "blur_path": Counter(paths[2:]).most_common(1)[0][0],
+            "blur_path": Counter(paths[2:]).most_common(1)[0][0] if paths[2:] else None,
             "wall_ms": {k: round(v[0], 3) for k, v in med.items()},
             "cpu_ms": {k: round(v[1], 3) for k, v in med.items()},
             "model_share": round(model_w / render_w, 3), "model_share_cpu": round(model_c / max(render_c, 1e-6), 3),

@@ -178,6 +178,9 @@ class Renderer:
     def _twist(self, robot_id: int, cam: Camera, base_pose: Mat, stamp_ns: int) -> NDArray[np.float64] | None:
         """The camera's twist (optical frame) from its robot's motion since the previous instant this
         renderer developed a frame at; every robot's track advances to ``stamp_ns``."""
+        if stamp_ns < self._track_stamp:  # a new world run (a restart): its clock starts again
+            self._track.clear()
+            self._track_stamp = -1
         if stamp_ns > self._track_stamp:  # a new instant: every robot's track advances, once
             self._track_stamp = stamp_ns
             for rid, pose in self._poses.items():

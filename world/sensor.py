@@ -1,8 +1,8 @@
 """Sensor effects on a rendered frame: motion blur, vignetting, contrast/brightness, shot and
 read noise (pure numpy/OpenCV; docs/camera.md).
 
-Intensities are 8-bit digital numbers (DN) in float32 until :func:`develop` rounds and
-clips them.  Randomness comes only from :func:`frame_rng`, seeded by (scenario seed,
+Intensities are 8-bit digital numbers (DN): the lens image is 8-bit, a motion blur's
+average is float32, and :func:`develop` works in float32 until it rounds and clips.  Randomness comes only from :func:`frame_rng`, seeded by (scenario seed,
 robot, camera, tick), so a lockstep run repeats its images byte for byte whatever
 else draws random numbers.  Frames: the camera's optical frame (z forward, x right,
 y down); metres, seconds, radians.
@@ -234,7 +234,7 @@ def exposure_maps(map_x: F32, map_y: F32, depth_m: NDArray[Any], K: Mat, twist: 
     :data:`SAMPLE_SPACING_PX` output pixels apart (bilinear sampling fills between them), at least
     2, at most :data:`MAX_BLUR_SAMPLES`; None for a streak under 1 output pixel.  With ``near_far``
     (m), ``depth_m`` is the render's OpenGL depth buffer, linearised only where the grid samples it."""
-    if twist is None or exposure_s <= 0:
+    if twist is None or exposure_s <= 0 or not np.any(twist):
         return None
     g = FLOW_GRID_PX
     depth_at, xn, yn = _flow_grid(map_x, map_y, K, depth_m.shape)

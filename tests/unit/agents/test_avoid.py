@@ -226,6 +226,11 @@ def test_a_sighting_far_from_where_the_map_has_the_robot_is_contradicted() -> No
     assert t.contradicts(2, 1.0 + radius + SIGHTING_GATE_M + 0.01, 0.0, 0)
     assert t.contradicts(2, 1.0, 3.0, 0)
     assert not t.contradicts(3, 9.0, 9.0, 0)  # not in the map
+    # what the estimator is told, from map pose (1, -1, 90 deg): robot 2 is 1 m ahead; the reach grows
+    # with both positions' sigma, uncapped
+    x, y, reach = t.expected((1.0, -1.0, math.pi / 2), 0)[("robot", 2)]
+    assert (x, y) == pytest.approx((1.0, 0.0)) and reach == pytest.approx(radius + SIGHTING_GATE_M + 0.03)
+    assert t.expected((1.0, -1.0, math.pi / 2), 0, me_sigma_m=0.4)[("robot", 2)][2] > reach + 1.0
 
 
 def test_static_boxes_are_the_walls_and_obstacles_in_the_map_frame() -> None:

@@ -82,17 +82,20 @@ def test_a_copy_alone_is_its_robot_in_the_images() -> None:
     assert math.hypot(found[0].x_m - 2.0, found[0].y_m + 0.4) < 0.05, found[0]
 
 
-def test_copy_sites_are_remembered_in_the_map_frame() -> None:
+def test_copy_sites_are_remembered_in_the_map_frame_for_a_while() -> None:
     """A copy seen beside its robot from map pose (1, 0, 90 deg) 2 m ahead is at map (1, 2); a later
-    sighting there is at the site, one 0.5 m away is not, and another robot's sightings never are."""
-    from tagswarm.agents.decoys import MAX_COPY_SITES, CopySites
+    sighting there is at the site, one 0.5 m away is not, and another robot's sightings never are.
+    A site not seen again for COPY_SITE_TTL_NS is forgotten (one filed under a wrong map cannot
+    hide the robot for good); seeing it again refreshes it."""
+    from tagswarm.agents.decoys import COPY_SITE_TTL_NS, MAX_COPY_SITES, CopySites
 
     sites = CopySites()
-    sites.remember((1.0, 0.0, math.pi / 2), [(("robot", 1), 2.0, 0.0), (("landmark", 7), 1.0, 0.0)])
-    assert sites.at(1, 1.0, 2.0) and sites.at(1, 1.1, 2.1)
-    assert not sites.at(1, 1.0, 2.5) and not sites.at(2, 1.0, 2.0) and not sites.at(7, 1.0, 1.0)
-    sites.remember((1.0, 0.0, math.pi / 2), [(("robot", 1), 2.05, 0.0)])  # the same site again
-    assert len(sites.sites[1]) == 1
+    sites.remember((1.0, 0.0, math.pi / 2), [(("robot", 1), 2.0, 0.0), (("landmark", 7), 1.0, 0.0)], 0)
+    assert sites.at(1, 1.0, 2.0, 0) and sites.at(1, 1.1, 2.1, 5)
+    assert not sites.at(1, 1.0, 2.5, 0) and not sites.at(2, 1.0, 2.0, 0) and not sites.at(7, 1.0, 1.0, 0)
+    assert not sites.at(1, 1.0, 2.0, COPY_SITE_TTL_NS + 1)
+    sites.remember((1.0, 0.0, math.pi / 2), [(("robot", 1), 2.05, 0.0)], COPY_SITE_TTL_NS)  # the same site again
+    assert len(sites.sites[1]) == 1 and sites.at(1, 1.0, 2.0, COPY_SITE_TTL_NS + 1)
     for k in range(20):
-        sites.remember((0.0, 0.0, 0.0), [(("robot", 1), 10.0 + k, 0.0)])
+        sites.remember((0.0, 0.0, 0.0), [(("robot", 1), 10.0 + k, 0.0)], 0)
     assert len(sites.sites[1]) == MAX_COPY_SITES

@@ -2,9 +2,10 @@
 read noise (pure numpy/OpenCV; docs/camera.md).
 
 Intensities are 8-bit digital numbers (DN): the lens image is 8-bit, a motion blur's
-average is float32, and :func:`develop` works in float32 until it rounds and clips.  Randomness comes only from :func:`frame_rng`, seeded by (scenario seed,
-robot, camera, tick), so a lockstep run repeats its images byte for byte whatever
-else draws random numbers.  Frames: the camera's optical frame (z forward, x right,
+average is float32, and :func:`develop` works in float32 until it rounds and clips.
+Randomness comes only from :func:`frame_rng`, seeded by (scenario seed, robot, camera,
+tick), so a lockstep run repeats its images byte for byte whatever else draws random
+numbers.  Frames: the camera's optical frame (z forward, x right,
 y down); metres, seconds, radians.
 """
 

@@ -106,6 +106,7 @@ class ServerNode:
         self.lockstep = s.clock.mode == "lockstep"
         self._obs_pending = False
         self._last_update_wall = 0.0
+        self._sent: dict[int, m.Correction] = {}  # each robot's last correction sent
         self._recent: deque[jr.Odometry | jr.Observation] = deque(maxlen=RECENT_MAX)
         self._checkpoint_every_ns = int(config.journal_checkpoint_s * 1e9)
         self._next_checkpoint_ns = self._checkpoint_every_ns
@@ -222,6 +223,7 @@ class ServerNode:
                         "carried over)", tick.run_id, len(carried))
             self.counters["world_restarts"] += 1
             self.counters["restart_carried"] += len(carried)
+            self._sent.clear()
             record = jr.NewRun(run_id=tick.run_id)
             if self.journal is not None:
                 self.journal.append(record)
@@ -324,13 +326,20 @@ class ServerNode:
             self._publish(key, outputs.relocalisation(ev, self.seq.next(key)))
 
     def _publish_corrections(self, all_robots: bool) -> None:
-        """Every localised robot's correction; with ``all_robots`` the others' too (``localised=False``)."""
+        """Every localised robot's correction; with ``all_robots`` the others' too (``localised=False``).
+        Realtime sends only those :func:`~tagswarm.server.outputs.correction_due` (lockstep: every one,
+        every tick, as the agents wait for them)."""
         for rid in sorted(self.roster):
             key = self.keys.correction(rid)
             msg = outputs.correction(self.fusion, rid, self.time_ns, self.seq.peek(key))
-            if msg.localised or all_robots:
-                self._publish(key, msg)
-                self.seq.next(key)
+            if not (msg.localised or all_robots):
+                continue
+            if not self.lockstep and not outputs.correction_due(self._sent.get(rid), msg):
+                self.counters["corrections_held"] += 1
+                continue
+            self._publish(key, msg)
+            self.seq.next(key)
+            self._sent[rid] = msg
             if msg.localised:
                 self.counters["corrections"] += 1
 

@@ -134,10 +134,26 @@ def resolve(args: Any, env: dict[str, str]) -> Scenario:
     return scenario
 
 
-def _table(rec: RunRecorder, scenario: Scenario, wall_s: float, out: Path, endpoint: str) -> Table:
+class Pace:
+    """The simulation's real-time factor so far: simulated over wall time since the first
+    simulated time was heard (process start-up is not the simulation's pace)."""
+
+    def __init__(self) -> None:
+        self._first: tuple[float, float] | None = None  # (monotonic s, sim s) when time first moved
+
+    def rtf(self, sim_s: float, now: float) -> float:
+        if self._first is None:
+            if sim_s > 0:
+                self._first = (now, sim_s)
+            return 0.0
+        wall, sim0 = now - self._first[0], self._first[1]
+        return (sim_s - sim0) / wall if wall > 0.5 else 0.0
+
+
+def _table(rec: RunRecorder, scenario: Scenario, rtf: float, out: Path, endpoint: str) -> Table:
     sim = rec.sim_ns / 1e9
     t = Table(title=f"tagswarm up — {scenario.name}  t={sim:6.1f}/{scenario.duration_s:g} s  "
-                    f"RTF {sim / max(wall_s, 1e-9):4.2f}  {endpoint}", caption=f"run folder: {out}")
+                    f"RTF {rtf:4.2f}  {endpoint}", caption=f"run folder: {out}")
     for col in ("robot", "mode", "fused error [m]", "fixes", "searches", "frames"):
         t.add_column(col)
     for rid in scenario.robot_ids:
@@ -207,16 +223,18 @@ def run_up(scenario: Scenario, out: Path, endpoint: str, run: str, *, live: bool
                                 scenario.clock.join_timeout_s, stop)
             with Live(console=console, refresh_per_second=2, transient=False) if live else _Null() as display:
                 last_print = 0.0
+                pace = Pace()
                 while not stop.is_set():
                     # a fixed pace, not woken by every message: the recorder drains its inboxes in
                     # batches, and polling the children at message rate cost this process 0.1 core
                     stop.wait(0.25)
                     rec.poll()
                     wall = time.monotonic() - t0
+                    rtf = pace.rtf(rec.sim_ns / 1e9, time.monotonic())
                     if live:
-                        display.update(_table(rec, scenario, wall, out, endpoint))
+                        display.update(_table(rec, scenario, rtf, out, endpoint))
                     elif wall - last_print > 5:
-                        console.print(f"t={rec.sim_ns / 1e9:.1f} s  RTF {rec.sim_ns / 1e9 / max(wall, 1e-9):.2f}")
+                        console.print(f"t={rec.sim_ns / 1e9:.1f} s  RTF {rtf:.2f}")
                         last_print = wall
                     if world.proc.poll() is not None:
                         if world.proc.returncode != 0:

@@ -80,6 +80,7 @@ class WorldNode:
         self.seq = streams.Sequencer()
         self.interventions = Schedule(s.events, tick_hz=s.clock.tick_hz, dt_ns=self.sim.dt_ns)
         self._started = False
+        self._stepping_since: float | None = None  # monotonic s of the first step (real-time factor)
         self._published_step = -1  # newest step whose tick is out
         self._render_step = -1  # newest step whose render poses are out
         self._next_status_ns = 0
@@ -268,6 +269,9 @@ class WorldNode:
         counters = {"world_commands": 0, "world_events": 0, "world_command_rejected": 0, **self.counters}
         counters.update(self.sim.contacts.as_counters())
         counters["step"] = self.sim.step_index
+        if self._stepping_since is not None:
+            # wall time spent stepping, without start-up and shutdown: the real-time factor of the simulation
+            counters["stepping_ms"] = round((time.monotonic() - self._stepping_since) * 1000)
         for st in self.sim.robots.values():
             for name, v in st.counters.items():
                 counters[name] = counters.get(name, 0) + v
@@ -305,7 +309,7 @@ class WorldNode:
         """Step until ``duration_s`` of simulated time or ``stop_event``; returns 0."""
         end_ns = int(self.s.duration_s * 1e9)
         self.wait_for_participants()
-        t0 = time.monotonic()
+        t0 = self._stepping_since = time.monotonic()
         wall_per_tick = self.sim.dt_ns / 1e9 / self.s.clock.speed
         while not stop_event.is_set():
             self.step()

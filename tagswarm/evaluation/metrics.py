@@ -62,8 +62,11 @@ the true initial pose, so its error is pure drift).
   error-vs-distance, s), ``distance_bins_m`` (bin edges, m; ``null`` = infinity),
   ``localised_m`` (0.10 m), ``localised_hold_s`` (0.5 s), ``recovered_stay_s``
   (1.0 s): see "Localised" above and ``kidnaps``.
-- ``cost``: ``wall_time_s``; ``sim_time_s``; ``real_time_factor`` = sim/wall
-  (``null`` if wall time is 0 or unknown); ``frames_rendered`` (world total: the
+- ``cost``: ``wall_time_s`` (the whole run, processes' start-up and shutdown included);
+  ``sim_time_s``; ``stepping_wall_s`` (the wall time the world spent stepping, ``null`` in
+  older run folders); ``real_time_factor`` = sim / stepping wall (whether the simulation kept
+  real time; sim / whole wall where the stepping time is unknown); ``run_real_time_factor`` =
+  sim / whole wall (``null`` if wall time is 0 or unknown); ``frames_rendered`` (world total: the
   world's own renders, or the sum over its render workers' ``render/<i>`` statuses);
   ``frames_rendered_per_robot`` (that total / number of robots);
   ``frames_processed`` and ``frames_skipped`` (sums over agents; per robot in

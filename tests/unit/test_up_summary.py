@@ -5,6 +5,7 @@ from __future__ import annotations
 import io
 from typing import Any
 
+import pytest
 from rich.console import Console
 
 from tagswarm.up import _summary
@@ -38,3 +39,14 @@ def test_a_silent_source_is_printed_other_warnings_are_not() -> None:
                                           "no mode samples: time_lost_s is 0"]))
     assert "warning: the recorder heard nothing from server after 15.9 s" in text
     assert "no mode samples" not in text
+
+
+def test_up_pace_counts_from_the_first_simulated_time_not_process_start() -> None:
+    from tagswarm.up import Pace
+
+    pace = Pace()
+    assert pace.rtf(0.0, 100.0) == 0.0  # processes starting: no simulated time yet
+    assert pace.rtf(0.1, 104.0) == 0.0  # the first tick heard, 4 s after start
+    assert pace.rtf(0.2, 104.1) == 0.0  # too short to tell
+    assert pace.rtf(10.1, 114.0) == pytest.approx(1.0)
+    assert pace.rtf(15.1, 124.0) == pytest.approx(0.75)

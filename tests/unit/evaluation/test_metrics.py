@@ -318,6 +318,16 @@ def test_frames_rendered_by_render_workers_are_summed(tmp_path: Path) -> None:
     assert c["frames_rendered_per_robot"] == pytest.approx(345.0)
 
 
+def test_real_time_factor_is_the_worlds_stepping_pace_not_the_whole_runs(tmp_path: Path) -> None:
+    # 25 s simulated in 25.5 s of stepping; the processes' start-up and shutdown made the run 30 s
+    counters = {"world": {"step": 750, "stepping_ms": 25_500}, "agent/0": {"frames_processed": 10}}
+    truth = {0: (T20, circle(0, T20))}
+    c = compute_metrics(make_run(tmp_path, truth, counters=counters, sim_time_s=25.0, wall_time_s=30.0))["cost"]
+    assert c["real_time_factor"] == pytest.approx(25.0 / 25.5)
+    assert c["run_real_time_factor"] == pytest.approx(25.0 / 30.0)
+    assert c["stepping_wall_s"] == pytest.approx(25.5)
+
+
 def test_real_time_factor_is_null_without_wall_time(tmp_path: Path) -> None:
     truth = {0: (T20, circle(0, T20))}
     m = compute_metrics(make_run(tmp_path, truth, wall_time_s=0.0))

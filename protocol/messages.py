@@ -178,8 +178,10 @@ class Correction(Msg, frozen=True, kw_only=True, tag="correction"):
     the map frame and that pose's 3x3 covariance.  ``stamp_ns`` is the simulation
     time of the newest data the estimate includes; ``last_fix_ns`` the time of the
     newest accepted observation involving this robot (as observer or observed).
-    In lockstep the server sends one every tick; ``localised=False`` (pose fields
-    zero) means the server cannot place this robot yet.  ``cov`` is GTSAM's
+    In lockstep the server sends one every tick; in realtime one when it matters: a new
+    fix, a change of localisation, ``map -> odom`` moved by 1 mm or 1 mrad, or 100 ms of
+    simulation time after the last.  ``localised=False`` (pose fields zero) means the
+    server cannot place this robot yet.  ``cov`` is GTSAM's
     marginal of the Pose2 in its tangent space: the position block is in the
     robot's own axes (x forward, y left), so rotate it by the yaw for the map
     frame."""

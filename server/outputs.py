@@ -12,6 +12,7 @@ import math
 from collections.abc import Iterable, Mapping
 
 from tagswarm.protocol import messages as m
+from tagswarm.protocol.geometry import wrap_angle
 from tagswarm.server.estimator import Estimator
 from tagswarm.server.fusion import RelocEvent
 
@@ -66,7 +67,7 @@ def correction_due(last: m.Correction | None, msg: m.Correction,
         return True
     if not 0 <= msg.stamp_ns - last.stamp_ns < keepalive_ns:  # due, or a restarted world's clock
         return True
-    turn = abs(math.remainder(msg.map_odom_yaw_rad - last.map_odom_yaw_rad, math.tau))
+    turn = abs(wrap_angle(msg.map_odom_yaw_rad - last.map_odom_yaw_rad))
     return (math.hypot(msg.map_odom_x_m - last.map_odom_x_m, msg.map_odom_y_m - last.map_odom_y_m)
             >= CORRECTION_MOVE_M or turn >= CORRECTION_TURN_RAD)
 

@@ -1,10 +1,12 @@
 """A live swarm: world, server and agents as real OS processes on a private Zenoh network,
 driven by the test (:meth:`tagswarm.testing.factory.SwarmFactory.start`).
 
-The test process is the hub: it listens on a free loopback port, every process connects
-to it (multicast scouting off), and its :class:`~tagswarm.recording.runrecorder.RunRecorder`
-is subscribed before anything starts, so no message of the run is missed.  Every key is
-under a run id of its own, so swarms of parallel tests never see each other.
+The test process is the hub: the Zenoh router of the run, listening on a free loopback
+port; every process is its client (multicast scouting off), so a link that drops is re-opened
+by the client (in a peer mesh, a link Zenoh's gossip had made was never re-made).  Its
+:class:`~tagswarm.recording.runrecorder.RunRecorder` is subscribed before anything starts, so
+no message of the run is missed.  Every key is under a run id of its own, so swarms of
+parallel tests never see each other.
 
 Process names: ``world``, ``server``, ``agent/<robot id>``.  Signals go to a process's whole
 group (the world's render workers with the world).  Times: ``*_s`` arguments named
@@ -87,7 +89,7 @@ class LiveSwarm:
         for _ in range(5):  # the free port may be taken by another test between the probe and the bind
             ep = free_endpoint()
             try:
-                return self._stack.enter_context(open_bus(BusConfig(listen=(ep,)))), ep
+                return self._stack.enter_context(open_bus(BusConfig(mode="router", listen=(ep,)))), ep
             except BusError as exc:
                 last = exc
         raise SwarmError(f"cannot open the test's Zenoh session: {last}")
@@ -113,8 +115,8 @@ class LiveSwarm:
             raise SwarmError(f"{name} is already running (pid {self._children[name].pid}); kill it first")
         if net is not _KEEP:
             self._faults[name] = net
-        common = ["--scenario", str(self.scenario_file), "--run", self.run_id, "--connect", self.endpoint,
-                  "--log-level", self.spec.log_level]
+        common = ["--scenario", str(self.scenario_file), "--run", self.run_id, "--zenoh-mode", "client",
+                  "--connect", self.endpoint, "--log-level", self.spec.log_level]
         argv = command(name, common, (*self.spec.extra(name), *extra), self._faults[name])
         n = sum(1 for c in self._history if c.name == name)
         log = self.run_dir / "logs" / f"{log_name(name)}{'' if n == 0 else f'.{n}'}.log"

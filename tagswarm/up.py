@@ -16,7 +16,7 @@ import socket
 import sys
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from datetime import datetime
 from pathlib import Path
 from typing import Any
@@ -43,33 +43,6 @@ def free_endpoint() -> str:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return f"tcp/127.0.0.1:{s.getsockname()[1]}"
-
-
-#: wall seconds the world gets to import its libraries and open its Zenoh router
-ROUTER_START_S = 60.0
-
-
-def wait_listening(endpoint: str, running: Callable[[], bool], timeout_s: float) -> bool:
-    """Whether a ``tcp/HOST:PORT`` or ``unixsock-stream/PATH`` Zenoh endpoint accepts connections
-    within ``timeout_s`` wall seconds, polled every 50 ms while ``running()``; other protocols
-    are not probed (True: Zenoh's own connect reports a failure)."""
-    proto, _, addr = endpoint.partition("/")
-    if proto == "tcp":
-        host, _, port = addr.rpartition(":")
-        target: Any = (host.strip("[]"), int(port))
-        family = socket.AF_INET6 if ":" in host else socket.AF_INET
-    elif proto == "unixsock-stream":
-        target, family = addr, socket.AF_UNIX
-    else:
-        return True
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline and running():
-        with socket.socket(family, socket.SOCK_STREAM) as s:
-            s.settimeout(1.0)
-            if s.connect_ex(target) == 0:
-                return True
-        time.sleep(0.05)  # polling a condition (the port), with the deadline above
-    return False
 
 
 def _script(name: str) -> list[str]:
@@ -212,52 +185,53 @@ def run_up(scenario: Scenario, out: Path, endpoint: str, run: str, *, live: bool
     recording = None
     view_child: Child | None = None  # never ends on its own: stopped (first) once the run is over
     try:
-        # the world is the run's Zenoh router and everyone else its client: every link is one a client
-        # re-opens by itself.  In a peer mesh, a link that dropped (a lease missed on a saturated
-        # machine) was never re-made, so its two ends stopped hearing each other for the rest of the
-        # run (the recorder lost the server, or an agent its corrections); the mesh also cost the
-        # 16-robot swarm a quarter of its processed frames.  It starts first, so its clients find it
-        world_cmd = [sys.executable, "-m", "tagswarm.recording.replay", str(replay), "--lockstep",
-                     "--wait-for", "up/0"] if replay else _script("tagswarm-world")
-        world = Child("world", [*world_cmd, *common, "--zenoh-mode", "router", "--listen", endpoint],
-                      logs / "world.log")
-        children.append(world)
-        if not wait_listening(endpoint, lambda: world.proc.poll() is None, ROUTER_START_S):
-            console.print(f"[red]run failed: the world did not listen on {endpoint} within {ROUTER_START_S:g} s[/]\n"
-                          f"[bold]last lines of {world.log}[/]:\n{world.tail()}")
-            return 1
-        client = ["--zenoh-mode", "client", "--connect", endpoint]
-        # the server's write-ahead journal (restart it by hand with the same --journal to resume the map);
-        # a run folder is rewritten, and a journal of an earlier run would be refused by the server
-        journal = out / "server.journal"
-        journal.unlink(missing_ok=True)
-        children.append(Child("server", [*_script("tagswarm-server"), *common, *client, "--journal", str(journal)],
-                              logs / "server.log"))
-        # which agents run a user's controller is up's choice alone: not the environment's
-        agent_env = {k: v for k, v in os.environ.items() if k != AGENT_MODULE_ENV}
-        for rid in scenario.robot_ids:
-            own = ["--agent-module", controllers[rid]] if controllers and rid in controllers else []
-            children.append(Child(f"agent/{rid}", [*_script("tagswarm-agent"), *common, *client,
-                                                   "--robot-id", str(rid), *own], logs / f"agent{rid}.log",
-                                  env=agent_env))
-        if view is not None:  # a read-only tool: never impaired by child_args, it sees what the run publishes
-            view_child = Child("view", [sys.executable, "-m", "tagswarm.view.view", "--scenario", str(scen_file),
-                                        "--run", run, *client, "--port", str(view)], logs / "view.log")
-            children.append(view_child)
-            console.print(f"live view: [cyan]http://127.0.0.1:{view}/[/]")
-        console.print(f"[bold]tagswarm up[/]: {len(scenario.robot_ids)} robots, {scenario.clock.mode} clock, "
-                      f"Zenoh endpoint [cyan]{endpoint}[/] (join with --connect {endpoint}), run id {run!r}")
-        with open_bus(BusConfig(mode="client", connect=(endpoint,))) as bus:
+        # this process is the run's Zenoh router and every child its client: each link is one its client
+        # re-opens by itself.  In the peer mesh up ran before, a link made by Zenoh's gossip that dropped
+        # (a lease missed on a saturated machine) was never re-made, so its two ends stopped hearing each
+        # other for the rest of the run (the recorder lost the server, or an agent its corrections).  The
+        # hub outlives every child, so their last messages after the world's end still arrive, and its
+        # recorder is subscribed before anything starts
+        with open_bus(BusConfig(mode="router", listen=(endpoint,))) as bus, _Stopping(children):
             rec = RunRecorder(bus, Keys(run), scenario)
             if record is not None:
                 from tagswarm.recording.record import start_recording
 
                 recording = start_recording(bus, Keys(run), record, scenario)
+            client = ["--zenoh-mode", "client", "--connect", endpoint]
+            # the server's write-ahead journal (restart it by hand with the same --journal to resume the
+            # map); a run folder is rewritten, and a journal of an earlier run would be refused by the server
+            journal = out / "server.journal"
+            journal.unlink(missing_ok=True)
+            children.append(Child("server", [*_script("tagswarm-server"), *common, *client, "--journal",
+                                             str(journal)], logs / "server.log"))
+            # which agents run a user's controller is up's choice alone: not the environment's
+            agent_env = {k: v for k, v in os.environ.items() if k != AGENT_MODULE_ENV}
+            for rid in scenario.robot_ids:
+                own = ["--agent-module", controllers[rid]] if controllers and rid in controllers else []
+                children.append(Child(f"agent/{rid}", [*_script("tagswarm-agent"), *common, *client,
+                                                       "--robot-id", str(rid), *own], logs / f"agent{rid}.log",
+                                      env=agent_env))
+            # a replay plays the world; it also waits for this process's token (up/0) so the run folder
+            # misses nothing
+            world_cmd = [sys.executable, "-m", "tagswarm.recording.replay", str(replay), "--lockstep",
+                         "--wait-for", "up/0"] if replay else _script("tagswarm-world")
+            if view is not None:  # a read-only tool: never impaired by child_args, it sees what the run publishes
+                view_child = Child("view", [sys.executable, "-m", "tagswarm.view.view", "--scenario",
+                                            str(scen_file), "--run", run, *client, "--port", str(view)],
+                                   logs / "view.log")
+                children.append(view_child)
+                console.print(f"live view: [cyan]http://127.0.0.1:{view}/[/]")
+            world = Child("world", [*world_cmd, *common, *client], logs / "world.log")
+            children.append(world)
+            console.print(f"[bold]tagswarm up[/]: {len(scenario.robot_ids)} robots, {scenario.clock.mode} clock, "
+                          f"Zenoh endpoint [cyan]{endpoint}[/] (join with --connect {endpoint}), run id {run!r}")
             from tagswarm.recording.record import declare_when_meshed
 
-            # once linked to every process (a lockstep replay waits for this token: the run folder misses nothing)
-            declare_when_meshed(bus, Keys(run), "up/0", (*scenario.clock.participants, "world/0"),
-                                scenario.clock.join_timeout_s, stop)
+            # once every process is there (the world and a lockstep replay wait for this token: the run
+            # folder misses nothing, and a realtime world ticks only once the agents and the server hear it)
+            everyone = ("world/0", "server/0", *(f"agent/{r}" for r in scenario.robot_ids),
+                        *scenario.clock.participants)
+            declare_when_meshed(bus, Keys(run), "up/0", everyone, scenario.clock.join_timeout_s, stop)
             with Live(console=console, refresh_per_second=2, transient=False) if live else _Null() as display:
                 last_print = 0.0
                 pace = Pace()
@@ -291,10 +265,7 @@ def run_up(scenario: Scenario, out: Path, endpoint: str, run: str, *, live: bool
                     rec.poll()
                 rec.poll()
     finally:
-        if view_child is not None:
-            view_child.stop()  # first: browsers see the page's WebSocket close as soon as the run is over
-        for c in sorted(children, key=lambda c: c.name == "world"):
-            c.stop()  # the world last: the others' links go through it
+        _stop(children)  # (done already unless opening the bus failed)
         if recording is not None:
             recording.stop()
     wall = time.monotonic() - t0
@@ -348,6 +319,27 @@ def _summary(console: Console, metrics: dict[str, Any]) -> None:
     for w in metrics.get("warnings", []):
         if "heard nothing from" in w:
             console.print(f"[yellow]warning: {w}[/]", highlight=False)
+
+
+def _stop(children: Sequence[Child]) -> None:
+    """Stop every child: the live view first (browsers see its WebSocket close as soon as the run
+    is over), then the others in start order."""
+    for c in sorted(children, key=lambda c: c.name != "view"):
+        c.stop()
+
+
+class _Stopping:
+    """Stops ``children`` (a list filled later) on exit: inside the bus's ``with``, so they end
+    while their router (this process) still forwards their last messages."""
+
+    def __init__(self, children: list[Child]) -> None:
+        self.children = children
+
+    def __enter__(self) -> _Stopping:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        _stop(self.children)
 
 
 class _Null:

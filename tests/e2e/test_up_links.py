@@ -1,5 +1,5 @@
-"""``tagswarm up`` survives its links being cut mid-run: every process is a client of the
-world's Zenoh router and re-opens its link by itself.  (In the peer mesh ``up`` ran before,
+"""``tagswarm up`` survives its links being cut mid-run: it is the run's Zenoh router, every
+child its client, and a client re-opens its link by itself.  (In the peer mesh ``up`` ran before,
 a link Zenoh's gossip had made was never re-made: the recorder stopped hearing the server
 for the rest of the run.)  The cut is real: ``ss -K`` destroys the TCP sockets of ``up``'s
 own process, as a lease expiry on a saturated machine closes them."""

@@ -183,7 +183,7 @@ def run_up(scenario: Scenario, out: Path, endpoint: str, run: str, *, live: bool
     may_die = {f"agent/{r}" for r in scenario.robots.may_die}
     t0 = time.monotonic()
     recording = None
-    view_child: Child | None = None  # never ends on its own: stopped (first) once the run is over
+    view_child: Child | None = None  # never ends on its own: stopped (first) once the run is over (_Stopping)
     try:
         # this process is the run's Zenoh router and every child its client: each link is one its client
         # re-opens by itself.  In the peer mesh up ran before, a link made by Zenoh's gossip that dropped
@@ -265,7 +265,6 @@ def run_up(scenario: Scenario, out: Path, endpoint: str, run: str, *, live: bool
                     rec.poll()
                 rec.poll()
     finally:
-        _stop(children)  # (done already unless opening the bus failed)
         if recording is not None:
             recording.stop()
     wall = time.monotonic() - t0
@@ -321,16 +320,10 @@ def _summary(console: Console, metrics: dict[str, Any]) -> None:
             console.print(f"[yellow]warning: {w}[/]", highlight=False)
 
 
-def _stop(children: Sequence[Child]) -> None:
-    """Stop every child: the live view first (browsers see its WebSocket close as soon as the run
-    is over), then the others in start order."""
-    for c in sorted(children, key=lambda c: c.name != "view"):
-        c.stop()
-
-
 class _Stopping:
-    """Stops ``children`` (a list filled later) on exit: inside the bus's ``with``, so they end
-    while their router (this process) still forwards their last messages."""
+    """Stops ``children`` (a list filled later) on exit, inside the bus's ``with``, so they end while
+    their router (this process) still forwards their last messages: the live view first (browsers
+    see its WebSocket close as soon as the run is over), then the others in start order."""
 
     def __init__(self, children: list[Child]) -> None:
         self.children = children
@@ -339,7 +332,8 @@ class _Stopping:
         return self
 
     def __exit__(self, *exc: object) -> None:
-        _stop(self.children)
+        for c in sorted(self.children, key=lambda c: c.name != "view"):
+            c.stop()
 
 
 class _Null:

@@ -67,7 +67,7 @@ from tagswarm.agents.guard import CommandGuard
 from tagswarm.protocol import messages as m
 from tagswarm.protocol.errors import UsageError
 from tagswarm.protocol.geometry import Pose2, se2_compose
-from tagswarm.protocol.layout import arena_to_map, footprint_radius
+from tagswarm.protocol.layout import anchors_map, arena_to_map, footprint_radius
 from tagswarm.protocol.scenario import Agent, Mission, Robot, Scenario
 
 FACTORY = "make_controller"
@@ -212,7 +212,8 @@ class BehaviourController(Controller):
         s, rid = config.scenario, config.robot_id
         team = tuple(sorted(mi.robot for mi in s.missions if mi.kind == "leapfrog"))
         self.behaviour = self.behaviour_class(rid, s.mission(rid), s.agent, s.robot, config.arena_to_map, team,
-                                              static_obstacles=config.static_obstacles)
+                                              static_obstacles=config.static_obstacles,
+                                              anchor=anchors_map(s, rid))
         self._goal_number = 0
         self.mode = str(self.behaviour.mode)
 

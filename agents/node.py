@@ -58,7 +58,7 @@ from tagswarm.protocol import messages as m
 from tagswarm.protocol.bus import Bus, Inbox
 from tagswarm.protocol.geometry import Pose2, se2_compose
 from tagswarm.protocol.keys import Keys
-from tagswarm.protocol.layout import arena_to_map, footprint_radius
+from tagswarm.protocol.layout import anchors_map, arena_to_map, footprint_radius
 from tagswarm.runtime import streams
 from tagswarm.runtime.lockstep import Participant
 from tagswarm.runtime.presence import Presence, RunEnd, silence_ns
@@ -135,10 +135,10 @@ class AgentNode:
         self.odom = DiffDriveOdometry(DiffDriveParams(s.robot.wheel_radius_m, s.robot.wheel_base_m,
                                                       s.encoders.ticks_per_rev, a.odom_wheel_sigma))
         # map -> odom; the origin robot's first pose *is* the map frame (unless landmarks pin it)
-        self.map_odom: Pose2 | None = (0.0, 0.0, 0.0) if rid == s.map.origin_id and not s.landmarks else None
+        self.map_odom: Pose2 | None = (0.0, 0.0, 0.0) if anchors_map(s, rid) else None
         team = tuple(sorted(mi.robot for mi in s.missions if mi.kind == "leapfrog"))
         self.behaviour = Behaviour(rid, s.mission(rid), a, s.robot, arena_to_map(s), team,
-                                   static_obstacles=self.static_obstacles)
+                                   static_obstacles=self.static_obstacles, anchor=self.map_odom is not None)
         self.custom: ControllerRunner | None = None
         if self._factory is not None:
             ccfg = ControllerConfig(rid, s, self.cfg.run)
@@ -409,8 +409,9 @@ class AgentNode:
         b = self.behaviour
         out = dict(self.counters)
         received = sum(inbox.received for inbox in self.images.values())
-        out.update(fixes=b.fixes, searches=b.searches, lost_events=b.lost_events, odometry_cycles=b.counter,
-                   localised=int(self.map_odom is not None), server_alive=int(self.server_alive),
+        out.update(fixes=b.fixes, searches=b.searches, lost_events=b.lost_events, look_arounds=b.look_arounds,
+                   odometry_cycles=b.counter, localised=int(self.map_odom is not None),
+                   server_alive=int(self.server_alive),
                    avoiding_cycles=b.avoider.cycles_avoiding, avoid_yields=b.avoider.yields,
                    avoid_side_flips=b.avoider.side_flips, maps_used=self.neighbours.maps_adopted,
                    slip_mm=round(self.slip.slip_m * 1000), slip_events=self.slip.events,

@@ -74,6 +74,12 @@ def wall_boxes(a: Arena) -> list[tuple[tuple[float, float, float], tuple[float, 
     ]
 
 
+def anchors_map(s: Scenario, robot_id: int) -> bool:
+    """Whether this robot's first pose *is* the map frame: the origin robot, unless
+    landmark tags tie the map to the arena."""
+    return robot_id == s.map.origin_id and not s.landmarks
+
+
 def arena_to_map(s: Scenario) -> tuple[float, float, float]:
     """T_map_arena as (x_m, y_m, yaw_rad): the map frame is the origin robot's first
     pose, unless the scenario has landmark tags, which tie the map to the arena."""

@@ -312,7 +312,10 @@ class Agent(Spec, frozen=True, kw_only=True, forbid_unknown_fields=True):
     ``odom_wheel_sigma^2 * |d|`` (sqrt-metre model), so the covariance grows with
     distance.  ``fix_threshold`` is the number of consecutive odometry-only
     control cycles (encoder updates) after which the robot stops and searches
-    by rotating in place (the paper's active re-localisation).
+    by rotating in place (the paper's active re-localisation).  ``look_around``:
+    a robot holding station, other than the origin robot, first turns once on
+    the spot (``search_max_sweep_rad`` at ``search_speed_rad_s``) so that
+    standing robots see each other both ways, then holds at its own heading.
 
     Collision avoidance (``avoid``, :mod:`tagswarm.agents.avoid`): missions and run-time
     goals steer around the other robots (their poses in the server's map) and
@@ -336,6 +339,8 @@ class Agent(Spec, frozen=True, kw_only=True, forbid_unknown_fields=True):
     fix_threshold: Annotated[int, msgspec.Meta(ge=1)] = 150
     search_speed_rad_s: Pos = 0.6
     search_max_sweep_rad: Pos = 6.3
+    # a robot holding station (not the origin) first turns once on the spot (agents/behaviour.py)
+    look_around: bool = True
     lost_speed_factor: Annotated[float, msgspec.Meta(gt=0, le=1)] = 0.3
     max_speed_m_s: Pos = 0.3
     max_turn_rad_s: Pos = 1.2

@@ -52,12 +52,13 @@ class FusionParams:
     late_obs_s: float = 1.0
     # re-localisation from gated-out observations that agree with each other (server/recovery.py): evidence
     # lives reloc_window_s (within init_window_s, where placement candidates live); it takes reloc_min agreeing
-    # observations from two or more witnesses, or reloc_min_single from one witness over reloc_span_s; a
-    # witness is trusted if it agreed with a third robot within reloc_trust_s
+    # observations from two or more witnesses over reloc_span_many_s, or reloc_min_single from one witness over
+    # reloc_span_s; a witness is trusted if it agreed with a third robot within reloc_trust_s
     reloc_window_s: float = 1.5
     reloc_min: int = 4
     reloc_min_single: int = 5
     reloc_span_s: float = 1.0
+    reloc_span_many_s: float = 1.0
     reloc_trust_s: float = 3.0
     reloc_min_turn_rad: float = 0.25  # a consensus this far off in yaw is significant whatever the distance
     # slip evidence (the agents' OdometryEstimate.slip_m, metres of unexplained wheel travel) widens an

@@ -20,8 +20,12 @@ Mangelson et al. 2018; Kimera-Multi) does for loop closures:
 - the evidence about a suspect forms a consistent set when enough of it agrees
   (the same median test that places a robot the first time:
   :func:`tagswarm.server.placement.choose`): at least ``reloc_min`` pieces from two or more
-  witnesses, or ``reloc_min_single`` pieces spread over ``reloc_span_s`` from one
-  witness (the same anchored observer, again and again);
+  witnesses spread over ``reloc_span_many_s``, or ``reloc_min_single`` pieces spread over
+  ``reloc_span_s`` from one witness (the same anchored observer, again and again).  The
+  span is the time a copy has to give itself away: until the robot is seen where the map
+  has it again, a copy of its cube looks exactly like the robot carried away (measured:
+  robots turning to look around glimpsed a copy cube for 0.2 s, two witnesses, and won two
+  re-localisations of a robot nobody saw in those 0.2 s);
 - accepted observations of the suspect during that time are counter-evidence:
   a robot that is still seen where the map has it (a decoy tag of its ID on a
   wall, a spoofed stream) is not moved while more than a third as many
@@ -185,7 +189,7 @@ class Recovery:
         witnesses = tuple(sorted({witness_of(suspect, c) for c in agree}))
         first = min(c.stamp_ns for c in agree)
         span_s = (max(c.stamp_ns for c in agree) - first) / 1e9
-        many = len(agree) >= self.p.reloc_min and len(witnesses) >= 2
+        many = len(agree) >= self.p.reloc_min and len(witnesses) >= 2 and span_s >= self.p.reloc_span_many_s
         repeated = len(agree) >= self.p.reloc_min_single and span_s >= self.p.reloc_span_s
         if not (many or repeated or (landmark and len(agree) >= self.p.reloc_min)):
             return None

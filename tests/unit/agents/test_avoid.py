@@ -19,7 +19,7 @@ from tagswarm.protocol.scenario import Agent, Mission, Robot, load_scenario
 
 ROBOT = Robot()
 FOOT = footprint_radius(ROBOT)
-CFG = Agent()
+CFG = Agent(look_around=False)  # station keepers stand still here (their first turn: test_behaviour.py)
 CLEAR = 2 * FOOT + CFG.avoid_clearance_m  # centre distance the avoidance keeps between two robots
 DT = 1 / 30
 MAP_PERIOD_S = 0.5
@@ -148,7 +148,7 @@ def test_nothing_changes_when_nobody_is_near() -> None:
                       2: ((2.0, 0.0, math.pi), patrol(2, (2.0, 0.0), (0.0, 0.0)), None),
                       3: ((0.0, -0.9, 0.0), patrol(3, (0.0, -0.9), (2.0, -0.9)), None)}, cfg=cfg).run(30.0)
 
-    on, off = layout(CFG), layout(Agent(avoid=False))
+    on, off = layout(CFG), layout(Agent(avoid=False, look_around=False))
     assert on.paths == off.paths
     assert all(b.avoider.cycles_avoiding == 0 for b in on.beh.values())
 

@@ -54,15 +54,62 @@ def test_full_sweep_without_tag_ends_lost_not_spinning() -> None:
     assert b.mode == Mode.LOST and 0 < v <= CFG.lost_speed_factor * CFG.max_speed_m_s + 1e-9
 
 
-def test_station_keeping_robot_never_searches() -> None:
-    b = Behaviour(0, Mission(robot=0, kind="hold"), CFG, ROBOT)
+def test_the_origin_robot_holding_station_never_turns() -> None:
+    b = Behaviour(0, Mission(robot=0, kind="hold"), CFG, ROBOT, anchor=True)
     for k in range(100):
         assert b.cycle(t_s=k, map_pose=(0, 0, 0), odom_yaw=0.0, moved=True, fix=False) == (0.0, 0.0)
-    assert b.searches == 0
+    assert b.searches == 0 and b.look_arounds == 0
+
+
+def _hold(b: Behaviour, steps: int, placed_from: int = 0, fixes: tuple[int, ...] = (),
+          server_up: bool = True) -> tuple[list[tuple[float, float]], float]:
+    """Run a station keeper at 0.1 s steps with ideal odometry; its commands and final heading."""
+    yaw, commands = 0.0, []
+    for k in range(steps):
+        v, w = b.cycle(t_s=k * 0.1, map_pose=(1.0, 2.0, yaw) if k >= placed_from else None, odom_yaw=yaw,
+                       moved=False, fix=k in fixes, server_up=server_up)
+        yaw = math.remainder(yaw + w * 0.1, 2 * math.pi)
+        commands.append((v, w))
+    return commands, yaw
+
+
+def test_a_station_keeper_first_looks_around_once_then_holds_at_its_heading() -> None:
+    b = Behaviour(3, Mission(robot=3, kind="hold"), CFG, ROBOT)
+    commands, yaw = _hold(b, 200, fixes=(5, 30))  # fixes on the way do not stop the turn
+    turning = [k for k, (v, w) in enumerate(commands) if w != 0.0]
+    assert turning[0] == 0 and turning == list(range(len(turning))) and 62 <= len(turning) <= 65
+    assert all(commands[k] == (0.0, CFG.search_speed_rad_s) for k in turning)  # on the spot, search speed
+    assert abs(yaw) < 0.15 and all(c == (0.0, 0.0) for c in commands[turning[-1] + 1:])
+    assert b.look_arounds == 1 and b.searches == 0 and b.lost_events == 0 and b.mode != Mode.LOST
+
+
+def test_no_look_around_when_switched_off_without_a_server_or_after_a_goal() -> None:
+    off = Behaviour(3, Mission(robot=3, kind="hold"), Agent(look_around=False), ROBOT)
+    assert all(c == (0.0, 0.0) for c in _hold(off, 100)[0]) and off.look_arounds == 0
+    alone = Behaviour(3, Mission(robot=3, kind="hold"), CFG, ROBOT)
+    assert all(c == (0.0, 0.0) for c in _hold(alone, 100, server_up=False)[0]) and alone.look_arounds == 0
+    sent = Behaviour(3, Mission(robot=3, kind="hold"), CFG, ROBOT)
+    sent.set_goal(1.0, 2.0, 0.05)  # already there: done at once, and it holds where it was sent
+    assert all(c == (0.0, 0.0) for c in _hold(sent, 100)[0]) and sent.done and sent.look_arounds == 0
+
+
+def test_a_station_keeper_not_placed_by_its_look_around_searches_once_more_later() -> None:
+    cfg = Agent(fix_threshold=40, search_speed_rad_s=1.0, search_max_sweep_rad=6.3)
+    b = Behaviour(5, Mission(robot=5, kind="hold"), cfg, ROBOT)
+    wait = 3 * cfg.fix_threshold
+    commands, _ = _hold(b, 300, placed_from=10_000)
+    turning = [k for k, (v, w) in enumerate(commands) if w != 0.0]
+    first = [k for k in turning if k < 100]
+    second = [k for k in turning if k > 100]
+    assert first[0] == 0 and 62 <= len(first) <= 65 and b.look_arounds == 1
+    # never placed: the old rule (a sweep after 3 x fix_threshold unplaced cycles), then lost, standing still
+    assert second[0] == wait and 62 <= len(second) <= 65
+    assert b.searches == 1 and b.mode == Mode.LOST and commands[-1] == (0.0, 0.0)
 
 
 def test_station_keeping_robot_never_placed_turns_around_once_then_holds() -> None:
-    b = Behaviour(5, Mission(robot=5, kind="hold"), CFG, ROBOT)
+    b = Behaviour(5, Mission(robot=5, kind="hold"), Agent(fix_threshold=10, search_speed_rad_s=1.0,
+                                                          search_max_sweep_rad=6.3, look_around=False), ROBOT)
     wait = 3 * CFG.fix_threshold
     yaw, commands, placed_at = 0.0, [], wait + 20
     for k in range(200):

@@ -15,7 +15,9 @@ import pytest
 from tests.harness import script
 
 # scene -> simulated seconds here (the bench runs each at its own length)
-SCENES = {"hall": 40.0, "corridor": 40.0, "crowd": 15.0}
+# the warehouse: nine robots holding station at random, the realistic camera -- every robot but the origin
+# first turns once to look around; without that its worst robot was 0.61 m RMSE (bench/results/scenes.json)
+SCENES = {"hall": 40.0, "corridor": 40.0, "crowd": 15.0, "warehouse": 30.0}
 
 
 def _final_error(run: Path, rid: int) -> float:
@@ -41,5 +43,6 @@ def test_scene_localises_every_robot(scene: str, tmp_path: Path) -> None:
         assert _final_error(out, int(rid)) <= 0.10, rid
     assert swarm["contacts"]["robot_robot"] == 0
     # the share of robot-time under 10 cm counts the start, before a robot is first placed (hall: a robot behind
-    # a shelf is first seen after 7 s): a floor here, the full-length number in the bench
+    # a shelf is first seen after 7 s; warehouse: two robots placed during their first turn, at 7 s): a floor
+    # here, the full-length number in the bench
     assert swarm["fused"]["time_localised"] >= 0.85

@@ -253,13 +253,18 @@ def test_no_process_survives_a_failed_timed_out_or_interrupted_test(
     proc = _pytest(folder, f"test_strays.py::{case}", TSW_READY=str(ready))
     seen: dict[psutil.Process, str] = {}
     interrupted = False
-    deadline = time.monotonic() + 600
+    deadline = time.monotonic() + 200  # within pytest-timeout's 300 s, so that a hang shows where it hangs
     while proc.poll() is None:
-        assert time.monotonic() < deadline, "the pytest run never ended"
+        if time.monotonic() > deadline:
+            # faulthandler (on in every pytest) prints every thread's stack on SIGABRT
+            proc.send_signal(signal.SIGABRT)
+            out, _ = proc.communicate(timeout=30)
+            pytest.fail(f"the pytest run never ended (interrupted: {interrupted}):\n{out[-12000:]}")
         _descendants(proc.pid, seen)
         if case == "test_interrupted" and ready.exists() and not interrupted:
             proc.send_signal(signal.SIGINT)  # what Ctrl-C in a terminal sends to the foreground pytest
             interrupted = True
+            deadline = min(deadline, time.monotonic() + 90)
         time.sleep(0.2)  # sampling the process tree, not waiting for a result
     out = proc.stdout.read() if proc.stdout else ""
     assert proc.returncode == code, out[-6000:]

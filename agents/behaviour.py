@@ -189,13 +189,15 @@ class Behaviour:
         return target
 
     def cycle(self, *, t_s: float, map_pose: Pose2 | None, odom_yaw: float, moved: bool,
-              fix: bool, server_up: bool = True, neighbours: Sequence[Neighbour] = ()) -> tuple[float, float]:
+              fix: bool, server_up: bool = True, neighbours: Sequence[Neighbour] = (),
+              pos_sigma_m: float | None = None) -> tuple[float, float]:
         """One control step.  ``map_pose`` is the corrected pose (None if never
         localised), ``odom_yaw`` the smooth odometry heading (to measure the sweep),
         ``moved`` whether the encoders moved since the last cycle, ``fix`` whether
         a visual fix arrived, ``server_up`` whether a map server is reachable (see
-        the module docstring), ``neighbours`` the other robots now (map frame).
-        Returns (v_m_s, w_rad_s)."""
+        the module docstring), ``neighbours`` the other robots now (map frame),
+        ``pos_sigma_m`` the fused position's σ in metres (None if unknown; used
+        by ``agent.search_sigma_m``).  Returns (v_m_s, w_rad_s)."""
         self._neighbours = tuple(neighbours)
         swept = 0.0 if self._last_yaw is None else abs(wrap_angle(odom_yaw - self._last_yaw))
         self._last_yaw = odom_yaw
@@ -214,7 +216,9 @@ class Behaviour:
             self.mode = Mode.ODOMETRY
         if not server_up and self.mode in (Mode.SEARCHING, Mode.LOST):
             self.mode = Mode.ODOMETRY  # nobody can turn a sighting into a fix: stop looking
-        needs_search = server_up and (map_pose is None or self.counter > self.cfg.fix_threshold)
+        uncertain = (self.cfg.search_sigma_m > 0 and pos_sigma_m is not None and moved
+                     and pos_sigma_m > self.cfg.search_sigma_m and self.since_fix > 2 * self.visual_hold)
+        needs_search = server_up and (map_pose is None or self.counter > self.cfg.fix_threshold or uncertain)
         # a robot holding station turns on the spot to look around only if it is still not placed after three
         # times fix_threshold cycles (nobody saw it, it saw nobody): turning keeps the station, and standing
         # still would leave it out of the map for good (measured: robot 5 of the warehouse scene, 40 s).  The

@@ -222,9 +222,11 @@ class BehaviourController(Controller):
         if g is not None and g.number != self._goal_number:
             self._goal_number = g.number
             self.behaviour.set_goal(g.x_m, g.y_m, g.tolerance_m)
+        cov = inputs.pose_cov
+        sigma = math.sqrt(max(cov[0], cov[4], 0.0)) if inputs.localised and len(cov) == 9 else None
         v, w = self.behaviour.cycle(t_s=inputs.t_s, map_pose=inputs.pose if inputs.localised else None,
                                     odom_yaw=inputs.odom[2], moved=inputs.moved, fix=inputs.fix,
-                                    server_up=inputs.server_up, neighbours=inputs.neighbours)
+                                    server_up=inputs.server_up, neighbours=inputs.neighbours, pos_sigma_m=sigma)
         self.mode = str(self.behaviour.mode)
         return Twist(v, w)
 

@@ -156,11 +156,8 @@ class AgentNode:
         self.slip = SlipMonitor(r.wheel_radius_m, s.encoders.ticks_per_rev, a.odom_wheel_sigma,
                                 delay_ns=0 if self.lockstep else REALTIME_CMD_DELAY_TICKS * tick_ns,
                                 timeout_ns=round(s.clock.command_timeout_s * 1e9))
-        self.time_ns = 0
-        self.last_fix_ns = 0
-        self._moved = False
-        self._fix = False
-        self._next_status_ns = 0
+        self.time_ns = self.last_fix_ns = self._next_status_ns = 0
+        self._moved = self._fix = False
         self.vision.reset()
         self.pending_frames: dict[str, m.CameraImage] = {}
         self.intake.reset()
@@ -334,13 +331,16 @@ class AgentNode:
         finally:
             self._cpu_frames_s += time.thread_time() - t0
 
+    def _sigma_m(self) -> float | None:
+        """The newest correction's position σ (m, the larger axis); None without one."""
+        cov = self.map_cov
+        return math.sqrt(max(cov[0], cov[4], 0.0)) if cov is not None and len(cov) == 9 else None
+
     def _expected(self, stamp_ns: int) -> dict[tuple[str, int], tuple[float, float, float]]:
         """Where the map in use has the other robots at ``stamp_ns``: (x_m, y_m, radius_m) in our base
         frame, the radius widened by both poses' uncertainty (an uncertain map picks no copy)."""
-        me, cov = self.map_pose, self.map_cov
-        if me is None or cov is None or len(cov) != 9:
-            return {}
-        return self.neighbours.expected(me, stamp_ns, math.sqrt(max(cov[0], cov[4], 0.0)))
+        me, sigma = self.map_pose, self._sigma_m()
+        return {} if me is None or sigma is None else self.neighbours.expected(me, stamp_ns, sigma)
 
     def _off_map(self, est: PoseEstimate) -> tuple[float, float] | None:
         """Where (map frame) a sighting puts its robot if our map has that robot far from there."""
@@ -379,7 +379,7 @@ class AgentNode:
         if self.custom is None:
             v, w = self.behaviour.cycle(t_s=self.time_ns / 1e9, map_pose=self.map_pose, odom_yaw=self.odom.yaw_rad,
                                         moved=self._moved, fix=self._fix, server_up=self.server_alive,
-                                        neighbours=self._others())
+                                        neighbours=self._others(), pos_sigma_m=self._sigma_m())
             left, right = wheel_speeds(v, w, self.s.robot)
         else:
             left, right = self.custom.command(control_input(

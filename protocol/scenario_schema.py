@@ -316,6 +316,9 @@ class Agent(Spec, frozen=True, kw_only=True, forbid_unknown_fields=True):
     a robot holding station, other than the origin robot, first turns once on
     the spot (``search_max_sweep_rad`` at ``search_speed_rad_s``) so that
     standing robots see each other both ways, then holds at its own heading.
+    ``search_sigma_m`` (> 0; off by default): a moving robot also searches as
+    soon as its fused position's σ (the server's newest correction, larger
+    axis) passes this, at least a second after its last fix.
 
     Collision avoidance (``avoid``, :mod:`tagswarm.agents.avoid`): missions and run-time
     goals steer around the other robots (their poses in the server's map) and
@@ -341,6 +344,8 @@ class Agent(Spec, frozen=True, kw_only=True, forbid_unknown_fields=True):
     search_max_sweep_rad: Pos = 6.3
     # a robot holding station (not the origin) first turns once on the spot (agents/behaviour.py)
     look_around: bool = True
+    # > 0: also search once the fused position sigma (m) passes this while driving (0: the cycle count only)
+    search_sigma_m: NonNeg = 0.0
     lost_speed_factor: Annotated[float, msgspec.Meta(gt=0, le=1)] = 0.3
     max_speed_m_s: Pos = 0.3
     max_turn_rad_s: Pos = 1.2

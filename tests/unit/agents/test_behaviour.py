@@ -215,3 +215,28 @@ def test_run_time_goal_on_a_spot_another_robot_stands_on_is_done_at_the_clearanc
     plain.set_goal(2.0, 0.0, 0.05)
     end = _drive(plain, (0.0, 0.0, 0.0), 30.0)
     assert math.dist(end[:2], (2.0, 0.0)) < 0.05
+
+
+def test_an_uncertain_position_starts_the_search_before_the_count_when_asked() -> None:
+    cfg = Agent(fix_threshold=100, search_speed_rad_s=1.0, search_sigma_m=0.12)
+    count_only = Agent(fix_threshold=100, search_speed_rad_s=1.0)
+    pose = (0.0, 0.0, 0.0)
+    # with the sigma rule: a second (2 x visual_hold = 30 cycles) after the fix, not before; without: the count
+    for cfg_k, want in ((cfg, 31), (count_only, 101)):
+        b = Behaviour(1, Mission(robot=1, kind="waypoints", waypoints=((3.0, 0.0),)), cfg_k, ROBOT)
+        b.cycle(t_s=0, map_pose=pose, odom_yaw=0.0, moved=True, fix=True, pos_sigma_m=0.02)
+        started = None
+        for k in range(1, 200):
+            sigma = 0.02 + 0.004 * k  # the fused sigma grows on odometry: past 0.12 m at k = 26
+            b.cycle(t_s=k, map_pose=pose, odom_yaw=0.0, moved=True, fix=False, pos_sigma_m=sigma)
+            if b.mode == Mode.SEARCHING:
+                started = k
+                break
+        assert started == want, (started, cfg_k.search_sigma_m)
+    # a certain pose never triggers it, and standing still never does
+    b = Behaviour(1, Mission(robot=1, kind="waypoints", waypoints=((3.0, 0.0),)), cfg, ROBOT)
+    b.cycle(t_s=0, map_pose=pose, odom_yaw=0.0, moved=True, fix=True)
+    for k in range(1, 90):
+        b.cycle(t_s=k, map_pose=pose, odom_yaw=0.0, moved=True, fix=False, pos_sigma_m=0.05)
+        b.cycle(t_s=k, map_pose=pose, odom_yaw=0.0, moved=False, fix=False, pos_sigma_m=0.5)
+    assert b.mode != Mode.SEARCHING and b.searches == 0

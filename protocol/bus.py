@@ -20,6 +20,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import signal
 import threading
 import time
 from collections import deque
@@ -455,12 +456,19 @@ class Bus:
         drops that peer), and never make a blocking Zenoh call such as :meth:`get` in
         it: its reply could not be delivered until the call timed out."""
         deadline = time.monotonic() + timeout_s
+        main = threading.current_thread() is threading.main_thread()
         with self._wake:
             while not predicate():
                 left = deadline - time.monotonic()
                 if left <= 0:
                     return False
                 self._wake.wait(min(left, 0.05))
+                if main:
+                    # CPython 3.11 runs a signal's Python handler (Ctrl-C's KeyboardInterrupt) only when the
+                    # main thread is told; a signal caught on one of Zenoh's threads does not tell it, and an
+                    # interrupted pytest waited here for good (CI, twice).  pthread_kill with signal 0 sends
+                    # nothing and runs the pending handlers
+                    signal.pthread_kill(threading.get_ident(), 0)
         return True
 
 

@@ -464,10 +464,9 @@ class Bus:
                     return False
                 self._wake.wait(min(left, 0.05))
                 if main:
-                    # CPython 3.11 runs a signal's Python handler (Ctrl-C's KeyboardInterrupt) only when the
-                    # main thread is told; a signal caught on one of Zenoh's threads does not tell it, and an
-                    # interrupted pytest waited here for good (CI, twice).  pthread_kill with signal 0 sends
-                    # nothing and runs the pending handlers
+                    # runs any pending signal handler (Ctrl-C's KeyboardInterrupt) now: signal 0 sends nothing.
+                    # Added for an interrupted pytest that waited here for good in CI; it did not cure that one
+                    # (its SIGINT never reached Python: cause open, tests/e2e/test_testing_plugin.py)
                     signal.pthread_kill(threading.get_ident(), 0)
         return True
 

@@ -66,7 +66,7 @@ from tagswarm.agents.behaviour import Behaviour, wheel_speeds
 from tagswarm.agents.guard import CommandGuard
 from tagswarm.protocol import messages as m
 from tagswarm.protocol.errors import UsageError
-from tagswarm.protocol.geometry import Pose2, se2_compose
+from tagswarm.protocol.geometry import Pose2, position_sigma_m, se2_compose
 from tagswarm.protocol.layout import anchors_map, arena_to_map, footprint_radius
 from tagswarm.protocol.scenario import Agent, Mission, Robot, Scenario
 
@@ -222,8 +222,7 @@ class BehaviourController(Controller):
         if g is not None and g.number != self._goal_number:
             self._goal_number = g.number
             self.behaviour.set_goal(g.x_m, g.y_m, g.tolerance_m)
-        cov = inputs.pose_cov
-        sigma = math.sqrt(max(cov[0], cov[4], 0.0)) if inputs.localised and len(cov) == 9 else None
+        sigma = position_sigma_m(inputs.pose_cov) if inputs.localised else None
         v, w = self.behaviour.cycle(t_s=inputs.t_s, map_pose=inputs.pose if inputs.localised else None,
                                     odom_yaw=inputs.odom[2], moved=inputs.moved, fix=inputs.fix,
                                     server_up=inputs.server_up, neighbours=inputs.neighbours, pos_sigma_m=sigma)

@@ -29,7 +29,6 @@ Faults it rides out:
 from __future__ import annotations
 
 import logging
-import math
 import threading
 import time
 from collections import Counter
@@ -56,7 +55,7 @@ from tagswarm.agents.vision import Vision
 from tagswarm.protocol import codec
 from tagswarm.protocol import messages as m
 from tagswarm.protocol.bus import Bus, Inbox
-from tagswarm.protocol.geometry import Pose2, se2_compose
+from tagswarm.protocol.geometry import Pose2, position_sigma_m, se2_compose
 from tagswarm.protocol.keys import Keys
 from tagswarm.protocol.layout import anchors_map, arena_to_map, footprint_radius
 from tagswarm.runtime import streams
@@ -138,7 +137,7 @@ class AgentNode:
         self.map_odom: Pose2 | None = (0.0, 0.0, 0.0) if anchors_map(s, rid) else None
         team = tuple(sorted(mi.robot for mi in s.missions if mi.kind == "leapfrog"))
         self.behaviour = Behaviour(rid, s.mission(rid), a, s.robot, arena_to_map(s), team,
-                                   static_obstacles=self.static_obstacles, anchor=self.map_odom is not None)
+                                   static_obstacles=self.static_obstacles, anchor=anchors_map(s, rid))
         self.custom: ControllerRunner | None = None
         if self._factory is not None:
             ccfg = ControllerConfig(rid, s, self.cfg.run)
@@ -331,15 +330,10 @@ class AgentNode:
         finally:
             self._cpu_frames_s += time.thread_time() - t0
 
-    def _sigma_m(self) -> float | None:
-        """The newest correction's position σ (m, the larger axis); None without one."""
-        cov = self.map_cov
-        return math.sqrt(max(cov[0], cov[4], 0.0)) if cov is not None and len(cov) == 9 else None
-
     def _expected(self, stamp_ns: int) -> dict[tuple[str, int], tuple[float, float, float]]:
         """Where the map in use has the other robots at ``stamp_ns``: (x_m, y_m, radius_m) in our base
         frame, the radius widened by both poses' uncertainty (an uncertain map picks no copy)."""
-        me, sigma = self.map_pose, self._sigma_m()
+        me, sigma = self.map_pose, position_sigma_m(self.map_cov)
         return {} if me is None or sigma is None else self.neighbours.expected(me, stamp_ns, sigma)
 
     def _off_map(self, est: PoseEstimate) -> tuple[float, float] | None:
@@ -379,7 +373,7 @@ class AgentNode:
         if self.custom is None:
             v, w = self.behaviour.cycle(t_s=self.time_ns / 1e9, map_pose=self.map_pose, odom_yaw=self.odom.yaw_rad,
                                         moved=self._moved, fix=self._fix, server_up=self.server_alive,
-                                        neighbours=self._others(), pos_sigma_m=self._sigma_m())
+                                        neighbours=self._others(), pos_sigma_m=position_sigma_m(self.map_cov))
             left, right = wheel_speeds(v, w, self.s.robot)
         else:
             left, right = self.custom.command(control_input(

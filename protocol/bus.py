@@ -20,7 +20,6 @@ from __future__ import annotations
 import json
 import logging
 import os
-import signal
 import threading
 import time
 from collections import deque
@@ -456,18 +455,12 @@ class Bus:
         drops that peer), and never make a blocking Zenoh call such as :meth:`get` in
         it: its reply could not be delivered until the call timed out."""
         deadline = time.monotonic() + timeout_s
-        main = threading.current_thread() is threading.main_thread()
         with self._wake:
             while not predicate():
                 left = deadline - time.monotonic()
                 if left <= 0:
                     return False
                 self._wake.wait(min(left, 0.05))
-                if main:
-                    # runs any pending signal handler (Ctrl-C's KeyboardInterrupt) now: signal 0 sends nothing.
-                    # Added for an interrupted pytest that waited here for good in CI; it did not cure that one
-                    # (its SIGINT never reached Python: cause open, tests/e2e/test_testing_plugin.py)
-                    signal.pthread_kill(threading.get_ident(), 0)
         return True
 
 

@@ -111,3 +111,8 @@ def se2_inverse(a: Pose2) -> Pose2:
 def se2_between(a: Pose2, b: Pose2) -> Pose2:
     """⊖a ⊕ b: pose b relative to pose a."""
     return se2_compose(se2_inverse(a), b)
+
+
+def position_sigma_m(cov: tuple[float, ...] | None) -> float | None:
+    """The larger axis's position σ (m) of a row-major 3x3 (x, y, yaw) covariance; None without one."""
+    return math.sqrt(max(cov[0], cov[4], 0.0)) if cov is not None and len(cov) == 9 else None

@@ -72,7 +72,15 @@ class Renderer:
         # per robot: (stamp, T_world_base) of the two newest instants this renderer developed a frame at
         self._track: dict[int, tuple[tuple[int, Mat], tuple[int, Mat] | None]] = {}
         self._track_stamp = -1  # the newest instant the tracks advanced to
-        self._build()
+        try:
+            self._build()
+        finally:
+            # pybullet reads meshes and textures when a body is made: the files are not needed
+            # after the build, and a process SIGKILLed later (render workers at a run's end)
+            # would leave them in /tmp for good
+            if self._tmp is not None:
+                self._tmp.cleanup()
+                self._tmp = None
 
     # ------------------------------------------------------------------ scene
     def _box(self, half: tuple[float, float, float], pos: tuple[float, float, float], yaw: float,

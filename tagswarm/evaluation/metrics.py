@@ -106,6 +106,8 @@ the true initial pose, so its error is pure drift).
     skipped.  ``null`` when no covariance was recorded.
   - ``fused.nees_nominal``: the same without each kidnapped robot's samples from the
     kidnap until it is localised again (a kidnap is outside the fusion's model).
+  - ``fused.ate_unaligned_nominal`` S: ``ate_unaligned`` without those samples either
+    (tracking quality outside the kidnaps, whose cost ``kidnaps`` measures in seconds).
   - ``relocalisations``: number of re-localisation events (see the top-level list).
   - ``kidnaps``: ``{"count", "recovered"`` (kidnaps with a
     ``time_to_relocalise_s``), ``"mean_time_to_relocalise_s"``,
@@ -133,7 +135,8 @@ the true initial pose, so its error is pure drift).
     truth span spent localised (``null`` with fewer than two truth poses); a
     robot never localised scores 0; ``fused.time_localised_placed`` from its first
     fused estimate on (``null`` if never placed).
-  - ``fused.nees``: ``{"mean", "median", "count"}`` as in ``swarm`` for this robot.
+  - ``fused.nees``, ``fused.nees_nominal``, ``fused.ate_unaligned_nominal``: as in
+    ``swarm``, for this robot.
   - ``relocalisations``, ``kidnaps``: how many of the top-level events are this robot's.
   - ``contacts``: the world's ``contacts_robot_<k>`` counter (``null`` as in ``swarm``).
   - ``time_lost_s``, ``mode_time_s``: from ``modes.csv``.  Each sample's mode

@@ -328,6 +328,14 @@ def test_nominal_nees_leaves_out_a_kidnapped_robot_until_it_is_found_again(tmp_p
     # robot 2 is never found again: everything from its kidnap on is left out
     assert r2["nees_nominal"]["count"] == 85 and r2["nees_nominal"]["mean"] == 0.0
     assert m["swarm"]["fused"]["nees_nominal"]["count"] == 85 + 85
+    # the position error outside the same windows: robot 1 is 1 m off only inside its window
+    a1 = r1["ate_unaligned_nominal"]
+    assert a1["count"] == 85 and a1["max"] == pytest.approx(0.05) and r1["ate_unaligned"]["max"] == pytest.approx(1.0)
+    assert a1["rmse"] == pytest.approx(0.05 * math.sqrt(35 / 85))
+    assert r2["ate_unaligned_nominal"]["count"] == 85 and r2["ate_unaligned_nominal"]["max"] == pytest.approx(0.0)
+    sw = m["swarm"]["fused"]["ate_unaligned_nominal"]
+    assert sw["count"] == 85 + 85 + m["robots"]["0"]["fused"]["ate_unaligned"]["count"]
+    assert sw["rmse"] < 0.05 < m["swarm"]["fused"]["ate_unaligned"]["rmse"]
 
 
 def test_nominal_nees_window_opens_at_the_kidnap_tick_whatever_the_stamp_rounding(tmp_path: Path) -> None:

@@ -134,6 +134,10 @@ def test_recovery_in_the_summary_and_marked_on_the_error_plot(tmp_path: Path,
     assert "kidnap t=5.00 s robot 1 (teleport, 1.00 m): localised again after 1.50 s, first re-localisation " \
            "after 1.45 s" in out
     assert "contacts: robot-robot 2, robot-obstacle 0, robot-wall 0" in out
+    # robot 1's fused error in the map frame, then the same outside its kidnap (1 m off from 5 to 6.5 s)
+    m = json.loads((run / "metrics.json").read_text())["robots"]["1"]["fused"]
+    full, nominal = m["ate_unaligned"]["rmse"], m["ate_unaligned_nominal"]["rmse"]
+    assert nominal < 0.05 < full and f"{full:.3f} ({nominal:.3f})" in out
     assert (run / "plots" / "error_over_time.png").read_bytes()[:8] == PNG_MAGIC
 
     ev = evaluate(load_run(run))

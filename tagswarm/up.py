@@ -388,7 +388,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             from tagswarm.recording.record import with_recorder
 
             scenario = with_recorder(scenario)  # lockstep: the world waits for the recorder (nothing missed)
-        run = inv.pick("run", f"up{int(time.time()) % 100000}")
+        # the pid too: two runs started in the same second (a script, a bench) must not share keys
+        run = inv.pick("run", f"up{int(time.time()) % 100000}-{os.getpid()}")
         Keys(run)
         out = args.out or Path("runs") / datetime.now().strftime("%Y%m%d-%H%M%S")
         endpoint = (args.listen or [None])[0] or free_endpoint()

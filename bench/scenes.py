@@ -96,7 +96,7 @@ def with_nominal(r: dict[str, Any], key: str) -> str:
     return text if not (r.get("kidnaps") or {}).get("count") or nominal is None else f"{text} ({100 * nominal:.1f})"
 
 
-def table_rows(results: list[dict[str, Any]]) -> list[list[str]]:
+def table_rows(results: list[dict[str, Any]], show_seed: bool = False) -> list[list[str]]:
     """README-style rows: scene, robots, s, swarm RMSE, worst robot RMSE (with kidnaps: "all (outside the
     kidnaps)"), worst final, time localised (swarm /
     worst robot), time localised once placed (swarm), re-localisations, kidnap recovery, robot-robot contacts,
@@ -111,7 +111,8 @@ def table_rows(results: list[dict[str, Any]]) -> list[list[str]]:
               f"{kid.get('max_time_to_relocalise_s') or float('nan'):.1f} s"
         tl, tlm, tlp = r.get("time_localised"), r.get("time_localised_min_robot"), r.get("time_localised_placed")
         nees = (r.get("nees_nominal") or r.get("nees") or {}).get("mean")
-        rows.append([r["scene"], str(r["robots"]), f"{r['duration_s']:.0f}", with_nominal(r, "fused_ate_rmse_m"),
+        name = f"{r['scene']} (seed {r['seed']})" if show_seed else r["scene"]
+        rows.append([name, str(r["robots"]), f"{r['duration_s']:.0f}", with_nominal(r, "fused_ate_rmse_m"),
                      with_nominal(r, "worst_robot_rmse_m"), cm(r["worst_final_m"]),
                      "-" if tl is None else f"{100 * tl:.1f} / {100 * (tlm or 0):.1f} %",
                      "-" if tlp is None else f"{100 * tlp:.1f} %",
@@ -139,19 +140,26 @@ def main() -> int:
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="scenario override for every scene (repeatable), e.g. server.obs_sigma_floor_m=0.02")
     p.add_argument("--keep", type=Path, default=None, help="keep the run folders here (default: deleted)")
+    p.add_argument("--seeds", type=int, nargs="+", default=None, metavar="N",
+                   help="run every scene at these seeds instead of its own (the seed draws the wheels' biases "
+                        "and the sensor noise; a scene's random placement too)")
     a = p.parse_args()
+    if any(o.split("=", 1)[0].strip() == "seed" for o in a.set):
+        # each run's --seed flag beats a --set override: it would silently run the scene's own seed
+        p.error("--set seed=N has no effect here (each run gets --seed): use --seeds N")
     root = Path(__file__).resolve().parents[1]
     out = a.out or root / "bench" / "results" / ("scenes_quick.json" if a.quick else "scenes.json")
     t0 = time.monotonic()
     with tempfile.TemporaryDirectory(prefix="tagswarm-scenes-") as tmp:
         work = Path(tmp) if a.keep is None else a.keep
         work.mkdir(parents=True, exist_ok=True)
-        results = [scene_run(up, work, s, SCENES[s][1 if a.quick else 0], overrides=tuple(a.set))
-                   for s in a.scenes]
+        results = [scene_run(up, work, s, SCENES[s][1 if a.quick else 0], seed=seed, overrides=tuple(a.set))
+                   for seed in (a.seeds or [None]) for s in a.scenes]
     out.write_text(json.dumps({"bench": "scenes", "machine": machine(), "targets": TARGETS, "overrides": a.set,
+                               "seeds": a.seeds,
                                "scenes": results,
                                "wall_time_s": time.monotonic() - t0}, indent=2))
-    print_table("scenes", HEADER, table_rows(results))
+    print_table("scenes", HEADER, table_rows(results, show_seed=bool(a.seeds)))
     return 0
 
 

@@ -231,6 +231,7 @@ class Fusion:
         established = all(r.accepted >= self.p.gate_after or rid == self.origin_id
                           for rid, r in ((observer, o), (target, g)))
         reloc: tuple[Verdict, Pose2] | None = None
+        admitted = False
         if po is not None and pg is not None:
             d2 = self._gate(se2_between(po, pg), rel, tangent_cov(rel, cov) + self._rel_cov(o, g),
                             None if established else self.p.gate_young_floor_m)
@@ -239,14 +240,19 @@ class Fusion:
                 verdict = self._contradiction(observer, target, stamp_ns, rel, cov, po, pg, oo, go)
                 if verdict is None:
                     return
-                # re-localise the suspect: out of the map, then placed again below from the consistent set
-                before = po if verdict.suspect == observer else pg
-                self._unplace(verdict.suspect, verdict)
-                if verdict.suspect == observer:
-                    po = None
+                if verdict.admit:
+                    # consistent, but too small a move for a jump: an ordinary factor lets the graph correct it
+                    admitted = True
+                    self.counters["admitted_consistent"] += 1
                 else:
-                    pg = None
-                reloc = verdict, before
+                    # re-localise the suspect: out of the map, then placed again below from the consistent set
+                    before = po if verdict.suspect == observer else pg
+                    self._unplace(verdict.suspect, verdict)
+                    if verdict.suspect == observer:
+                        po = None
+                    else:
+                        pg = None
+                    reloc = verdict, before
         # the paper's stitching places a robot seen for the first time; one observation can be a
         # flipped single-tag pose, so wait for several that agree and start from the most certain
         meas: list[tuple[int, int, Pose2, Cov]] = [(observer, target, rel, tangent_cov(rel, cov))]
@@ -298,9 +304,11 @@ class Fusion:
             # observation, then back along the target's motion since its keyframe
             z = se2_compose(se2_compose(da, m_rel), se2_inverse(db))
             self.graph.add(gtsam.BetweenFactorPose2(ka, kb, gtsam.Pose2(*z), self.graph.robust(m_cov + ca + cb)))
-        self.counters["accepted_observations"] += 1
         o.last_fix_ns = g.last_fix_ns = stamp_ns
         self.edges[(observer, target)] = stamp_ns
+        if admitted:
+            return  # still evidence against the estimate, not agreement with it: it voids nothing
+        self.counters["accepted_observations"] += 1
         o.accepted += 1
         g.accepted += 1
         self.recovery.accepted(observer, target, stamp_ns)
@@ -319,8 +327,9 @@ class Fusion:
             r_cov = self.robots[suspect].cov
             verdict = self.recovery.add(suspect, cand, current=(now, odom, float(r_cov[0, 0] + r_cov[1, 1]) / 2))
             if verdict is not None:
-                # _initial_pose adds the triggering observation itself
-                self._init[suspect] = [c for c in verdict.agree if c is not cand]
+                if not verdict.admit:
+                    # _initial_pose adds the triggering observation itself
+                    self._init[suspect] = [c for c in verdict.agree if c is not cand]
                 return verdict
         return None
 

@@ -61,6 +61,9 @@ class FusionParams:
     reloc_span_many_s: float = 1.0
     reloc_trust_s: float = 3.0
     reloc_min_turn_rad: float = 0.25  # a consensus this far off in yaw is significant whatever the distance
+    # gated-out observations that form such a consistent set but call for too small a move to re-localise
+    # are admitted as factors (robust): the graph, not a jump, corrects an estimate a little off in yaw
+    reloc_admit: bool = True
     # slip evidence (the agents' OdometryEstimate.slip_m, metres of unexplained wheel travel) widens an
     # odometry increment: this many metres of position sigma (and sigma / (wheel base / 2) of yaw) per metre
     odom_slip_sigma: float = 1.0

@@ -43,7 +43,11 @@ Mangelson et al. 2018; Kimera-Multi) does for loop closures:
   ``reloc_min_turn_rad`` in yaw).  Far observations lever the yaw error by the
   range, so several of them can agree on a pose tens of centimetres off; a
   robot 10 cm off would otherwise be re-localised 25 cm the other way (measured
-  in a 10-robot hall).  Such evidence waits for better evidence instead.
+  in a 10-robot hall).  Such a set does not move the robot: its observation is
+  *admitted* as an ordinary (robust) factor instead (``reloc_admit``), so the graph
+  weighs it against everything else it knows.  Without that, a robot whose heading
+  was 8° off kept rejecting 3.6 s of 1 cm-accurate views of the origin robot, and
+  its error grew from 12 to 20 cm until the origin saw it (hall, seed 0).
 
 A single wrong observation, a mis-decoded tag or a spoofed one never forms a
 consistent set, so it stays rejected.  The origin robot is never re-localised:
@@ -82,6 +86,8 @@ class Verdict:
     suspect: int
     agree: list[Candidate]
     witnesses: tuple[int, ...]
+    #: the set is consistent but its move is not significant: admit the observation as a factor, do not jump
+    admit: bool = False
 
 
 @dataclass
@@ -195,9 +201,10 @@ class Recovery:
             return None
         if self._counter_evidence(suspect, first) * 3 > len(agree):
             return None
-        if current is not None and not self.significant(agree, len(witnesses), *current):
+        admit = current is not None and not self.significant(agree, len(witnesses), *current)
+        if admit and not self.p.reloc_admit:
             return None
-        return Verdict(suspect, [best, *(c for c in agree if c is not best)], witnesses)
+        return Verdict(suspect, [best, *(c for c in agree if c is not best)], witnesses, admit=admit)
 
     def significant(self, agree: list[Candidate], n_witnesses: int, pose: Pose2, odom: Pose2, var_m2: float) -> bool:
         """Whether the consensus of ``agree`` is far enough from the estimated ``pose``

@@ -56,8 +56,11 @@ class Renderer:
 
     def __init__(self, scenario: Scenario, asset_dir: Path | None = None) -> None:
         self.scenario = scenario
-        self._tmp = None if asset_dir is not None else tempfile.TemporaryDirectory(prefix="tagswarm-assets-")
-        self.asset_dir = asset_dir if asset_dir is not None else Path(self._tmp.name)  # type: ignore[union-attr]
+        tmp = None
+        if asset_dir is None:
+            tmp = tempfile.TemporaryDirectory(prefix="tagswarm-assets-")
+            asset_dir = Path(tmp.name)
+        self.asset_dir = asset_dir  # read only while the scene is built (a temporary one is gone after)
         self.cid = pb.connect(pb.DIRECT)
         self.bodies: dict[int, int] = {}
         self._proj: dict[str, list[float]] = {}
@@ -78,9 +81,8 @@ class Renderer:
             # pybullet reads meshes and textures when a body is made: the files are not needed
             # after the build, and a process SIGKILLed later (render workers at a run's end)
             # would leave them in /tmp for good
-            if self._tmp is not None:
-                self._tmp.cleanup()
-                self._tmp = None
+            if tmp is not None:
+                tmp.cleanup()
 
     # ------------------------------------------------------------------ scene
     def _box(self, half: tuple[float, float, float], pos: tuple[float, float, float], yaw: float,
@@ -230,13 +232,10 @@ class Renderer:
         return develop(img, self._sensor, rng, toned=toned, bank=bank)
 
     def close(self) -> None:
-        """Disconnect the pybullet client and remove temporary assets."""
+        """Disconnect the pybullet client."""
         if self.cid >= 0:
             pb.disconnect(physicsClientId=self.cid)
             self.cid = -1
-        if self._tmp is not None:
-            self._tmp.cleanup()
-            self._tmp = None
 
     def __enter__(self) -> Renderer:
         return self

@@ -43,6 +43,12 @@ def scene():
         yield s, r
 
 
+def test_the_temporary_assets_are_gone_once_the_scene_is_built(scene) -> None:
+    # a render worker SIGKILLed at a run's end left its folder in /tmp; the tags below still decode without it
+    _, r = scene
+    assert r.asset_dir.name.startswith("tagswarm-assets-") and not r.asset_dir.exists()
+
+
 CASES = [  # target (x, y, yaw) relative to the observer at the origin
     (0.8, 0.0, math.pi),
     (1.0, 0.15, math.pi + 0.6),

@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import queue
 import threading
+import time
 
 import zenoh
 
@@ -82,10 +83,14 @@ def test_the_reply_to_a_query_carries_the_encoding() -> None:
         t.start()
         try:
             replies = []
-            for _ in range(50):  # until the queryable is known to the plain session
+            # A get that no known queryable matches returns at once, so a count of tries
+            # is no wait at all on a loaded machine: wait by the clock until the plain
+            # session has learnt of the queryable.
+            deadline = time.monotonic() + 30.0
+            while not replies and time.monotonic() < deadline:
                 replies = [r.ok for r in plain.get(KEYS.map(), timeout=1.0) if r.ok is not None]
-                if replies:
-                    break
+                if not replies:
+                    stop.wait(0.05)
         finally:
             stop.set()
             t.join(timeout=5)

@@ -321,11 +321,12 @@ class Fusion:
         placed_g = se2_compose(po, rel)
         placed_o = se2_compose(pg, se2_inverse(rel))
         inv = inverse_cov(rel, cov)
-        for suspect, placed, odom, spread, now in ((target, placed_g, go, cov, pg), (observer, placed_o, oo, inv, po)):
+        var = {rid: float(self.robots[rid].cov[0, 0] + self.robots[rid].cov[1, 1]) / 2 for rid in (observer, target)}
+        for suspect, witness, placed, odom, spread, now in ((target, observer, placed_g, go, cov, pg),
+                                                             (observer, target, placed_o, oo, inv, po)):
             cand = Candidate(stamp_ns, se2_compose(placed, se2_inverse(odom)), float(spread[0, 0] + spread[1, 1]),
                              meas)
-            r_cov = self.robots[suspect].cov
-            verdict = self.recovery.add(suspect, cand, current=(now, odom, float(r_cov[0, 0] + r_cov[1, 1]) / 2))
+            verdict = self.recovery.add(suspect, cand, current=(now, odom, var[suspect]), witness_var_m2=var[witness])
             if verdict is not None:
                 if not verdict.admit:
                     # _initial_pose adds the triggering observation itself

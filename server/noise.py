@@ -60,6 +60,9 @@ class FusionParams:
     reloc_span_s: float = 1.0
     reloc_span_many_s: float = 1.0
     reloc_trust_s: float = 3.0
+    # a witness is also trusted when its position sigma is under this share of the suspect's (0: never):
+    # two robots out of everyone's view are both untrusted, yet the one far surer of itself can judge the other
+    reloc_trust_sigma_ratio: float = 0.5
     reloc_min_turn_rad: float = 0.25  # a consensus this far off in yaw is significant whatever the distance
     # gated-out observations that form such a consistent set but call for too small a move to re-localise
     # are admitted as factors (robust): the graph, not a jump, corrects an estimate a little off in yaw

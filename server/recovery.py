@@ -15,8 +15,13 @@ Mangelson et al. 2018; Kimera-Multi) does for loop closures:
   different instants compares directly while the suspect moves on odometry;
 - only a *trusted* witness gives evidence: a landmark, the origin robot, or a
   robot that agrees with a third robot (an accepted observation with somebody
-  other than the suspect within ``reloc_trust_s``).  A robot that is wrong itself
-  therefore cannot drag its observers along;
+  other than the suspect within ``reloc_trust_s``), or a robot far surer of its own
+  position than of the suspect's (its σ under ``reloc_trust_sigma_ratio`` of the
+  suspect's).  A robot that is wrong itself therefore cannot drag its observers along.
+  The second rule is for two robots out of everyone's view: neither agrees with a third,
+  yet one may have been seen a moment ago and the other not for many seconds (measured in
+  the hall, seed 2: a robot 22-30 cm off for 8 s saw two robots whose estimates were right
+  to 4-9 cm, σ 10-15 cm against its own 20-25 cm, and their views did not count);
 - the evidence about a suspect forms a consistent set when enough of it agrees
   (the same median test that places a robot the first time:
   :func:`tagswarm.server.placement.choose`): at least ``reloc_min`` pieces from two or more
@@ -143,11 +148,15 @@ class Recovery:
         """Whether (x_m, y_m) in the map is a remembered decoy site of ``rid``."""
         return any(math.hypot(x_m - sx, y_m - sy) < self.p.init_agree_m for sx, sy in self.decoy_sites.get(rid, ()))
 
-    def trusted(self, witness: int, suspect: int, stamp_ns: int) -> bool:
-        """Whether ``witness``'s estimate may judge ``suspect`` at ``stamp_ns``."""
+    def trusted(self, witness: int, suspect: int, stamp_ns: int,
+                variances: tuple[float, float] | None = None) -> bool:
+        """Whether ``witness``'s estimate may judge ``suspect`` at ``stamp_ns``; ``variances``:
+        the position variance (m², per axis) of the witness's and of the suspect's estimate."""
         if witness == LANDMARK_WITNESS:
             return True
         if witness == self.origin_id and self.anchored_origin:
+            return True
+        if variances is not None and variances[0] < self.p.reloc_trust_sigma_ratio**2 * variances[1]:
             return True
         horizon = stamp_ns - int(self.p.reloc_trust_s * 1e9)
         return any(t >= horizon and other != suspect for t, other in self.partners.get(witness, ()))
@@ -156,16 +165,17 @@ class Recovery:
         return sum(1 for t, _ in self.partners.get(suspect, ()) if t >= since_ns)
 
     def add(self, suspect: int, cand: Candidate, landmark: bool = False,
-            current: tuple[Pose2, Pose2, float] | None = None) -> Verdict | None:
+            current: tuple[Pose2, Pose2, float] | None = None, witness_var_m2: float | None = None) -> Verdict | None:
         """Record one piece of contradicting evidence about ``suspect``; a verdict if
         the evidence now forms a consistent set that should re-localise it.
         ``current``: the suspect's estimated map pose at ``cand``'s instant, its odometry
         pose then and the variance (m², per axis) of its position, to judge whether the
-        move is significant."""
+        move is significant; ``witness_var_m2``: that of the witness's position."""
         if suspect == self.origin_id and self.anchored_origin:
             return None
         witness = witness_of(suspect, cand)
-        if not self.trusted(witness, suspect, cand.stamp_ns):
+        variances = None if current is None or witness_var_m2 is None else (witness_var_m2, current[2])
+        if not self.trusted(witness, suspect, cand.stamp_ns, variances):
             return None
         store = self.landmark_ev if landmark else self.robot_ev
         horizon = cand.stamp_ns - int(self.p.reloc_window_s * 1e9)

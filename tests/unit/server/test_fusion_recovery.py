@@ -319,3 +319,25 @@ def test_a_driving_robot_turned_a_little_gets_its_heading_back_from_consistent_v
         other, ref = fusion.pose(rid), stuck.pose(rid)
         assert other is not None and ref is not None and math.dist(other[0][:2], ref[0][:2]) < 0.005, rid
         assert math.dist(other[0][:2], START[rid][:2]) < 0.02, rid
+
+
+def _verdicts(witness_sigma_m: float | None, params: FusionParams | None = None) -> list[bool]:
+    """Robot 3, estimated at (2.5, 0) with a 20 cm sigma, is seen 1 m away at (3.5, 0) by robot 1 for 1.5 s;
+    robot 1 agrees with nobody else (out of everyone's view too) and is ``witness_sigma_m`` sure of itself.
+    Returns, per observation, whether it completed a consistent set (a verdict)."""
+    rec = Recovery(params or FusionParams(), origin_id=0, anchored_origin=True)
+    at: Pose2 = (3.5, 0.0, 0.0)  # the robot stands still: its odometry origin is where it is
+    current = ((2.5, 0.0, 0.0), (0.0, 0.0, 0.0), 0.20**2)
+    var = None if witness_sigma_m is None else witness_sigma_m**2
+    return [rec.add(3, Candidate(k * DT_NS, at, 2 * 0.02**2, (1, 3, at, COV)), current=current,
+                    witness_var_m2=var) is not None for k in range(16)]
+
+
+def test_a_witness_far_surer_of_itself_than_of_the_suspect_is_trusted_without_a_third_robot() -> None:
+    # two robots out of everyone's view: neither agrees with a third, yet one was placed a moment ago (5 cm)
+    # and the other not for many seconds (20 cm): the first one's views of the second count
+    sure = _verdicts(0.05)
+    assert any(sure) and not any(sure[:5])  # one witness: reloc_min_single pieces over reloc_span_s
+    assert not any(_verdicts(0.15))  # not sure enough: 0.15 > 0.5 * 0.20
+    assert not any(_verdicts(None))  # nothing known of the witness: the old rule alone
+    assert not any(_verdicts(0.05, FusionParams(reloc_trust_sigma_ratio=0.0)))

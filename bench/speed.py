@@ -10,8 +10,13 @@ the run's Zenoh network and, after a warm-up, measures for ``--seconds``:
 - frames: camera frames the agents processed (their status counters), per wall
   second, next to what the cameras asked for (robots x rate x RTF).
 - latency: for every correction whose ``last_fix_ns`` is new for its robot, the
-  wall time from the first arrival of an image stamped ``last_fix_ns`` (the frame
-  that produced the fix) to the arrival of that correction (p50 / p95 / max).
+  wall time from the arrival of the image that produced the fix to the arrival of
+  that correction (p50 / p95 / max).  The fix is an observation stamped
+  ``last_fix_ns`` by or of that robot; the image is the earliest-arriving frame of
+  that stamp from a robot that made such an observation (the bench hears the
+  observations too).  ``latency_any_image_ms`` is the older, looser measure: from
+  the first image of that stamp from *any* robot, which adds the spread of one
+  tick's renders over the robots (up to a render per robot per worker) to the delay.
   The bench client and the agents sit on the same loopback, so this is what an
   agent sees.  The bench subscribes to every image for this; its own CPU is
   reported apart.
@@ -141,6 +146,7 @@ def measure(robots: int, res: str, workers: int | None, seconds: float, warmup: 
             ticks = bus.subscribe(keys.tick(), capacity=1_000_000)
             images = bus.subscribe(keys.images() if latency else keys.tick(), capacity=1_000_000)
             corr = bus.subscribe(keys.correction(), capacity=1_000_000)
+            obs = bus.subscribe(keys.observation() if latency else keys.tick(), capacity=1_000_000)
             status = bus.subscribe(keys.robot_status(), capacity=1_000_000)
             wstatus = bus.subscribe(keys.world_status(), capacity=1_000_000)
             if not bus.wait_for(lambda: len(ticks) > 0 or up.poll() is not None, 120) or up.poll() is not None:
@@ -153,7 +159,7 @@ def measure(robots: int, res: str, workers: int | None, seconds: float, warmup: 
                 bus.wait(0.2)
                 for _, st in streams.RejectCounter().decoded(status.drain(), m.AgentStatus):
                     seen.add(st.robot_id)
-            for box in (ticks, images, corr, status, wstatus):
+            for box in (ticks, images, corr, obs, status, wstatus):
                 box.drain()
             procs = {p.pid: p for p in [psutil.Process(up.pid), *psutil.Process(up.pid).children(recursive=True)]}
             kinds = {pid: "up_and_recorder" if pid == up.pid else _kind(p) for pid, p in procs.items()}
@@ -161,6 +167,9 @@ def measure(robots: int, res: str, workers: int | None, seconds: float, warmup: 
             cpu0, my0 = _cpu(procs), sum(me.cpu_times()[:2])
             t0 = time.monotonic()
             first_image: dict[int, float] = {}
+            robot_image: dict[tuple[int, int], float] = {}  # (stamp_ns, robot) -> first arrival
+            fixers: dict[int, list[tuple[int, int]]] = defaultdict(list)  # stamp_ns -> (observer, target robot)
+            any_latencies: list[float] = []
             last_fix: dict[int, int] = {}
             latencies: list[float] = []
             frames: dict[int, list[tuple[float, int]]] = defaultdict(list)
@@ -177,13 +186,21 @@ def measure(robots: int, res: str, workers: int | None, seconds: float, warmup: 
                 if latency:
                     for _, im in rc.decoded(images.drain(), m.CameraImage):
                         first_image.setdefault(im.stamp_ns, now)
+                        robot_image.setdefault((im.stamp_ns, im.robot_id), now)
                         n_images += 1
+                    for _, ob in rc.decoded(obs.drain(), m.RelativeObservation):
+                        fixers[ob.stamp_ns].append((ob.robot_id, ob.target_id if ob.target_kind == "robot" else -1))
                 else:
                     images.drain()
+                    obs.drain()
                 for _, c in rc.decoded(corr.drain(), m.Correction):
                     if c.localised and c.last_fix_ns > last_fix.get(c.robot_id, -1):
                         if c.robot_id in last_fix and c.last_fix_ns in first_image:
-                            latencies.append(now - first_image[c.last_fix_ns])
+                            any_latencies.append(now - first_image[c.last_fix_ns])
+                            made = [robot_image[(c.last_fix_ns, o)] for o, t in fixers.get(c.last_fix_ns, ())
+                                    if c.robot_id in (o, t) and (c.last_fix_ns, o) in robot_image]
+                            if made:
+                                latencies.append(now - min(made))
                         last_fix[c.robot_id] = c.last_fix_ns
                 for _, st in rc.decoded(status.drain(), m.AgentStatus):
                     frames[st.robot_id].append((now, st.counters.get("frames_processed", 0)))
@@ -220,6 +237,7 @@ def measure(robots: int, res: str, workers: int | None, seconds: float, warmup: 
             rendered_per_sim_s += (series[-1][1] - series[0][1]) / ((series[-1][0] - series[0][0]) / 1e9)
     asked = robots * hz * rtf
     lat = np.array(latencies) * 1e3
+    lat_any = np.array(any_latencies) * 1e3
     sim_s = rtf * wall
 
     def delta(name: str) -> int:
@@ -248,6 +266,9 @@ def measure(robots: int, res: str, workers: int | None, seconds: float, warmup: 
         "latency_ms": {"n": int(lat.size), "p50": float(np.percentile(lat, 50)) if lat.size else None,
                        "p95": float(np.percentile(lat, 95)) if lat.size else None,
                        "max": float(lat.max()) if lat.size else None},
+        "latency_any_image_ms": {"n": int(lat_any.size),
+                                 "p50": float(np.percentile(lat_any, 50)) if lat_any.size else None,
+                                 "p95": float(np.percentile(lat_any, 95)) if lat_any.size else None},
         "cpu_cores": {k: round(v, 3) for k, v in sorted(cpu.items())},
         "processes": dict(count), "bench_client_cpu_cores": round((my1 - my0) / wall, 3),
     }
@@ -288,6 +309,7 @@ def headline(robots: list[int], repeats: int, seconds: float, warmup: float, log
             "frames_processed_per_s": med(lambda r: r["frames_processed_per_s"]),
             "processed_share": med(lambda r: r["processed_share"]),
             "latency_ms": {k: med(lambda r, k=k: r["latency_ms"][k]) for k in ("p50", "p95", "max")},
+            "latency_any_image_ms": {k: med(lambda r, k=k: r["latency_any_image_ms"][k]) for k in ("p50", "p95")},
             "agent_ms_per_frame": {k: med(lambda r, k=k: r["agent_ms_per_frame"][k])
                                    for k in runs[0]["agent_ms_per_frame"]},
             "cpu_cores": {k: med(lambda r, k=k: r["cpu_cores"].get(k, 0.0)) for k in ROLES},

@@ -137,6 +137,9 @@ the true initial pose, so its error is pure drift).
     fused estimate on (``null`` if never placed).
   - ``fused.nees``, ``fused.nees_nominal``, ``fused.ate_unaligned_nominal``: as in
     ``swarm``, for this robot.
+  - ``fused.sigma_median_m``: the median over its published covariances of the fused
+    position's largest standard deviation (m; ``null`` without covariances): how
+    sure the map is of this robot, whatever its error.
   - ``relocalisations``, ``kidnaps``: how many of the top-level events are this robot's.
   - ``contacts``: the world's ``contacts_robot_<k>`` counter (``null`` as in ``swarm``).
   - ``time_lost_s``, ``mode_time_s``: from ``modes.csv``.  Each sample's mode

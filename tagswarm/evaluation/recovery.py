@@ -167,6 +167,19 @@ def nees_samples(track: Track, cov: CovTrack | None, max_diff_s: float = ASSOC_M
     return np.asarray(out, float)
 
 
+def sigma_median(cov: CovTrack | None) -> float | None:
+    """Median over the recorded covariances of the fused position's largest standard
+    deviation (m): the square root of the 2x2 position block's larger eigenvalue (the
+    same in any frame).  ``None`` without covariances."""
+    if cov is None or cov.stamp_s.size == 0:
+        return None
+    c = np.asarray(cov.cov, float).reshape(-1, 9)
+    half_sum, half_diff = (c[:, 0] + c[:, 4]) / 2, (c[:, 0] - c[:, 4]) / 2
+    largest = half_sum + np.sqrt(half_diff**2 + ((c[:, 1] + c[:, 3]) / 2) ** 2)
+    ok = np.isfinite(largest) & (largest >= 0)
+    return float(np.median(np.sqrt(largest[ok]))) if ok.any() else None
+
+
 def nees_stats(values: F64 | None) -> dict[str, float | int] | None:
     """``{"mean", "median", "count"}`` of NEES values, or ``None`` for none."""
     if values is None or values.size == 0:
@@ -337,6 +350,7 @@ def recovery_metrics(run: RunData, tracks: dict[tuple[int, str], Track], robots_
             robots_out[str(k)]["fused"][key] = nees_stats(values)
             if values is not None:
                 pooled[key].append(values)
+        robots_out[str(k)]["fused"]["sigma_median_m"] = sigma_median(run.fused_cov.get(k))
         errors = None if tr is None else tr.error_m[outside(tr.stamps_s, windows)]
         robots_out[str(k)]["fused"]["ate_unaligned_nominal"] = None if errors is None else pooled_stats(errors)
         if errors is not None:

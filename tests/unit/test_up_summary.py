@@ -34,6 +34,16 @@ def test_a_run_where_every_robot_was_placed_prints_no_such_line() -> None:
     assert "never placed" not in _printed(_metrics({"0": 0.0, "1": 2.5}, []))
 
 
+def test_robots_the_map_is_unsure_of_are_named_weakly_tied() -> None:
+    m = _metrics({"0": 0.0, "1": 2.5, "2": 3.0, "3": 4.0}, [])
+    for k, sigma in (("0", 0.004), ("1", 0.89), ("2", 0.07), ("3", 1.19)):
+        m["robots"][k]["fused"]["sigma_median_m"] = sigma
+    text = _printed(m)
+    assert "weakly tied: robot(s) 1, 3 (the map's position σ, median over the run: 0.89-1.19 m)" in text
+    m["robots"]["1"]["fused"]["sigma_median_m"] = m["robots"]["3"]["fused"]["sigma_median_m"] = 0.08
+    assert "weakly tied" not in _printed(m)  # every robot of the built-in scenes stays under 0.08 m
+
+
 def test_a_silent_source_is_printed_other_warnings_are_not() -> None:
     text = _printed(_metrics({"0": 0.0}, ["the recorder heard nothing from server after 15.9 s of the run's 60.0 s: x",
                                           "no mode samples: time_lost_s is 0"]))

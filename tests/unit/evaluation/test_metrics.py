@@ -244,7 +244,7 @@ def test_missing_and_empty_fused_files_give_null_metrics(tmp_path: Path) -> None
         assert f == {"samples": 0, "associated": 0, "first_s": None, "ate_unaligned": None, "ate_aligned": None,
                      # never localised: 0, not null
                      "rpe_per_m": None, "time_localised": 0.0, "time_localised_placed": None, "nees": None,
-                     "nees_nominal": None, "ate_unaligned_nominal": None}
+                     "nees_nominal": None, "ate_unaligned_nominal": None, "sigma_median_m": None}
     assert m["robots"]["0"]["fused"]["ate_unaligned"]["rmse"] == pytest.approx(0.0, abs=1e-12)
     assert m["swarm"]["fused"]["robots_evaluated"] == 1
     assert m["swarm"]["fused"]["pairwise"] is None  # needs two localised robots

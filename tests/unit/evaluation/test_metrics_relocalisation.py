@@ -15,6 +15,7 @@ import pytest
 
 from tagswarm.evaluation.covframe import position_cov_in_map
 from tagswarm.evaluation.metrics import RunFolderError, compute_metrics, load_run
+from tagswarm.evaluation.recovery import sigma_median
 from tagswarm.evaluation.runformat import FUSED_COV_HEADER, RELOC_HEADER, WORLD_COMMANDS_HEADER
 from tagswarm.protocol import codec
 from tagswarm.protocol import messages as m
@@ -257,6 +258,20 @@ def test_nees_is_null_without_covariance_and_skips_singular_ones(tmp_path: Path)
     m = compute_metrics(run)
     assert m["robots"]["1"]["fused"]["nees"] is None
     assert m["robots"]["0"]["fused"]["nees"] == {"mean": 0.0, "median": 0.0, "count": 50}
+
+
+def test_sigma_median_is_the_larger_position_axis_in_any_frame(tmp_path: Path) -> None:
+    run = kidnap_run(tmp_path)
+    assert compute_metrics(run)["robots"]["0"]["fused"]["sigma_median_m"] is None  # no covariance recorded
+    # 3 samples at sigma 0.2 x 0.1 m (a correlated block: eigenvalues 0.04 and 0.01) and 2 at 0.5 m: median 0.2
+    c, s = math.cos(0.6), math.sin(0.6)
+    rot = np.array([[c, -s], [s, c]])
+    block = rot @ np.diag([0.04, 0.01]) @ rot.T
+    tilted = np.zeros((3, 3))
+    tilted[:2, :2], tilted[2, 2] = block, 0.01
+    write_cov(run, 0, T10[:5], np.stack([tilted] * 3 + [np.diag([0.25, 0.25, 0.01])] * 2))
+    assert compute_metrics(run)["robots"]["0"]["fused"]["sigma_median_m"] == pytest.approx(0.2, abs=1e-9)
+    assert sigma_median(None) is None
 
 
 def test_position_cov_in_map_rotates_the_robot_axes() -> None:

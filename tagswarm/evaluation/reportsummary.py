@@ -56,14 +56,15 @@ def summary_tables(metrics: dict[str, Any]) -> tuple[Table, Table, Table]:
     "aligned" = after the swarm's shared SE(2) alignment; RPE in m per m travelled; a kidnapped
     robot's fused map ATE is followed by the same outside its kidnaps, in brackets);
     "time localised" is the share of time with fused error under
-    ``settings.localised_m``, NEES the fused position's mean / median outside kidnaps."""
+    ``settings.localised_m``, NEES the fused position's mean / median outside kidnaps, σ median
+    the map's own uncertainty of each robot (``fused.sigma_median_m``)."""
     acc = Table(title="accuracy: RMSE in m (RPE: m per m travelled)", box=box.SIMPLE_HEAD)
     loc = Table(title="localisation and recovery", box=box.SIMPLE_HEAD)
     beh = Table(title="behaviour and cost", box=box.SIMPLE_HEAD)
     for table, names in ((acc, ("fused ATE\nmap", "fused ATE\naligned", "odom ATE\nmap", "odom ATE\naligned",
                                 "fused\nRPE/m", "odom\nRPE/m")),
-                         (loc, ("time\nlocalised", "once\nplaced", "NEES\nmean / median", "re-\nlocalisations",
-                                "kidnaps", "contacts")),
+                         (loc, ("time\nlocalised", "once\nplaced", "NEES\nmean / median", "σ\n(m)",
+                                "re-\nlocalisations", "kidnaps", "contacts")),
                          (beh, ("fixes", "searches", "lost\nevents", "time\nlost (s)", "frames\nprocessed",
                                 "frames\nskipped"))):
         table.add_column("robot", justify="left")
@@ -76,7 +77,7 @@ def summary_tables(metrics: dict[str, Any]) -> tuple[Table, Table, Table]:
         acc.add_row(name, _ate_map(f), _rmse(f, "ate_aligned"), _rmse(o, "ate_unaligned"),
                     _rmse(o, "ate_aligned"), _rmse(f, "rpe_per_m"), _rmse(o, "rpe_per_m"), style=style)
         loc.add_row(name, _pct(f.get("time_localised")), _pct(f.get("time_localised_placed")), _nees(f),
-                    *(_int(v) for v in recovery), style=style)
+                    _m(f.get("sigma_median_m")), *(_int(v) for v in recovery), style=style)
         beh.add_row(name, _int(r["fixes"]), _int(r["searches"]), _int(r["lost_events"]), _m(r["time_lost_s"], 1),
                     _int(frames[0]), _int(frames[1]), style=style)
 

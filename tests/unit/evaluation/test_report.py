@@ -115,6 +115,18 @@ def test_cli_prints_summary_and_returns_0(tmp_path: Path, capsys: pytest.Capture
     assert (run / "metrics.json").is_file()
 
 
+def test_the_maps_own_sigma_of_each_robot_is_in_the_summary(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    import numpy as np
+
+    from tests.unit.evaluation.test_metrics_relocalisation import T10, kidnap_run, write_cov
+
+    run = kidnap_run(tmp_path / "run")
+    write_cov(run, 1, T10, np.diag([0.1369, 0.0169, 0.01]))  # sigma 0.37 m along the larger axis
+    assert report.main([str(run)]) == 0
+    out = capsys.readouterr().out
+    assert "σ" in out and "0.370" in out
+
+
 def test_recovery_in_the_summary_and_marked_on_the_error_plot(tmp_path: Path,
                                                               capsys: pytest.CaptureFixture[str]) -> None:
     from matplotlib.figure import Figure

@@ -22,7 +22,7 @@ import numpy as np
 from evo.core.trajectory import PoseTrajectory3D
 from numpy.typing import NDArray
 
-from tagswarm.evaluation.covframe import position_cov_in_map
+from tagswarm.evaluation.covframe import covariance_ellipse, position_cov_in_map
 from tagswarm.evaluation.localised import LOCALISED_HOLD_S, LOCALISED_M
 from tagswarm.evaluation.runfolder import F64, CovTrack, RelocEvent, RunData
 from tagswarm.evaluation.trajerror import ASSOC_MAX_DIFF_S, Track, pooled_stats
@@ -173,11 +173,9 @@ def sigma_median(cov: CovTrack | None) -> float | None:
     same in any frame).  ``None`` without covariances."""
     if cov is None or cov.stamp_s.size == 0:
         return None
-    c = np.asarray(cov.cov, float).reshape(-1, 9)
-    half_sum, half_diff = (c[:, 0] + c[:, 4]) / 2, (c[:, 0] - c[:, 4]) / 2
-    largest = half_sum + np.sqrt(half_diff**2 + ((c[:, 1] + c[:, 3]) / 2) ** 2)
-    ok = np.isfinite(largest) & (largest >= 0)
-    return float(np.median(np.sqrt(largest[ok]))) if ok.any() else None
+    sigmas = [covariance_ellipse(tuple(c), scale=1.0)[0] for c in np.asarray(cov.cov, float).reshape(-1, 9)]
+    finite = [x for x in sigmas if math.isfinite(x)]
+    return float(np.median(finite)) if finite else None
 
 
 def nees_stats(values: F64 | None) -> dict[str, float | int] | None:

@@ -124,8 +124,6 @@ class FusionState(msgspec.Struct, frozen=True, kw_only=True):
     # the view of each pair's newest factor: (a, b, chain a, chain b, odom a (3), odom b (3), rel (3)); a
     # snapshot of an older version (its pair_factors held keyframe keys) restores without them
     pair_views: list[tuple[int, int, int, int, P3, P3, P3]] = []
-    # stamps of each pair's recent factors (Fusion._pair_stamps): (low id, chain, high id, chain, stamps_ns)
-    pair_stamps: list[tuple[int, int, int, int, list[int]]] = []
     factors: str  # gtsam NonlinearFactorGraph.serialize() of the smoother's live factors
     theta: str  # gtsam Values.serialize() of the smoother's linearisation point
     stamps: list[tuple[int, float]]  # (key, seconds) of every variable in the smoother
@@ -215,7 +213,6 @@ def snapshot(fusion: Fusion) -> bytes:
                      for rid, sites in fusion.recovery.decoy_sites.items()},
         pair_views=[(a, b, v.chain_a, v.chain_b, _p3(v.odom_a), _p3(v.odom_b), _p3(v.rel))
                     for (a, b), v in fusion._pair_factors.items()],
-        pair_stamps=[(*key, list(s)) for key, s in fusion._pair_stamps.items()],
         factors=_live_factors(fusion.smoother).serialize() if stamps else "",
         theta=fusion.smoother.getLinearizationPoint().serialize() if stamps else "", stamps=stamps)
     return zlib.compress(_ENC.encode(state), ZLIB_LEVEL)
@@ -297,7 +294,6 @@ def restore(fusion: Fusion, blob: bytes | FusionState) -> None:
     new.recovery.where = {rid: {t: (x, y) for t, x, y in w} for rid, w in state.reloc_where.items()}
     new.recovery.decoy_sites = {rid: list(sites) for rid, sites in state.decoy_sites.items()}
     new._pair_factors = {(a, b): PairView(ca, cb, oa, ob, rel) for a, b, ca, cb, oa, ob, rel in state.pair_views}
-    new._pair_stamps = {(a, ca, b, cb): list(s) for a, ca, b, cb, s in state.pair_stamps}
     if state.stamps:
         try:
             # iSAM2 relinearises on every relinearizeSkip-th update; keep that phase (a fresh smoother

@@ -46,7 +46,6 @@ from tagswarm.server.noise import (
     floored_obs_cov,
     inverse_cov,
     odom_increment_cov,
-    pair_inflation,
     tangent_cov,
 )
 from tagswarm.server.placement import Candidate, Placement, choose
@@ -54,11 +53,6 @@ from tagswarm.server.recovery import LANDMARK_WITNESS, Recovery, Verdict
 from tagswarm.server.stitch import Edge, stitch
 
 __all__ = ["CHI2_3DOF_999", "Cov", "Fusion", "FusionParams", "inverse_cov", "odom_increment_cov", "tangent_cov"]
-
-# odometry within this of the newest keyframe when kf_max_interval_s is up counts as standing still: the
-# keyframe is kept alive in the smoother instead of followed by a zero-motion one (KeyframeGraph.keep_alive)
-STANDING_M = 1e-3
-STANDING_RAD = 1e-3
 
 @dataclass(frozen=True)
 class RelocEvent:
@@ -106,8 +100,6 @@ class Fusion:
         self._init: dict[int, list[Candidate]] = {}
         self.recovery = Recovery(params, origin_id, anchored_origin=not self.landmarks, counters=self.counters)
         self._pair_factors: dict[tuple[int, int], PairView] = {}  # (a, b) -> the view of its newest factor
-        # (low id, its chain, high id, its chain) -> stamps of the pair's factors within obs_pair_window_s
-        self._pair_stamps: dict[tuple[int, int, int, int], list[int]] = {}
         self.relocalisations: list[RelocEvent] = []  # not yet taken by the node
 
     def reset(self) -> None:
@@ -203,13 +195,8 @@ class Fusion:
             return
         delta = se2_between(r.kf_odom, pose)
         moved = math.hypot(delta[0], delta[1]) > self.p.kf_dist_m or abs(delta[2]) > self.p.kf_angle_rad
-        if moved:
+        if moved or stamp_ns - r.kf_stamp > self.p.kf_max_interval_s * 1e9:
             self.graph.new_keyframe(rid, stamp_ns, pose)
-        elif stamp_ns - r.kf_stamp > self.p.kf_max_interval_s * 1e9:
-            if math.hypot(delta[0], delta[1]) < STANDING_M and abs(delta[2]) < STANDING_RAD:
-                self.graph.keep_alive(rid, stamp_ns)
-            else:
-                self.graph.new_keyframe(rid, stamp_ns, pose)
 
     def _gate(self, pred: Pose2, meas: Pose2, cov: Cov, floor_m: float | None = None) -> float:
         floor = self.p.gate_floor_m if floor_m is None else floor_m
@@ -313,7 +300,6 @@ class Fusion:
                 self.counters["repeated_observations"] += 1
                 continue
             self._pair_factors[(a, b)] = view
-            m_cov = m_cov * self._pair_weight(a, b, stamp_ns)
             # the measurement between the two keyframes: observer's motion since its keyframe, the
             # observation, then back along the target's motion since its keyframe
             z = se2_compose(se2_compose(da, m_rel), se2_inverse(db))
@@ -413,21 +399,6 @@ class Fusion:
         self.counters["init_discarded"] += len(cands) - len(agree)
         del self._init[rid]
         return Placement(se2_compose(best.origin, odom_pose), best, trigger, any(c is trigger for c in agree))
-
-    def _pair_weight(self, a: int, b: int, stamp_ns: int) -> float:
-        """Covariance factor of a new factor between ``a`` and ``b`` at ``stamp_ns`` (see
-        ``FusionParams.obs_pair_window_s``); records the factor."""
-        if self.p.obs_pair_window_s <= 0:
-            return 1.0
-        lo, hi = min(a, b), max(a, b)
-        key = (lo, self.robots[lo].chain, hi, self.robots[hi].chain)
-        horizon = stamp_ns - int(self.p.obs_pair_window_s * 1e9)
-        stamps = [s for s in self._pair_stamps.get(key, []) if s > horizon]
-        for old in [k for k, v in self._pair_stamps.items() if k != key and v[-1] <= horizon]:
-            del self._pair_stamps[old]  # pairs that stopped seeing each other
-        weight = pair_inflation(len(stamps), self.p)
-        self._pair_stamps[key] = [*stamps, stamp_ns]
-        return weight
 
     def _rel_cov(self, o: Robot, g: Robot) -> Cov:
         return o.cov + g.cov

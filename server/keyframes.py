@@ -100,8 +100,8 @@ class KeyframeGraph:
         self.updates = 0
 
     def staged(self) -> bool:
-        """Whether factors, values or key timestamps wait for the next update."""
-        return bool(self.factors.size() or self.values.size() or len(self.stamps))
+        """Whether factors or values wait for the next update."""
+        return bool(self.factors.size() or self.values.size())
 
     def add(self, factor: gtsam.NonlinearFactor) -> None:
         """Stage ``factor`` for the next update."""
@@ -166,16 +166,6 @@ class KeyframeGraph:
         self.counters["keyframes"] += 1
         return key
 
-    def keep_alive(self, rid: int, stamp_ns: int) -> None:
-        """Move the timestamp of ``rid``'s newest keyframe to ``stamp_ns`` so that the
-        smoother keeps it within its lag: a robot standing still needs no new keyframe, and
-        a chain of zero-motion odometry factors would let its covariance random-walk by the
-        increments' numerical floor (1 mm per keyframe) around an error that does not move."""
-        r = self.robots[rid]
-        assert r.kf_key is not None
-        self.stamps.insert((r.kf_key, stamp_ns / 1e9))
-        r.kf_stamp = stamp_ns
-
     def anchor(self, rid: int, stamp_ns: int, odom_pose: Pose2, guess: Pose2) -> tuple[int, Pose2, Cov]:
         """Keyframe an observation at ``stamp_ns`` attaches to: the robot's latest
         keyframe if it has barely moved since or ``stamp_ns`` is older than it (a late
@@ -195,7 +185,7 @@ class KeyframeGraph:
     def update(self, watermark_ns: int) -> None:
         """Hand what is staged to the smoother and read each robot's newest keyframe back
         (its marginal covariance too once ``cov_period_s`` has passed since the last time)."""
-        if not self.staged():
+        if self.factors.size() == 0 and self.values.size() == 0:
             return
         self.smoother.update(self.factors, self.values, self.stamps)
         self.factors = gtsam.NonlinearFactorGraph()

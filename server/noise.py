@@ -43,13 +43,6 @@ class FusionParams:
     # consecutive frames of one pair share their errors (same viewpoint, same tag pixels): fusing every
     # frame buys little accuracy and costs graph size, so each (observer, target) pair is thinned to this
     obs_min_interval_s: float = 0.3
-    # the factors one pair adds while they move share errors too (nearby viewpoints, the detector's range
-    # bias at that range), so they are not independent: the n-th factor of a pair (on the same keyframe
-    # chains) within obs_pair_window_s carries n**obs_pair_power times its covariance, and N factors weigh
-    # about 2 sqrt(N) rather than N.  Measured on the scenes' journals: the corridor's chain ends were
-    # overconfident (NEES 2.3) and the hall's and crowd's robots too unsure; 0 turns it off
-    obs_pair_window_s: float = 10.0
-    obs_pair_power: float = 0.5
     # a pair's observation that repeats its newest factor's view (neither robot moved, the measurement
     # within this chi² (3 dof, 99 %) of it) adds no factor: its error is the same error again
     repeat_chi2: float = 11.34
@@ -92,14 +85,6 @@ def odom_increment_cov(delta: Pose2, p: FusionParams, slip_m: float = 0.0) -> Co
     slip = (p.odom_slip_sigma * max(slip_m, 0.0)) ** 2
     var_s, var_lat, var_th = var_s + slip, var_lat + slip, var_th + slip / (b / 2) ** 2
     return np.diag([var_s + 1e-6, var_lat + 1e-6, var_th + 1e-6])
-
-
-def pair_inflation(n_before: int, p: FusionParams) -> float:
-    """Factor on the covariance of a pair's factor that follows ``n_before`` of its
-    factors within ``obs_pair_window_s`` (1 for the first)."""
-    if p.obs_pair_window_s <= 0 or n_before <= 0:
-        return 1.0
-    return float((1 + n_before) ** p.obs_pair_power)
 
 
 def floored_obs_cov(cov: Cov, p: FusionParams) -> Cov:

@@ -17,12 +17,14 @@ import pytest
 TESTS = Path(__file__).resolve().parent
 TIERS = {"integration": pytest.mark.integration, "e2e": pytest.mark.e2e}
 #: end-to-end modules that run against the wall clock: real-time runs (a loaded machine makes the
-#: world fall behind), liveliness leases, killed and restarted processes, containers, and the modules
-#: that share one reference run through the plugin's in-session cache (determinism, world restart)
+#: world fall behind), liveliness leases, killed and restarted processes, containers, replays paced
+#: by the wall clock (test_replay: on a loaded machine a replayed server published one correction
+#: more than the recorded one), and the modules that share one reference run through the plugin's
+#: in-session cache (determinism, world restart)
 SERIAL_E2E = frozenset({
     "test_agent_process", "test_agent_restart", "test_compose_containers", "test_determinism",
-    "test_liveliness_lease", "test_multihost", "test_overload", "test_spy", "test_up_cleanup",
-    "test_up_links", "test_world_restart",
+    "test_liveliness_lease", "test_multihost", "test_overload", "test_replay", "test_spy",
+    "test_up_cleanup", "test_up_links", "test_world_restart",
 })
 
 

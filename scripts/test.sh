@@ -11,9 +11,10 @@ bash scripts/setup.sh
 if [ "$#" -gt 0 ]; then
   exec .venv/bin/python -m pytest -q --durations=15 "$@"
 fi
-rc=0
+rc=0 serial_rc=0
 .venv/bin/python -m pytest -q --durations=15 -n "${TAGSWARM_TEST_WORKERS:-2}" --dist loadfile -m "not serial" || rc=$?
-.venv/bin/python -m pytest -q --durations=15 -m serial || rc=$((rc ? rc : $?))
+.venv/bin/python -m pytest -q --durations=15 -m serial || serial_rc=$?
+if [ "$rc" -eq 0 ]; then rc=$serial_rc; fi
 if [ "$rc" -ne 0 ]; then
   echo "test.sh: a test pass failed (exit $rc)" >&2
 fi

@@ -36,3 +36,16 @@ def test_tiers_are_marked_by_folder(request: pytest.FixtureRequest) -> None:
         assert marks == ({tier} if tier in ("integration", "e2e") else set()), item.nodeid
         tiers.add(tier)
     assert "unit" in tiers
+
+
+def test_every_e2e_module_on_the_real_time_clock_runs_in_the_serial_pass() -> None:
+    """scripts/test.sh runs the e2e modules not in SERIAL_E2E on two workers at once; a real-time
+    run there would fall behind the wall clock on a loaded machine, so a new module that asks for
+    ``realtime`` must be listed, and every listed module must exist."""
+    from tests.conftest import SERIAL_E2E
+
+    modules = {p.stem: p.read_text() for p in (TESTS / "e2e").glob("test_*.py")}
+    realtime = {name for name, text in modules.items() if "realtime" in text}
+    assert len(realtime) >= 5
+    assert sorted(realtime - SERIAL_E2E) == []
+    assert sorted(SERIAL_E2E - set(modules)) == []

@@ -6,13 +6,17 @@ iSAM2 fixed-lag smoother they go to.
 prior, when a robot is placed or taken out); this module keeps each robot's bookkeeping,
 makes keyframes (with the odometry factor from the previous one), finds the keyframe an
 observation hangs on, and after each update reads every robot's newest estimate back (its
-covariance every ``cov_period_s`` of simulated time).  Poses are (x_m, y_m, yaw_rad) in the
+covariance every ``cov_period_s`` of simulated time).  If iSAM2 refuses an update (an
+ill-conditioned system), the staged batch is dropped and a fresh smoother starts from every
+robot's newest keyframe, pinned at its estimate and covariance (:meth:`KeyframeGraph.update`).
+Poses are (x_m, y_m, yaw_rad) in the
 map frame; odometry poses are ``base_link`` in the robot's ``odom`` frame; covariances are
 3x3 in GTSAM's tangent space.
 """
 
 from __future__ import annotations
 
+import logging
 import math
 from collections import Counter, deque
 from dataclasses import dataclass, field
@@ -23,6 +27,11 @@ import numpy as np
 
 from tagswarm.protocol.geometry import Pose2, se2_between, se2_compose
 from tagswarm.server.noise import Cov, FusionParams, odom_increment_cov
+
+log = logging.getLogger(__name__)
+# smallest variance a reset prior carries (m^2, rad^2): a placeholder or marginal covariance
+# near singular would make the fresh smoother as ill-conditioned as the one it replaces
+RESET_MIN_VAR = 1e-6
 
 
 @dataclass
@@ -89,15 +98,18 @@ class KeyframeGraph:
         self.p = params
         self.counters = counters
         self.robots = {rid: Robot(odom=deque(maxlen=params.odom_buffer)) for rid in robot_ids}
-        isam = gtsam.ISAM2Params()
-        isam.setRelinearizeThreshold(0.01)
-        isam.relinearizeSkip = 5
-        self.smoother = gtsam.IncrementalFixedLagSmoother(params.lag_s, isam)
+        self.smoother = self._new_smoother()
         self.factors = gtsam.NonlinearFactorGraph()
         self.values = gtsam.Values()
         self.stamps = gtsam.FixedLagSmootherKeyTimestampMap()
         self.next_cov_ns = 0
         self.updates = 0
+
+    def _new_smoother(self) -> gtsam.IncrementalFixedLagSmoother:
+        isam = gtsam.ISAM2Params()
+        isam.setRelinearizeThreshold(0.01)
+        isam.relinearizeSkip = 5
+        return gtsam.IncrementalFixedLagSmoother(self.p.lag_s, isam)
 
     def staged(self) -> bool:
         """Whether factors or values wait for the next update."""
@@ -187,7 +199,10 @@ class KeyframeGraph:
         (its marginal covariance too once ``cov_period_s`` has passed since the last time)."""
         if self.factors.size() == 0 and self.values.size() == 0:
             return
-        self.smoother.update(self.factors, self.values, self.stamps)
+        try:
+            self.smoother.update(self.factors, self.values, self.stamps)
+        except RuntimeError as exc:
+            self._reset(str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__)
         self.factors = gtsam.NonlinearFactorGraph()
         self.values = gtsam.Values()
         self.stamps = gtsam.FixedLagSmootherKeyTimestampMap()
@@ -210,3 +225,41 @@ class KeyframeGraph:
         if with_cov:
             self.next_cov_ns = watermark_ns + int(self.p.cov_period_s * 1e9)
         self.updates += 1
+
+    def _reset(self, why: str) -> None:
+        """iSAM2 refused the staged batch (it threw, e.g. an indeterminate linear system) and
+        its Bayes tree may hold part of it: drop the batch (its observations are lost, counted
+        as ``smoother_resets``) and start a fresh smoother in which each robot's newest
+        keyframe is pinned by a prior at its last estimate and covariance.  The chains go on
+        from those keyframes, so nothing else changes; a replayed journal meets the same
+        failure and takes the same path.  Should even that be refused, every robot starts a new
+        chain at its last estimate with a loose prior, as after an agent restart
+        (``smoother_rebuild_failures``)."""
+        self.counters["smoother_resets"] += 1
+        log.warning("the smoother refused an update (%s): dropped that batch and restarted it from "
+                    "every robot's last estimate", why)
+        self.smoother = self._new_smoother()
+        factors, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+        stamps = gtsam.FixedLagSmootherKeyTimestampMap()
+        for r in self.robots.values():
+            if r.kf_key is None or r.estimate is None:
+                continue
+            cov = 0.5 * (r.cov + r.cov.T)
+            w, v = np.linalg.eigh(cov)
+            cov = (v * np.maximum(w, RESET_MIN_VAR)) @ v.T
+            factors.add(gtsam.PriorFactorPose2(r.kf_key, gtsam.Pose2(*r.estimate),
+                                               gtsam.noiseModel.Gaussian.Covariance(cov)))
+            values.insert(r.kf_key, gtsam.Pose2(*r.estimate))
+            stamps.insert((r.kf_key, r.kf_stamp / 1e9))
+            r.cov = cov
+        try:
+            self.smoother.update(factors, values, stamps)
+        except RuntimeError:
+            self.counters["smoother_rebuild_failures"] += 1
+            log.error("the smoother refused its restart as well: every robot starts a new chain at its last estimate")
+            self.smoother = self._new_smoother()
+            for r in self.robots.values():
+                if r.estimate is not None:
+                    r.reset_hint = r.estimate
+                r.chain += 1
+                r.kf_key, r.kf_index, r.estimate = None, -1, None

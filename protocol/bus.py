@@ -20,6 +20,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import re
 import threading
 import time
 from collections import deque
@@ -152,6 +153,12 @@ def read_password(path: str) -> str:
     return password
 
 
+def zenoh_message(exc: BaseException) -> str:
+    """Zenoh's error text on one line, without the Rust source location it appends."""
+    text = " ".join(str(exc).split())
+    return re.sub(r"\s+at /\S+\.rs:\d+\.?$", "", text)
+
+
 def zenoh_config(cfg: BusConfig) -> zenoh.Config:
     """Build the ``zenoh.Config`` for ``cfg``; raises :class:`BusError`."""
     path = cfg.config_file or os.environ.get("ZENOH_CONFIG")
@@ -166,7 +173,7 @@ def zenoh_config(cfg: BusConfig) -> zenoh.Config:
         conf.insert_json5("transport/link/tx/lease", json.dumps(cfg.lease_ms))
         conf.insert_json5("transport/link/tx/keep_alive", json.dumps(KEEP_ALIVE))
     except Exception as exc:  # zenoh raises ZError with a readable message
-        raise BusError(f"bad Zenoh configuration: {exc}") from None
+        raise BusError(f"bad Zenoh configuration: {zenoh_message(exc)}") from None
     if (cfg.user is None) != (cfg.password_file is None):
         raise BusError("a Zenoh user needs a password file and a password file needs a user")
     # field by field, so a config file may set the others (e.g. a TLS block)

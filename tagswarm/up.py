@@ -27,12 +27,19 @@ from rich.live import Live
 from rich.table import Table
 
 from tagswarm.agents.controller import load_factory
-from tagswarm.protocol.bus import BusConfig, open_bus
+from tagswarm.protocol.bus import BusConfig, BusError, open_bus, zenoh_config
 from tagswarm.protocol.keys import Keys
 from tagswarm.protocol.scenario import Scenario
 from tagswarm.recording.runrecorder import RunRecorder
 from tagswarm.runtime import procgroup
-from tagswarm.runtime.config import ConfigError, Invocation, OneLineParser, add_common_args, scenario_from
+from tagswarm.runtime.config import (
+    ConfigError,
+    Invocation,
+    OneLineParser,
+    add_common_args,
+    bus_from,
+    scenario_from,
+)
 from tagswarm.runtime.process import run_main, setup_logging
 
 BIN = Path(sys.executable).parent
@@ -168,19 +175,42 @@ def _table(rec: RunRecorder, scenario: Scenario, rtf: float, out: Path, endpoint
     return t
 
 
+def check_out(out: Path) -> None:
+    """Refuse a run folder that would mix two runs or cannot be made (:class:`ConfigError`):
+    ``out`` must be missing or an empty folder, under a folder that exists or can be made."""
+    if out.exists() and not out.is_dir():
+        raise ConfigError(f"--out {str(out)!r}: exists and is not a folder")
+    if out.is_dir() and any(out.iterdir()):
+        raise ConfigError(f"--out {str(out)!r}: already holds files (a run would mix its files with theirs): "
+                          "choose a new folder or remove it")
+    parent = out.absolute().parent
+    while not parent.exists():
+        parent = parent.parent
+    if not parent.is_dir():
+        raise ConfigError(f"--out {str(out)!r}: cannot be made, {str(parent)!r} is not a folder")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise ConfigError(f"--out {str(out)!r}: cannot be made, {str(parent)!r} is not writable")
+
+
 def run_up(scenario: Scenario, out: Path, endpoint: str, run: str, *, live: bool, report: bool,
            stop: threading.Event, console: Console, record: Path | None = None, replay: Path | None = None,
            child_args: Sequence[str] = (), view: int | None = None,
-           controllers: dict[int, str] | None = None) -> int:
+           controllers: dict[int, str] | None = None, zenoh_config_file: str | None = None) -> int:
     """Start everything, record until the world ends or ``stop``, write the run folder.
     ``child_args`` go to every child (e.g. the ``--net-*`` fault-injection flags);
-    ``controllers``: robot id -> ``--agent-module`` of its agent (the others run the built-in behaviour)."""
-    out.mkdir(parents=True, exist_ok=True)
+    ``controllers``: robot id -> ``--agent-module`` of its agent (the others run the built-in behaviour);
+    ``zenoh_config_file``: a Zenoh JSON5 config for the router and every child (their mode and endpoints
+    are set on top of it)."""
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ConfigError(f"--out {str(out)!r}: cannot be made ({exc.strerror})") from None
     logs = out / "logs"
     logs.mkdir(exist_ok=True)
     scen_file = out / "scenario.json"
     scen_file.write_bytes(msgspec.json.format(msgspec.json.encode(scenario)))
-    common = ["--scenario", str(scen_file), "--run", run, *child_args]
+    zenoh_file = ["--zenoh-config", zenoh_config_file] if zenoh_config_file else []
+    common = ["--scenario", str(scen_file), "--run", run, *child_args, *zenoh_file]
     procgroup.REGISTRY.catch_term = False  # SIGTERM stops the run in order (see main)
     children: list[Child] = []
     failure: str | None = None
@@ -195,7 +225,8 @@ def run_up(scenario: Scenario, out: Path, endpoint: str, run: str, *, live: bool
         # other for the rest of the run (the recorder lost the server, or an agent its corrections).  The
         # hub outlives every child, so their last messages after the world's end still arrive, and its
         # recorder is subscribed before anything starts
-        with open_bus(BusConfig(mode="router", listen=(endpoint,))) as bus, _Stopping(children):
+        with open_bus(BusConfig(mode="router", listen=(endpoint,), config_file=zenoh_config_file)) as bus, \
+                _Stopping(children):
             rec = RunRecorder(bus, Keys(run), scenario)
             if record is not None:
                 from tagswarm.recording.record import start_recording
@@ -387,6 +418,18 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise ConfigError(f"--view: port must be 1..65535, got {args.view}")
         if args.record is not None and not args.record.parent.is_dir():
             raise ConfigError(f"--record: no such directory {str(args.record.parent)!r}")
+        for flag in ("connect", "zenoh_mode", "zenoh_user", "zenoh_password_file"):
+            if getattr(args, flag, None):
+                raise ConfigError(f"--{flag.replace('_', '-')}: not used by tagswarm up, which is its run's Zenoh "
+                                  "router (its processes join it as clients; join from elsewhere with "
+                                  "--connect to the endpoint it prints, or start the processes yourself: "
+                                  "docs/multihost.md)")
+        # the network and fault flags go to the children: check them here, before anything starts
+        net = bus_from(args, env)
+        try:
+            zenoh_config(net)
+        except BusError as exc:
+            raise ConfigError(f"--zenoh-config {net.config_file}: {exc}" if net.config_file else str(exc)) from None
         # the scenario loader says at INFO what it filled in (robots beyond the scenario's list, tag scheme)
         setup_logging(inv.pick("log_level"), "up")
         if args.replay is not None:
@@ -405,6 +448,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         run = inv.pick("run", f"up{int(time.time()) % 100000}-{os.getpid()}")
         Keys(run)
         out = args.out or Path("runs") / datetime.now().strftime("%Y%m%d-%H%M%S")
+        check_out(out)
         endpoint = (args.listen or [None])[0] or free_endpoint()
         stop = threading.Event()
         previous = signal.signal(signal.SIGINT, lambda *_: stop.set())
@@ -413,7 +457,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             return run_up(scenario, out, endpoint, run, live=not args.no_live and sys.stdout.isatty(),
                           report=not args.no_report, stop=stop, console=Console(), record=args.record,
                           replay=args.replay, child_args=net_flags(args), view=args.view,
-                          controllers=controllers)
+                          controllers=controllers, zenoh_config_file=net.config_file)
         finally:
             signal.signal(signal.SIGINT, previous)
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import re
 import sys
 from collections.abc import Mapping, Sequence
 from typing import Any, NoReturn
@@ -30,6 +31,9 @@ from tagswarm.protocol.keys import Keys
 from tagswarm.protocol.scenario import Scenario, ScenarioError, convert, load_scenario
 
 ENV_PREFIX = "TAGSWARM_"
+#: the shape of a Zenoh endpoint (protocol/address, optional #config), checked before Zenoh's own parser,
+#: whose errors are Rust debug dumps
+ENDPOINT = re.compile(r"[a-z][a-z0-9-]*/\S+")
 
 
 class ConfigError(UsageError, ValueError):
@@ -37,7 +41,12 @@ class ConfigError(UsageError, ValueError):
 
 
 class OneLineParser(argparse.ArgumentParser):
-    """argparse that reports errors as a single line and exits with code 2."""
+    """argparse that reports errors as a single line and exits with code 2, and takes no
+    abbreviated flags (``--robot 3`` must not quietly mean ``--robots 3``)."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        kwargs.setdefault("allow_abbrev", False)
+        super().__init__(*args, **kwargs)
 
     def error(self, message: str) -> NoReturn:
         sys.stderr.write(f"{self.prog}: error: {message} (see --help)\n")
@@ -133,6 +142,10 @@ def bus_from(args: argparse.Namespace, env: Mapping[str, str]) -> BusConfig:
         "multicast_scouting": bool(args.multicast_scouting
                                    or env.get(ENV_PREFIX + "MULTICAST_SCOUTING", "") in ("1", "true")),
     }
+    for flag, endpoints in (("--listen", table["listen"]), ("--connect", table["connect"])):
+        for ep in endpoints:
+            if not ENDPOINT.fullmatch(ep):
+                raise ConfigError(f"{flag} {ep!r}: a Zenoh endpoint is PROTOCOL/ADDRESS, e.g. tcp/127.0.0.1:7447")
     cfg_file = args.zenoh_config or None
     if cfg_file:
         if not os.path.exists(cfg_file):

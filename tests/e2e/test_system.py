@@ -124,7 +124,11 @@ def test_a_dying_agent_fails_the_run_with_its_last_log_lines(tmp_path: Path) -> 
 
 
 @pytest.mark.parametrize("args", [["--scenario", "nope"], ["--robots", "0"], ["--duration", "0"],
-                                  ["--duration", "-5"], ["--clock", "warp"], ["--set", "robot.cameras=[{width=-1}]"]])
+                                  ["--duration", "-5"], ["--clock", "warp"], ["--set", "robot.cameras=[{width=-1}]"],
+                                  # flags the children would refuse are checked before any child starts
+                                  ["--zenoh-lease-ms", "5"], ["--net-loss", "2"], ["--zenoh-config", "/nonexistent"],
+                                  ["--listen", "foo:bar"], ["--connect", "tcp/127.0.0.1:7447"],
+                                  ["--robot", "3"]])  # no abbreviations: --robot is not --robots
 def test_up_rejects_bad_flags_with_one_line(args: list[str], tmp_path: Path) -> None:
     res = subprocess.run([script("tagswarm"), "up", "--out", str(tmp_path / "r"), *args], capture_output=True,
                          text=True, timeout=60)
@@ -132,3 +136,23 @@ def test_up_rejects_bad_flags_with_one_line(args: list[str], tmp_path: Path) -> 
     lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
     assert len(lines) == 1 and "error" in lines[0], res.stderr
     assert not (tmp_path / "r").exists()  # nothing started, nothing written
+
+
+@pytest.mark.parametrize("kind", ["run folder", "file"])
+def test_up_never_writes_into_a_folder_that_holds_files(kind: str, tmp_path: Path) -> None:
+    """A second run into the same --out would leave a folder mixing both runs' files."""
+    out = tmp_path / "r"
+    if kind == "file":
+        out.write_text("mine")
+    else:
+        out.mkdir()
+        (out / "metrics.json").write_text("{}")
+    res = subprocess.run([script("tagswarm"), "up", "--out", str(out), "--duration", "1", "--no-live"],
+                         capture_output=True, text=True, timeout=60)
+    assert res.returncode == 2, res.stdout + res.stderr
+    lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1 and f"--out {str(out)!r}" in lines[0], res.stderr
+    if kind == "file":
+        assert out.read_text() == "mine"
+    else:
+        assert [p.name for p in out.iterdir()] == ["metrics.json"]

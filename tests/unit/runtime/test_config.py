@@ -223,6 +223,9 @@ def test_build_config_does_not_mutate_environ() -> None:
         (["--zenoh-lease-ms", "600001"], {}, "--zenoh-lease-ms"),
         ([], {"TAGSWARM_ZENOH_LEASE_MS": "0"}, "--zenoh-lease-ms"),
         ([], {"TAGSWARM_ZENOH_LEASE_MS": ""}, "--zenoh-lease-ms"),
+        (["--listen", "foo:bar"], {}, "--listen 'foo:bar': a Zenoh endpoint is PROTOCOL/ADDRESS"),
+        (["--connect", "127.0.0.1:7447"], {}, "--connect '127.0.0.1:7447'"),
+        ([], {"TAGSWARM_CONNECT": "tcp/10.0.0.1:7447,10.0.0.2"}, "--connect '10.0.0.2'"),
     ],
 )
 def test_bad_values_raise_one_line_errors(argv: list[str], environ: dict[str, str], needle: str) -> None:

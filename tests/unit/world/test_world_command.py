@@ -249,3 +249,31 @@ def test_kidnap_bad_arguments_exit_2_with_one_line(argv: list[str], capsys: pyte
     err = capsys.readouterr().err
     lines = [ln for ln in err.splitlines() if ln.strip()]
     assert len(lines) == 1 and lines[0].startswith("tagswarm kidnap: error:"), err
+
+
+def test_kidnap_reads_the_worlds_verdict_from_its_status_counters() -> None:
+    """What ``tagswarm kidnap`` tells its user comes from the world's real status: applied, or refused
+    with the likely reason (a robot the world does not have is named as such)."""
+    s = load_scenario("paper", BASE)
+    node, bus, keys = make_node(s)
+    cmds = bus.inboxes[keys.world_command()]
+    try:
+        node.step()
+        c0 = status(node, bus, keys)
+        cmds.put(keys.world_command(), codec.encode(command(1, "push", 0.1, 0.0, 0.0)))
+        node.step()
+        c1 = status(node, bus, keys)
+        cmds.put(keys.world_command(), codec.encode(command(7, "teleport", 0.0, 0.0)))
+        node.step()
+        c2 = status(node, bus, keys)
+        cmds.put(keys.world_command(), codec.encode(command(1, "teleport", 3.44, 0.0)))  # into a wall
+        node.step()
+        c3 = status(node, bus, keys)
+    finally:
+        node.close()
+    assert kidnap.outcome(c0, c0) is None
+    assert kidnap.outcome(c0, c1) == "applied"
+    assert kidnap.outcome(c1, c2) == "refused"
+    assert kidnap.refusal(7, c2) == "robot 7 is not in the world's roster (robots 0, 1)"
+    assert kidnap.outcome(c2, c3) == "refused"
+    assert "outside the arena walls or overlaps" in kidnap.refusal(1, c3)

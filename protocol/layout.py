@@ -35,19 +35,12 @@ def start_poses(s: Scenario) -> list[tuple[float, float, float]]:
         return out
     margin = footprint_radius(s.robot) + s.arena.wall_thickness_m + 0.3
     wx, wy = s.arena.size_x_m / 2 - margin, s.arena.size_y_m / 2 - margin
+    # clear of the obstacles (without it a 22nd robot of the warehouse scene landed on a pallet)
+    min_clear = footprint_radius(s.robot) + 0.1
     if pl == "grid":
-        cols = math.ceil(math.sqrt(n))
-        rows = math.ceil(n / cols)
-        out = []
-        for k in range(n):
-            cx = -wx + 2 * wx * ((k % cols) + 0.5) / cols
-            cy = -wy + 2 * wy * ((k // cols) + 0.5) / rows
-            out.append((cx, cy, float(rng.uniform(-math.pi, math.pi))))
-        return out
+        return [(x, y, float(rng.uniform(-math.pi, math.pi))) for x, y in _grid_cells(s, n, wx, wy, min_clear)]
     out = []
     min_gap = 2 * footprint_radius(s.robot) + 0.1
-    # clear of the obstacles too (without it a 22nd robot of the warehouse scene landed on a pallet)
-    min_clear = footprint_radius(s.robot) + 0.1
     for _ in range(n):
         for _attempt in range(10_000):
             x, y = float(rng.uniform(-wx, wx)), float(rng.uniform(-wy, wy))
@@ -56,6 +49,32 @@ def start_poses(s: Scenario) -> list[tuple[float, float, float]]:
                 break
         out.append((x, y, float(rng.uniform(-math.pi, math.pi))))
     return out
+
+
+def _grid_cells(s: Scenario, n: int, wx: float, wy: float, min_clear: float) -> list[tuple[float, float]]:
+    """The first ``n`` cell centres (row by row) of the smallest near-square lattice over
+    [-wx, wx] x [-wy, wy] with ``n`` cells clear of every obstacle; without obstacles in the
+    way, the lattice with as many columns as the arena's aspect asks for.  Cells too close to each other for two robots are
+    not offered: beyond that the lattice stops growing and the last cells are returned."""
+    # as many columns as the arena's aspect asks for (a square arena: ceil(sqrt(n)), as ever)
+    cols = min(n, max(1, math.ceil(math.sqrt(n * wx / wy) - 1e-9)))
+    rows = math.ceil(n / cols)
+    min_gap = 2 * footprint_radius(s.robot)
+    free: list[tuple[float, float]] = []
+    while True:
+        free = []
+        for k in range(cols * rows):
+            x = -wx + 2 * wx * ((k % cols) + 0.5) / cols
+            y = -wy + 2 * wy * ((k // cols) + 0.5) / rows
+            if all(segment_box_distance((x, y), (x, y), ob) >= min_clear for ob in s.arena.obstacles):
+                free.append((x, y))
+        if len(free) >= n:
+            return free[:n]
+        # grow the lattice along the axis whose cells are longer
+        ncols, nrows = (cols + 1, rows) if wx / cols >= wy / rows else (cols, rows + 1)
+        if min(2 * wx / ncols, 2 * wy / nrows) < min_gap:
+            return (free + [(0.0, 0.0)] * n)[:n]  # no room: validation names the overlap
+        cols, rows = ncols, nrows
 
 
 def _wrap(a: float) -> float:

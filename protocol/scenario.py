@@ -281,6 +281,24 @@ def validate(s: Scenario) -> None:
         for k, ob in enumerate(s.arena.obstacles):
             if segment_box_distance(poses[i][:2], poses[i][:2], ob) < r:
                 raise ScenarioError(f"robot {i} starts on arena.obstacles[{k}] (robots.placement/start)")
+    for i, mi in enumerate(s.missions):
+        _validate_waypoints(s, i, mi.waypoints)
+
+
+def _validate_waypoints(s: Scenario, i: int, waypoints: tuple[tuple[float, float], ...]) -> None:
+    """Every waypoint of ``missions[i]`` is a place the robot can stand: its footprint circle inside the
+    arena walls and off every obstacle (else the robot stops short of it for the rest of the run)."""
+    half_x = s.arena.size_x_m / 2 - s.arena.wall_thickness_m / 2
+    half_y = s.arena.size_y_m / 2 - s.arena.wall_thickness_m / 2
+    r = footprint_radius(s.robot)
+    for j, (x, y) in enumerate(waypoints):
+        if abs(x) + r > half_x or abs(y) + r > half_y:
+            raise ScenarioError(f"missions[{i}].waypoints[{j}]=({x:g}, {y:g}): a robot there would not be inside "
+                                f"the arena walls (arena frame, |x| <= {half_x - r:.2f}, |y| <= {half_y - r:.2f})")
+        for k, ob in enumerate(s.arena.obstacles):
+            if segment_box_distance((x, y), (x, y), ob) < r:
+                raise ScenarioError(f"missions[{i}].waypoints[{j}]=({x:g}, {y:g}): a robot there would overlap "
+                                    f"arena.obstacles[{k}]")
 
 
 def _validate_decoys(s: Scenario) -> None:

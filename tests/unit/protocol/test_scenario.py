@@ -499,7 +499,7 @@ def test_invalid_toml_file_names_field(tmp_path: Path) -> None:
 def test_json_round_trip(tmp_path: Path) -> None:
     s = load_scenario("paper", [
         'clock.mode="lockstep"', 'clock.participants=["agent/0", "server/0"]', "render.workers=2", "seed=17",
-        'robots.placement="random"', "arena.obstacles=[{x_m=0.0, y_m=0.0, size_x_m=0.5, size_y_m=0.5}]",
+        'robots.placement="random"', "arena.obstacles=[{x_m=0.0, y_m=2.6, size_x_m=0.5, size_y_m=0.5}]",
         "landmarks=[{id=200, x_m=-3.4, y_m=1.0, yaw_rad=0.0}]",
         'robot.cameras=[{name="front"}, {name="left", yaw_deg=90.0, width=160, height=120}]',
     ])

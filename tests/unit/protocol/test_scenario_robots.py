@@ -225,3 +225,46 @@ def test_a_scheme_that_fails_the_scenarios_own_robots_is_not_rewritten() -> None
     assert "tag ID 11 is used twice" in text
     text = _error("paper", ["tags.id_stride=3", "robots.count=64"])
     assert "is used twice" in text
+
+
+@pytest.mark.parametrize("name", ["hall", "warehouse", "corridor"])
+@pytest.mark.parametrize("n", [2, 9, 16, 64])
+def test_grid_placement_keeps_off_obstacles_in_any_arena(name: str, n: int) -> None:
+    """A grid in a scene with shelves or pallets (or a 16 m x 2.5 m corridor) used to put robots on
+    them, or on each other, and the scenario failed to load."""
+    s = load_scenario(name, [f"robots.count={n}", 'robots.placement="grid"'])
+    poses = layout.start_poses(s)
+    r = layout.footprint_radius(s.robot)
+    assert len(poses) == n
+    for (x, y, _), ob in itertools.product(poses, s.arena.obstacles):
+        assert obstacle_clearance((x, y), (x, y), s.arena) >= r
+    for a, b in itertools.combinations(poses, 2):
+        assert math.dist(a[:2], b[:2]) >= 2 * r
+
+
+def test_grid_in_an_open_square_arena_is_the_plain_lattice() -> None:
+    s = load_scenario("paper", ["robots.count=8", 'robots.placement="grid"'])
+    xy = [(round(x, 6), round(y, 6)) for x, y, _ in layout.start_poses(s)]
+    w = s.arena.size_x_m / 2 - (layout.footprint_radius(s.robot) + s.arena.wall_thickness_m + 0.3)
+    cells = [(round(-w + 2 * w * (c + 0.5) / 3, 6), round(-w + 2 * w * (r + 0.5) / 3, 6)) for r in range(3)
+             for c in range(3)]
+    assert xy == cells[:8]
+
+
+@pytest.mark.parametrize(("waypoint", "needle"), [
+    ("[10.0, 0.0]", "missions[1].waypoints[1]=(10, 0): a robot there would not be inside the arena walls"),
+    ("[0.0, -3.4]", "missions[1].waypoints[1]=(0, -3.4): a robot there would not be inside the arena walls"),
+])
+def test_a_waypoint_a_robot_cannot_reach_is_refused_naming_it(waypoint: str, needle: str) -> None:
+    with pytest.raises(ScenarioError) as exc:
+        load_scenario("paper", [f'missions=[{{robot=0, kind="hold"}}, {{robot=1, kind="patrol", '
+                                f'waypoints=[[0.0, 0.0], {waypoint}]}}]'])
+    assert needle in str(exc.value)
+
+
+def test_a_waypoint_on_an_obstacle_is_refused_naming_both() -> None:
+    s = load_scenario("hall")
+    ob = s.arena.obstacles[0]
+    with pytest.raises(ScenarioError) as exc:
+        load_scenario("hall", [f'missions=[{{robot=1, kind="patrol", waypoints=[[{ob.x_m}, {ob.y_m}]]}}]'])
+    assert "missions[0].waypoints[0]" in str(exc.value) and "overlap arena.obstacles[0]" in str(exc.value)

@@ -52,10 +52,10 @@ def start_poses(s: Scenario) -> list[tuple[float, float, float]]:
 
 
 def _grid_cells(s: Scenario, n: int, wx: float, wy: float, min_clear: float) -> list[tuple[float, float]]:
-    """The first ``n`` cell centres (row by row) of the smallest near-square lattice over
-    [-wx, wx] x [-wy, wy] with ``n`` cells clear of every obstacle; without obstacles in the
-    way, the lattice with as many columns as the arena's aspect asks for.  Cells too close to each other for two robots are
-    not offered: beyond that the lattice stops growing and the last cells are returned."""
+    """The first ``n`` cell centres (row by row) of the smallest lattice over [-wx, wx] x
+    [-wy, wy] with ``n`` cells clear of every obstacle, starting from as many columns as the
+    arena's aspect asks for.  Cells too close for two robots are not offered: the lattice
+    stops growing there (validation then names the clash)."""
     # as many columns as the arena's aspect asks for (a square arena: ceil(sqrt(n)), as ever)
     cols = min(n, max(1, math.ceil(math.sqrt(n * wx / wy) - 1e-9)))
     rows = math.ceil(n / cols)

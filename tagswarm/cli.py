@@ -72,7 +72,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 0
     name, rest = args[0], args[1:]
     if name == "scenarios":
-        print("\n".join(f"{n:<10} {d}" for n, d in builtin_descriptions().items()))
+        described = builtin_descriptions()
+        width = max(map(len, described), default=0)
+        print("\n".join(f"{n:<{width}}  {d}" for n, d in described.items()))
         return 0
     if name not in COMMANDS:
         from tagswarm.runtime.config import ConfigError  # here: the other paths need not load Zenoh

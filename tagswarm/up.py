@@ -258,7 +258,8 @@ def run_up(scenario: Scenario, out: Path, endpoint: str, run: str, *, live: bool
                 console.print(f"live view: [cyan]http://127.0.0.1:{view}/[/]")
             world = Child("world", [*world_cmd, *common, *client], logs / "world.log")
             children.append(world)
-            console.print(f"[bold]tagswarm up[/]: {len(scenario.robot_ids)} robots, {scenario.clock.mode} clock, "
+            n = len(scenario.robot_ids)
+            console.print(f"[bold]tagswarm up[/]: {n} robot{'' if n == 1 else 's'}, {scenario.clock.mode} clock, "
                           f"Zenoh endpoint [cyan]{endpoint}[/] (join with --connect {endpoint}), run id {run!r}")
             from tagswarm.recording.record import declare_when_meshed
 

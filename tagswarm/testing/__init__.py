@@ -18,7 +18,7 @@ import importlib
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
-    from tagswarm.testing.errors import SwarmError, SwarmProcessDied, SwarmTimeout
+    from tagswarm.testing.errors import SwarmError, SwarmProcessDied, SwarmScenarioError, SwarmTimeout
     from tagswarm.testing.factory import SwarmFactory
     from tagswarm.testing.live import LiveSwarm
     from tagswarm.testing.options import NetFault
@@ -26,10 +26,11 @@ if TYPE_CHECKING:
     from tagswarm.testing.subscription import Sample, Subscription
 
 _WHERE = {"SwarmError": "errors", "SwarmProcessDied": "errors", "SwarmTimeout": "errors",
+          "SwarmScenarioError": "errors",
           "SwarmFactory": "factory", "LiveSwarm": "live", "NetFault": "options", "Run": "result",
           "Sample": "subscription", "Subscription": "subscription"}
 __all__ = ["LiveSwarm", "NetFault", "Run", "Sample", "Subscription", "SwarmError", "SwarmFactory",
-           "SwarmProcessDied", "SwarmTimeout"]
+           "SwarmProcessDied", "SwarmScenarioError", "SwarmTimeout"]
 
 
 def __getattr__(name: str) -> Any:

@@ -5,6 +5,7 @@ log, so a failing test says why without opening the run folder."""
 from __future__ import annotations
 
 from tagswarm.protocol.errors import TagswarmError
+from tagswarm.protocol.scenario_schema import ScenarioError
 
 
 class SwarmError(TagswarmError):
@@ -21,3 +22,8 @@ class SwarmProcessDied(SwarmError):
 
 class SwarmTimeout(SwarmError, TimeoutError):
     """A wait for a condition (simulated time, a map, the end of the run) timed out."""
+
+
+class SwarmScenarioError(SwarmError, ScenarioError):
+    """The scenario asked of the fixture does not load (the message names the field); also a
+    :class:`~tagswarm.protocol.scenario_schema.ScenarioError`."""

@@ -27,7 +27,8 @@ import msgspec
 from tagswarm.protocol.bus import MAX_DELAY_MS, check_key_expr
 from tagswarm.protocol.errors import TagswarmError
 from tagswarm.protocol.scenario import Scenario, load_scenario
-from tagswarm.testing.errors import SwarmError
+from tagswarm.protocol.scenario_schema import ScenarioError
+from tagswarm.testing.errors import SwarmError, SwarmScenarioError
 
 _BARE_KEY = re.compile(r"[A-Za-z0-9_-]+")
 _AGENT = re.compile(r"agent/(0|[1-9][0-9]*)")
@@ -184,8 +185,11 @@ class SwarmSpec:
 
     def build_scenario(self) -> Scenario:
         """The resolved scenario; in lockstep every agent and the server ack each tick (as in
-        ``tagswarm up``) unless the scenario names its participants.  ScenarioError if invalid."""
-        s = load_scenario(self.scenario, self.scenario_overrides())
+        ``tagswarm up``) unless the scenario names its participants.  SwarmScenarioError if invalid."""
+        try:
+            s = load_scenario(self.scenario, self.scenario_overrides())
+        except ScenarioError as exc:
+            raise SwarmScenarioError(str(exc)) from None
         if s.clock.mode == "lockstep" and not s.clock.participants:
             table = msgspec.to_builtins(s)
             table["clock"]["participants"] = [f"agent/{r}" for r in s.robot_ids] + ["server/0"]

@@ -17,7 +17,9 @@ from tagswarm.runtime.process import run_main
 PACKAGE = Path(__file__).resolve().parents[2] / "tagswarm"
 #: the classes a user's bad input raises (exit 2); every other project error is handled where it arises
 USAGE = {"ConfigError", "ScenarioError", "KeyNameError", "BusError", "JournalError", "RunFolderError",
-         "RecordingError", "UsageError", "NoSubscriberError"}  # the last: a command nobody reads (wrong run/network)
+         "RecordingError", "UsageError",
+         "NoSubscriberError",  # a command nobody reads (wrong run/network)
+         "SwarmScenarioError"}  # the testing fixture's scenario does not load
 
 
 def _exception_classes() -> dict[str, type[BaseException]]:

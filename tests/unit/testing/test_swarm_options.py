@@ -128,3 +128,13 @@ def test_an_agent_with_the_tests_own_controller_can_import_what_the_test_can(tmp
     spec = SwarmSpec.make(robots=2, agent_modules={1: "ctl"})
     assert (spec.agent_module("agent/1"), spec.agent_module("agent/0"), spec.agent_module("world")) == ("ctl", None,
                                                                                                      None)
+
+
+def test_a_scenario_that_does_not_load_is_a_swarm_error_naming_the_field() -> None:
+    from tagswarm.protocol.scenario_schema import ScenarioError
+    from tagswarm.testing import SwarmError, SwarmScenarioError
+
+    with pytest.raises(SwarmScenarioError) as exc:
+        SwarmSpec.make(robots=2, **{"robot.cameras": [{"width": -1}]}).build_scenario()
+    assert isinstance(exc.value, SwarmError) and isinstance(exc.value, ScenarioError)
+    assert "robot.cameras[0].width" in str(exc.value)

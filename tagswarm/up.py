@@ -27,6 +27,7 @@ from rich.live import Live
 from rich.table import Table
 
 from tagswarm.agents.controller import load_factory
+from tagswarm.evaluation.localised import LOCALISED_M
 from tagswarm.protocol.bus import BusConfig, BusError, open_bus, zenoh_config
 from tagswarm.protocol.keys import Keys
 from tagswarm.protocol.scenario import Scenario
@@ -351,6 +352,13 @@ def _summary(console: Console, metrics: dict[str, Any]) -> None:
                       f"of the other {len(firsts) - len(never)}): no chain of sightings joined them to the origin "
                       f"robot {origin} within the run; landmarks, a more central origin or missions that meet help "
                       "(README, 'Your own scene')[/]", highlight=False)
+    over = {k: ((r.get("fused") or {}).get("ate_unaligned") or {}) for k, r in metrics.get("robots", {}).items()}
+    over = {k: a for k, a in over.items() if a.get("max") is not None and a["max"] >= LOCALISED_M}
+    if over:
+        named = ", ".join(f"{k} (max {100 * a['max']:.1f} cm, RMSE {100 * a.get('rmse', float('nan')):.1f} cm)"
+                          for k, a in sorted(over.items(), key=lambda kv: -kv[1]["max"]))
+        console.print(f"over {100 * LOCALISED_M:.0f} cm at some time: robot(s) {named}; when and how far each robot "
+                      "was from its observers: plots/error_over_time.png, plots/error_vs_distance.png", highlight=False)
     sigmas = {k: (r.get("fused") or {}).get("sigma_median_m") for k, r in metrics.get("robots", {}).items()}
     weak: dict[str, float] = {k: float(v) for k, v in sigmas.items() if v is not None and v > WEAKLY_TIED_SIGMA_M}
     if weak:

@@ -54,14 +54,16 @@ def summary_tables(metrics: dict[str, Any]) -> tuple[Table, Table, Table]:
     """(accuracy, localisation, behaviour) tables: one row per robot plus a pooled swarm
     row.  ATE and RPE are RMSEs in metres ("map" = unaligned in the map frame,
     "aligned" = after the swarm's shared SE(2) alignment; RPE in m per m travelled; a kidnapped
-    robot's fused map ATE is followed by the same outside its kidnaps, in brackets);
+    robot's fused map ATE is followed by the same outside its kidnaps, in brackets; "fused max"
+    the largest unaligned error, so a robot that went astray for a while is seen; the odometry's
+    aligned ATE is in metrics.json);
     "time localised" is the share of time with fused error under
     ``settings.localised_m``, NEES the fused position's mean / median outside kidnaps, σ median
     the map's own uncertainty of each robot (``fused.sigma_median_m``)."""
-    acc = Table(title="accuracy: RMSE in m (RPE: m per m travelled)", box=box.SIMPLE_HEAD)
+    acc = Table(title="accuracy: RMSE in m, max in m (RPE: m per m travelled)", box=box.SIMPLE_HEAD)
     loc = Table(title="localisation and recovery", box=box.SIMPLE_HEAD)
     beh = Table(title="behaviour and cost", box=box.SIMPLE_HEAD)
-    for table, names in ((acc, ("fused ATE\nmap", "fused ATE\naligned", "odom ATE\nmap", "odom ATE\naligned",
+    for table, names in ((acc, ("fused ATE\nmap", "fused\nmax", "fused ATE\naligned", "odom ATE\nmap",
                                 "fused\nRPE/m", "odom\nRPE/m")),
                          (loc, ("time\nlocalised", "once\nplaced", "NEES\nmean / median", "σ\n(m)",
                                 "re-\nlocalisations", "kidnaps", "contacts")),
@@ -74,8 +76,9 @@ def summary_tables(metrics: dict[str, Any]) -> tuple[Table, Table, Table]:
     def add(name: str, r: dict[str, Any], recovery: tuple[Any, Any, Any], frames: tuple[Any, Any],
             style: str | None = None) -> None:
         f, o = r["fused"], r["odom"]
-        acc.add_row(name, _ate_map(f), _rmse(f, "ate_aligned"), _rmse(o, "ate_unaligned"),
-                    _rmse(o, "ate_aligned"), _rmse(f, "rpe_per_m"), _rmse(o, "rpe_per_m"), style=style)
+        fmax = _m((f.get("ate_unaligned") or {}).get("max"))
+        acc.add_row(name, _ate_map(f), fmax, _rmse(f, "ate_aligned"), _rmse(o, "ate_unaligned"),
+                    _rmse(f, "rpe_per_m"), _rmse(o, "rpe_per_m"), style=style)
         loc.add_row(name, _pct(f.get("time_localised")), _pct(f.get("time_localised_placed")), _nees(f),
                     _m(f.get("sigma_median_m")), *(_int(v) for v in recovery), style=style)
         beh.add_row(name, _int(r["fixes"]), _int(r["searches"]), _int(r["lost_events"]), _m(r["time_lost_s"], 1),

@@ -60,3 +60,15 @@ def test_up_pace_counts_from_the_first_simulated_time_not_process_start() -> Non
     assert pace.rtf(0.2, 104.1) == 0.0  # too short to tell
     assert pace.rtf(10.1, 114.0) == pytest.approx(1.0)
     assert pace.rtf(15.1, 124.0) == pytest.approx(0.75)
+
+
+def test_robots_that_went_over_10cm_are_named_worst_first() -> None:
+    m = _metrics({"0": 0.0, "1": 2.5, "2": 3.0, "3": 4.0}, [])
+    for k, (rmse, mx) in {"0": (0.001, 0.002), "1": (0.021, 0.107), "2": (0.01, 0.099), "3": (0.135, 0.677)}.items():
+        m["robots"][k]["fused"]["ate_unaligned"] = {"rmse": rmse, "max": mx}
+    text = _printed(m)
+    assert "over 10 cm at some time: robot(s) 3 (max 67.7 cm, RMSE 13.5 cm), 1 (max 10.7 cm, RMSE 2.1 cm);" in text
+    assert "plots/error_over_time.png" in text
+    for k in ("1", "3"):
+        m["robots"][k]["fused"]["ate_unaligned"] = {"rmse": 0.01, "max": 0.05}
+    assert "over 10 cm" not in _printed(m)

@@ -107,10 +107,25 @@ class Spy:
                                encoding_mismatch(encoding, payload, decoded)))
 
 
+#: why a spy may hear nothing at all, said on stderr when it ends so
+NOTHING_HEARD = ("is a run going on under this --run, and is this spy linked to it (--connect the endpoint "
+                 "tagswarm up prints, or --zenoh-mode client against the run's router)?")
+
+
+def absolute_keyexpr(expr: str, keys: Keys) -> str:
+    """``expr`` as given when it starts with ``tagswarm/`` or a wildcard, else relative to the run
+    (``robot/1/odometry`` -> ``tagswarm/<run>/robot/1/odometry``), as the testing fixture reads it."""
+    if expr.startswith(("tagswarm/", "*", "$*")):
+        return expr
+    return keys.all()[:-2] + expr.lstrip("/")
+
+
 def parser() -> OneLineParser:
     p = OneLineParser(prog=PROG, description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("keyexpr", nargs="?", metavar="KEYEXPR",
-                   help="Zenoh key expression to watch (default: every key of the run, tagswarm/<run>/**)")
+                   help="Zenoh key expression to watch (default: every key of the run, tagswarm/<run>/**); "
+                        "one that does not start with tagswarm/ or a wildcard is relative to the run, e.g. "
+                        "robot/1/odometry")
     p.add_argument("--once", action="store_true", help="sample for --window seconds, print one snapshot, exit 0")
     p.add_argument("--window", type=float, default=2.0, metavar="SECONDS",
                    help="sampling window of --once and averaging window of the rates (default 2)")
@@ -189,16 +204,19 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise ConfigError("--window must be a positive number of seconds")
         setup_logging(inv.log_level("WARNING"), "spy")  # validates --log-level too
         keys = Keys(inv.pick("run", "default"))
-        keyexpr = args.keyexpr if args.keyexpr is not None else keys.all()
-        if not keyexpr.strip():
+        if args.keyexpr is not None and not args.keyexpr.strip():
             raise ConfigError("KEYEXPR must not be empty")
+        keyexpr = keys.all() if args.keyexpr is None else absolute_keyexpr(args.keyexpr, keys)
         stop = threading.Event()
         install_stop_signals(stop)
         with open_bus(inv.bus()) as bus:
             spy = Spy(bus, keyexpr, args.window, alive=not args.no_alive)
             try:
-                return run_spy(spy, keyexpr=keyexpr, once=args.once, window_s=args.window, echo=args.echo,
+                code = run_spy(spy, keyexpr=keyexpr, once=args.once, window_s=args.window, echo=args.echo,
                                plain=args.plain, stop=stop, out=sys.stdout)
+                if spy.traffic.total == 0 and not spy.traffic.alive:
+                    sys.stderr.write(f"{PROG}: heard nothing on {keyexpr}: {NOTHING_HEARD}\n")
+                return code
             except BrokenPipeError:  # e.g. `tagswarm spy --echo | head`: stop quietly
                 os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
                 return 0

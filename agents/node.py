@@ -57,7 +57,7 @@ from tagswarm.protocol import messages as m
 from tagswarm.protocol.bus import Bus, Inbox
 from tagswarm.protocol.geometry import Pose2, position_sigma_m, se2_compose
 from tagswarm.protocol.keys import Keys
-from tagswarm.protocol.layout import anchors_map, arena_to_map, footprint_radius
+from tagswarm.protocol.layout import anchors_map, arena_to_map, footprint_radius, map_to_arena_xy, stand_problem
 from tagswarm.runtime import streams
 from tagswarm.runtime.lockstep import Participant
 from tagswarm.runtime.presence import Presence, RunEnd, silence_ns
@@ -284,6 +284,11 @@ class AgentNode:
                 self.last_fix_ns = c.last_fix_ns
                 self._fix = True
         for _, g in self.intake.own(self.goal_in.drain(), m.Goal):
+            why = stand_problem(self.s, *map_to_arena_xy(self.s, g.x_m, g.y_m))
+            self.counters["goals_refused" if why else "goals"] += 1
+            if why:  # driving at it would end against a wall or an obstacle
+                log.warning("goal (%.2f, %.2f) in the map frame refused: %s", g.x_m, g.y_m, why)
+                continue
             self._goals += 1
             self.goal = GoalRequest(g.x_m, g.y_m, g.tolerance_m, self._goals)
             if self.custom is None:

@@ -9,7 +9,7 @@ import math
 import numpy as np
 
 from tagswarm.protocol.freespace import segment_box_distance
-from tagswarm.protocol.geometry import se2_inverse
+from tagswarm.protocol.geometry import se2_compose, se2_inverse
 from tagswarm.protocol.scenario_schema import Arena, Robot, Scenario
 
 
@@ -105,3 +105,24 @@ def arena_to_map(s: Scenario) -> tuple[float, float, float]:
     if s.landmarks:
         return (0.0, 0.0, 0.0)
     return se2_inverse(start_poses(s)[s.map.origin_id])
+
+
+def stand_problem(s: Scenario, x_m: float, y_m: float) -> str | None:
+    """Why a robot could not stand at (x_m, y_m) in the *arena* frame -- its footprint circle
+    beyond the walls or over an obstacle -- or None if it can."""
+    half_x = s.arena.size_x_m / 2 - s.arena.wall_thickness_m / 2
+    half_y = s.arena.size_y_m / 2 - s.arena.wall_thickness_m / 2
+    r = footprint_radius(s.robot)
+    if abs(x_m) + r > half_x or abs(y_m) + r > half_y:
+        return (f"a robot there would not be inside the arena walls (arena frame, |x| <= {half_x - r:.2f}, "
+                f"|y| <= {half_y - r:.2f})")
+    for k, ob in enumerate(s.arena.obstacles):
+        if segment_box_distance((x_m, y_m), (x_m, y_m), ob) < r:
+            return f"a robot there would overlap arena.obstacles[{k}]"
+    return None
+
+
+def map_to_arena_xy(s: Scenario, x_m: float, y_m: float) -> tuple[float, float]:
+    """A point of the map frame in the arena frame."""
+    x, y, _ = se2_compose(se2_inverse(arena_to_map(s)), (x_m, y_m, 0.0))
+    return x, y

@@ -25,7 +25,7 @@ import msgspec
 from tagswarm.protocol import tags
 from tagswarm.protocol.freespace import segment_box_distance
 from tagswarm.protocol.keys import KeyNameError, check_name, split_participant
-from tagswarm.protocol.layout import footprint_radius, start_poses
+from tagswarm.protocol.layout import footprint_radius, stand_problem, start_poses
 from tagswarm.protocol.robotfill import complete
 from tagswarm.protocol.scenario_schema import (
     LENS_COEFFICIENTS,
@@ -286,19 +286,12 @@ def validate(s: Scenario) -> None:
 
 
 def _validate_waypoints(s: Scenario, i: int, waypoints: tuple[tuple[float, float], ...]) -> None:
-    """Every waypoint of ``missions[i]`` is a place the robot can stand: its footprint circle inside the
-    arena walls and off every obstacle (else the robot stops short of it for the rest of the run)."""
-    half_x = s.arena.size_x_m / 2 - s.arena.wall_thickness_m / 2
-    half_y = s.arena.size_y_m / 2 - s.arena.wall_thickness_m / 2
-    r = footprint_radius(s.robot)
+    """Every waypoint of ``missions[i]`` is a place the robot can stand (else it stops short of
+    it for the rest of the run)."""
     for j, (x, y) in enumerate(waypoints):
-        if abs(x) + r > half_x or abs(y) + r > half_y:
-            raise ScenarioError(f"missions[{i}].waypoints[{j}]=({x:g}, {y:g}): a robot there would not be inside "
-                                f"the arena walls (arena frame, |x| <= {half_x - r:.2f}, |y| <= {half_y - r:.2f})")
-        for k, ob in enumerate(s.arena.obstacles):
-            if segment_box_distance((x, y), (x, y), ob) < r:
-                raise ScenarioError(f"missions[{i}].waypoints[{j}]=({x:g}, {y:g}): a robot there would overlap "
-                                    f"arena.obstacles[{k}]")
+        why = stand_problem(s, x, y)
+        if why is not None:
+            raise ScenarioError(f"missions[{i}].waypoints[{j}]=({x:g}, {y:g}): {why}")
 
 
 def _validate_decoys(s: Scenario) -> None:

@@ -6,9 +6,12 @@ process, waits (up to ``--timeout``) until the agent's liveliness token
 known (agents subscribe before they declare the token), then, within the same
 ``--timeout``, until this session knows a subscriber of
 ``tagswarm/<run>/robot/ROBOT/goal`` (Zenoh matching status: a put before that
-would be lost), publishes one :class:`tagswarm.protocol.messages.Goal` there and
-exits 0.  The goal is stamped with the simulation time of the newest world
-tick, if the world is ticking.  Exit 1 (one line) when the agent is not alive;
+would be lost), publishes one :class:`tagswarm.protocol.messages.Goal` there
+(exit 0).  The goal is stamped with the simulation time of the newest world
+tick, if the world is ticking.  It then waits (up to
+:data:`~tagswarm.operator.reach.CONFIRM_S`) for the agent's status to show the goal taken, or
+refused (a robot could not stand there: beyond the walls or on an obstacle).  Exit 1 (one line)
+when the agent is not alive or refused the goal;
 exit 2 (one line) for bad arguments, e.g. a non-finite X or Y, or when nobody
 subscribes to the goal key within ``--timeout``.
 """
@@ -21,7 +24,16 @@ import sys
 import time
 from collections.abc import Sequence
 
-from tagswarm.operator.reach import MAX_ROBOT_ID, TICK_WAIT_S, next_tick, publish_once, wait_alive
+from tagswarm.operator.reach import (
+    CONFIRM_S,
+    MAX_ROBOT_ID,
+    TICK_WAIT_S,
+    newest_counters,
+    next_tick,
+    outcome,
+    publish_once,
+    wait_alive,
+)
 from tagswarm.protocol import codec
 from tagswarm.protocol import messages as m
 from tagswarm.protocol.bus import open_bus
@@ -58,7 +70,8 @@ def make_goal(robot: int, x: float, y: float, tolerance: float, stamp_ns: int = 
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Console entry for ``tagswarm goto``: 0 sent, 1 agent not alive, 2 bad arguments."""
+    """Console entry for ``tagswarm goto``: 0 sent (and taken, when confirmed), 1 agent not alive or goal
+    refused, 2 bad arguments."""
 
     def body() -> int:
         inv = Invocation(parser(), argv)
@@ -79,11 +92,23 @@ def main(argv: Sequence[str] | None = None) -> int:
                 return 1
             tick = next_tick(bus, keys, TICK_WAIT_S, lambda t: t.stamp_ns > 0)  # stamped like the world's time
             goal = make_goal(args.robot, args.x, args.y, args.tolerance, tick.stamp_ns if tick is not None else 0)
+            statuses = bus.subscribe(keys.robot_status(args.robot), newest_only=True)
+            before = newest_counters(statuses, bus, CONFIRM_S / 2)
             publish_once(bus, keys.goal(args.robot), codec.encode(goal), max(0.0, deadline - time.monotonic()))
             # a round trip on the same link before closing the session, so the goal is on its way
             bus.alive_now(alive_key, 1.0)
-        print(f"goal ({goal.x_m:.2f}, {goal.y_m:.2f}) ±{goal.tolerance_m:g} m sent to {participant} "
-              f"on {keys.goal(args.robot)} at t={goal.stamp_ns / 1e9:.2f} s")
+            verdict, until = None, time.monotonic() + CONFIRM_S
+            while before is not None and verdict is None and time.monotonic() < until:
+                after = newest_counters(statuses, bus, until - time.monotonic())
+                verdict = None if after is None else outcome(before, after, "goals", "goals_refused")
+        sent = f"goal ({goal.x_m:.2f}, {goal.y_m:.2f}) ±{goal.tolerance_m:g} m"
+        if verdict == "refused":
+            sys.stderr.write(f"{PROG}: error: {participant} refused the {sent} in the map frame: a robot cannot stand "
+                             "there (beyond the arena walls or on an obstacle; the agent's log says which)\n")
+            return 1
+        confirmed = {"applied": ", taken by the agent",
+                     None: f" (the agent's status did not confirm it within {CONFIRM_S:g} s)"}[verdict]
+        print(f"{sent} sent to {participant} on {keys.goal(args.robot)} at t={goal.stamp_ns / 1e9:.2f} s{confirmed}")
         return 0
 
     return run_main(PROG, body)

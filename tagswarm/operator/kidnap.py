@@ -24,7 +24,7 @@ participant), from ``clock.tick_hz`` of the scenario given here (``--scenario``,
 world refuses (and counts as ``world_command_rejected`` in its status, with a
 log line) a robot it does not have, a pose outside the arena walls or
 overlapping a wall, obstacle or another robot.  Without ``--at`` this command
-then waits (up to :data:`CONFIRM_S`) for the world's status to show whether it
+then waits (up to :data:`~tagswarm.operator.reach.CONFIRM_S`) for the world's status to show whether it
 applied or refused it, and says which.  Exit 1 (one line) when the world is not
 alive or refused the command; exit 2 (one line) for bad arguments or when nobody
 subscribes to the command key within ``--timeout``.
@@ -38,10 +38,19 @@ import sys
 import time
 from collections.abc import Mapping, Sequence
 
-from tagswarm.operator.reach import MAX_ROBOT_ID, TICK_WAIT_S, next_tick, publish_once, wait_alive
+from tagswarm.operator.reach import (
+    CONFIRM_S,
+    MAX_ROBOT_ID,
+    TICK_WAIT_S,
+    newest_counters,
+    next_tick,
+    outcome,
+    publish_once,
+    wait_alive,
+)
 from tagswarm.protocol import codec
 from tagswarm.protocol import messages as m
-from tagswarm.protocol.bus import Bus, Inbox, open_bus
+from tagswarm.protocol.bus import open_bus
 from tagswarm.protocol.keys import Keys
 from tagswarm.runtime.config import (
     ConfigError,
@@ -52,9 +61,6 @@ from tagswarm.runtime.config import (
 from tagswarm.runtime.process import run_main, setup_logging
 
 PROG = "tagswarm kidnap"
-#: how long to wait for the world's status to confirm a command without --at (its status comes every second of
-#: simulated time: a baseline before the command, then the one that counts it)
-CONFIRM_S = 5.0
 
 
 def parser() -> OneLineParser:
@@ -87,16 +93,6 @@ def make_command(robot: int, x: float, y: float, yaw: float, push: bool, stamp_n
                           x_m=x, y_m=y, yaw_rad=yaw)
 
 
-def outcome(before: Mapping[str, int], after: Mapping[str, int]) -> str | None:
-    """``"applied"`` or ``"refused"`` once the world's status counters ``after`` count a command more than
-    ``before`` did, else None."""
-    if after.get("world_command_rejected", 0) > before.get("world_command_rejected", 0):
-        return "refused"
-    if after.get("world_commands", 0) > before.get("world_commands", 0):
-        return "applied"
-    return None
-
-
 def refusal(robot: int, counters: Mapping[str, int]) -> str:
     """Why the world most likely refused a command for ``robot`` (one line; its log says exactly)."""
     roster = sorted(int(k.rsplit("_", 1)[1]) for k in counters
@@ -105,21 +101,6 @@ def refusal(robot: int, counters: Mapping[str, int]) -> str:
         return f"robot {robot} is not in the world's roster (robots {', '.join(map(str, roster))})"
     return ("the pose is outside the arena walls or overlaps a wall, obstacle or another robot "
             "(the world's log says which)")
-
-
-def _newest_status(inbox: Inbox[bytes], bus: Bus, timeout_s: float) -> dict[str, int] | None:
-    found: list[dict[str, int]] = []
-
-    def got() -> bool:
-        for item in inbox.drain():
-            try:
-                found.append(dict(codec.decode(m.AgentStatus, item.value).counters))
-            except codec.DecodeError:
-                continue
-        return bool(found)
-
-    bus.wait_for(got, timeout_s)
-    return found[-1] if found else None
 
 
 def stamp_for(at_s: float, dt_ns: int | None) -> int:
@@ -164,7 +145,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                 stamp = stamp_for(args.at, (tick.dt_ns if tick is not None else None) or scenario_dt_ns)
             cmd = make_command(args.robot, args.x, args.y, args.yaw, args.push, stamp)
             statuses = bus.subscribe(keys.world_status(), newest_only=True) if args.at is None else None
-            before = None if statuses is None else _newest_status(statuses, bus, CONFIRM_S / 2)
+            before = None if statuses is None else newest_counters(statuses, bus, CONFIRM_S / 2)
             publish_once(bus, keys.world_command(), codec.encode(cmd), max(0.0, deadline - time.monotonic()))
             # a round trip on the same link before closing the session, so the command is on its way
             bus.alive_now(alive_key, 1.0)
@@ -172,8 +153,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             if statuses is not None and before is not None:
                 until = time.monotonic() + CONFIRM_S
                 while verdict is None and time.monotonic() < until:
-                    after = _newest_status(statuses, bus, until - time.monotonic())
-                    verdict = None if after is None else outcome(before, after)
+                    after = newest_counters(statuses, bus, until - time.monotonic())
+                    verdict = None if after is None else outcome(before, after, "world_commands",
+                                                                 "world_command_rejected")
         when = "at the world's next step" if stamp == 0 else f"at t={stamp / 1e9:.3f} s"
         what = "by" if args.push else "to"
         done = f"{cmd.action} robot {cmd.robot_id} {what} ({cmd.x_m:.3f} m, {cmd.y_m:.3f} m, {cmd.yaw_rad:.3f} rad)"

@@ -16,11 +16,11 @@ leaves ``open_bus`` to close the session cleanly, never exiting with it open.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 
 from tagswarm.protocol import codec
 from tagswarm.protocol import messages as m
-from tagswarm.protocol.bus import Bus
+from tagswarm.protocol.bus import Bus, Inbox
 from tagswarm.protocol.errors import UsageError
 from tagswarm.protocol.keys import Keys
 
@@ -61,6 +61,37 @@ def next_tick(bus: Bus, keys: Keys, timeout_s: float,
 
     bus.wait_for(got, timeout_s)
     return found
+
+
+#: how long a command waits for its receiver's status to confirm it (a status comes every second of simulated
+#: time: a baseline before the command, then the one that counts it)
+CONFIRM_S = 5.0
+
+
+def newest_counters(inbox: Inbox[bytes], bus: Bus, timeout_s: float) -> dict[str, int] | None:
+    """The counters of the newest status in ``inbox`` (waiting up to ``timeout_s`` for one), else None."""
+    found: list[dict[str, int]] = []
+
+    def got() -> bool:
+        for item in inbox.drain():
+            try:
+                found.append(dict(codec.decode(m.AgentStatus, item.value).counters))
+            except codec.DecodeError:
+                continue
+        return bool(found)
+
+    bus.wait_for(got, timeout_s)
+    return found[-1] if found else None
+
+
+def outcome(before: Mapping[str, int], after: Mapping[str, int], applied: str, refused: str) -> str | None:
+    """``"refused"`` or ``"applied"`` once status counters ``after`` count one more in ``refused`` or
+    ``applied`` than ``before`` did, else None."""
+    if after.get(refused, 0) > before.get(refused, 0):
+        return "refused"
+    if after.get(applied, 0) > before.get(applied, 0):
+        return "applied"
+    return None
 
 
 class NoSubscriberError(UsageError):

@@ -160,6 +160,18 @@ def test_goto_reaches_the_agent(system: System) -> None:
         assert time.monotonic() < deadline, log.read_text()[-2000:]
         time.sleep(0.2)
     assert "new goal" not in (system.out / "logs" / "agent0.log").read_text()
+    assert res.stdout.rstrip().endswith(", taken by the agent"), res.stdout
+
+
+def test_goto_where_no_robot_can_stand_is_refused_by_the_agent(system: System) -> None:
+    res = tagswarm("goto", "1", "50", "50", "--connect", system.endpoint, "--run", system.run)
+    assert res.returncode == 1, res.stdout + res.stderr
+    assert res.stderr.strip().splitlines() == [
+        "tagswarm goto: error: agent/1 refused the goal (50.00, 50.00) ±0.1 m in the map frame: a robot cannot "
+        "stand there (beyond the arena walls or on an obstacle; the agent's log says which)"]
+    log = (system.out / "logs" / "agent1.log").read_text()
+    assert "goal (50.00, 50.00) in the map frame refused: a robot there would not be inside the arena walls" in log
+    assert "new goal (50.00" not in log
 
 
 def test_goto_an_agent_that_is_not_alive_exits_1(system: System) -> None:

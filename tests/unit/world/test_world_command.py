@@ -12,7 +12,7 @@ from typing import Any, cast
 import msgspec
 import pytest
 
-from tagswarm.operator import kidnap
+from tagswarm.operator import kidnap, reach
 from tagswarm.protocol import codec
 from tagswarm.protocol import messages as m
 from tagswarm.protocol.bus import Bus, BusConfig, Inbox
@@ -271,9 +271,12 @@ def test_kidnap_reads_the_worlds_verdict_from_its_status_counters() -> None:
         c3 = status(node, bus, keys)
     finally:
         node.close()
-    assert kidnap.outcome(c0, c0) is None
-    assert kidnap.outcome(c0, c1) == "applied"
-    assert kidnap.outcome(c1, c2) == "refused"
+    def outcome(a: dict[str, int], b: dict[str, int]) -> str | None:
+        return reach.outcome(a, b, "world_commands", "world_command_rejected")
+
+    assert outcome(c0, c0) is None
+    assert outcome(c0, c1) == "applied"
+    assert outcome(c1, c2) == "refused"
     assert kidnap.refusal(7, c2) == "robot 7 is not in the world's roster (robots 0, 1)"
-    assert kidnap.outcome(c2, c3) == "refused"
+    assert outcome(c2, c3) == "refused"
     assert "outside the arena walls or overlaps" in kidnap.refusal(1, c3)

@@ -176,6 +176,16 @@ def _table(rec: RunRecorder, scenario: Scenario, rtf: float, out: Path, endpoint
     return t
 
 
+def default_out(base: Path, now: datetime) -> Path:
+    """``base/<YYYYmmdd-HHMMSS>``, with ``-2``, ``-3`` ... when runs started the same second."""
+    stem = now.strftime("%Y%m%d-%H%M%S")
+    out, k = base / stem, 1
+    while out.exists():
+        k += 1
+        out = base / f"{stem}-{k}"
+    return out
+
+
 def check_out(out: Path) -> None:
     """Refuse a run folder that would mix two runs or cannot be made (:class:`ConfigError`):
     ``out`` must be missing or an empty folder, under a folder that exists or can be made."""
@@ -456,7 +466,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         # the pid too: two runs started in the same second (a script, a bench) must not share keys
         run = inv.pick("run", f"up{int(time.time()) % 100000}-{os.getpid()}")
         Keys(run)
-        out = args.out or Path("runs") / datetime.now().strftime("%Y%m%d-%H%M%S")
+        out = args.out or default_out(Path("runs"), datetime.now())
         check_out(out)
         endpoint = (args.listen or [None])[0] or free_endpoint()
         stop = threading.Event()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import io
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -72,3 +73,21 @@ def test_robots_that_went_over_10cm_are_named_worst_first() -> None:
     for k in ("1", "3"):
         m["robots"][k]["fused"]["ate_unaligned"] = {"rmse": 0.01, "max": 0.05}
     assert "over 10 cm" not in _printed(m)
+
+
+def test_the_default_run_folder_is_new_even_within_one_second(tmp_path: Path) -> None:
+    from datetime import datetime
+
+    from tagswarm.runtime.config import ConfigError
+    from tagswarm.up import check_out, default_out
+
+    now = datetime(2026, 12, 4, 2, 40, 0)
+    first = default_out(tmp_path, now)
+    assert first == tmp_path / "20261204-024000"
+    first.mkdir()
+    (first / "run.json").write_text("{}")
+    second = default_out(tmp_path, now)
+    assert second == tmp_path / "20261204-024000-2"
+    check_out(second)  # new: no error
+    with pytest.raises(ConfigError, match="already holds files"):
+        check_out(first)

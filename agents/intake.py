@@ -19,7 +19,7 @@ from tagswarm.protocol import messages as m
 from tagswarm.protocol.bus import Received
 from tagswarm.runtime import streams
 
-M = TypeVar("M", m.Correction, m.Goal)
+M = TypeVar("M", m.Correction, m.Goal, m.WheelCommand)
 
 
 class AgentIntake:
@@ -67,7 +67,7 @@ class AgentIntake:
             yield img
 
     def own(self, items: Iterable[Received[bytes]], cls: type[M]) -> Iterator[tuple[str, M]]:
-        """(key, message) of the ``cls`` messages (corrections, goals) addressed to this robot."""
+        """(key, message) of the ``cls`` messages (corrections, goals, recorded commands) for this robot."""
         for item, msg in self.rejects.decoded(items, cls):
             robot: Any = msg.robot_id
             if robot != self.rid:

@@ -5,8 +5,8 @@ detector skips frames, it never queues them), encoder ticks, the world clock,
 the server's corrections, run-time goals and the server's global map (the other
 robots, which missions and goals steer around: :mod:`tagswarm.agents.avoid`).  Publishes
 relative observations, odometry (with slip evidence from commanded against
-measured wheel rotation), wheel commands and status.  It never reads ground
-truth.
+measured wheel rotation; in a replay, against the recorded commands on
+``recorded_cmd``), wheel commands and status.  It never reads ground truth.
 
 Realtime: each :meth:`AgentNode.step` handles what has arrived.  Lockstep:
 for each world tick it waits (bounded) for that tick's frames, processes them,
@@ -99,6 +99,7 @@ class AgentNode:
         # went to the detector and the pose estimate: the status gives both for bench/speed.py's overhead ratio
         self._cpu_frames_s = 0.0
         self.enc_in = bus.subscribe(self.keys.encoders(rid))
+        self.recorded_cmd_in = bus.subscribe(self.keys.recorded_cmd(rid))  # only a replay sends them
         # realtime: only encoders (a control cycle) and frames wake the loop; ticks, corrections, goals and
         # maps are read at the next wake-up, which is where they are used anyway (one pass of the loop
         # less per tick, correction and map: ~60 a second per agent).  Lockstep waits on them
@@ -161,8 +162,7 @@ class AgentNode:
         self.pending_frames: dict[str, m.CameraImage] = {}
         self.intake.reset()
         self.correction_stamp_ns = -1
-        # stamp of our first odometry in this run: older corrections were computed without it, in the odom
-        # frame of a previous process or run
+        # our first odometry's stamp in this run: older corrections are in a previous process's or run's odom frame
         self._odom_since_ns: int | None = None
         self._last_step: int | None = None
 
@@ -263,6 +263,8 @@ class AgentNode:
                 self.odom.add_slip(slip)
             self._moved = self._moved or abs(ds) > 1e-4 or abs(dth) > 1e-4
             self.time_ns = max(self.time_ns, enc.stamp_ns)
+        for _, cmd in self.intake.own(self.recorded_cmd_in.drain(), m.WheelCommand):
+            self.slip.commanded(cmd.stamp_ns, cmd.left_rad_s, cmd.right_rad_s, recorded=True)
 
     def _handle_corrections(self) -> None:
         for key, c in self.intake.own(self.corr_in.drain(), m.Correction):
@@ -410,11 +412,11 @@ class AgentNode:
         received = sum(inbox.received for inbox in self.images.values())
         out.update(fixes=b.fixes, searches=b.searches, lost_events=b.lost_events, look_arounds=b.look_arounds,
                    odometry_cycles=b.counter, localised=int(self.map_odom is not None),
-                   server_alive=int(self.server_alive),
-                   avoiding_cycles=b.avoider.cycles_avoiding, avoid_yields=b.avoider.yields,
-                   avoid_side_flips=b.avoider.side_flips, maps_used=self.neighbours.maps_adopted,
-                   slip_mm=round(self.slip.slip_m * 1000), slip_events=self.slip.events,
-                   frames_received=received, cpu_frames_us=round(self._cpu_frames_s * 1e6),
+                   server_alive=int(self.server_alive), avoiding_cycles=b.avoider.cycles_avoiding,
+                   avoid_yields=b.avoider.yields, avoid_side_flips=b.avoider.side_flips,
+                   maps_used=self.neighbours.maps_adopted, slip_events=self.slip.events,
+                   slip_mm=round(self.slip.slip_m * 1000), frames_received=received,
+                   cpu_frames_us=round(self._cpu_frames_s * 1e6),
                    cpu_detect_pose_us=round(self.vision.detect_pose_cpu_s * 1e6),
                    # overwritten in the newest-only inbox, or replaced while pending
                    frames_skipped=received - self._frames_taken + self.counters["frames_replaced"])
@@ -530,7 +532,6 @@ class AgentNode:
 
 def main(argv: Sequence[str] | None = None, environ: Mapping[str, str] | None = None) -> int:
     """Console script ``tagswarm-agent``."""
-
     return serve_node("tagswarm-agent", lambda: build_config(argv, environ), lambda c: f"agent{c.robot_id}",
                       AgentNode)
 

@@ -135,12 +135,21 @@ class SlipMonitor:
     sigmas: float = SLIP_SIGMAS
     slip_m: float = 0.0
     events: int = 0
+    replaying: bool = False
     _cmds: list[tuple[int, float, float]] = field(default_factory=list, repr=False)
     _last: tuple[int, int, int] | None = field(default=None, repr=False)
     _acc: list[float] = field(default_factory=lambda: [0.0] * 5, repr=False)  # disc l, r; travel l, r; count
 
-    def commanded(self, stamp_ns: int, left_rad_s: float, right_rad_s: float) -> None:
-        """A wheel command sent with this stamp (rad/s)."""
+    def commanded(self, stamp_ns: int, left_rad_s: float, right_rad_s: float, *, recorded: bool = False) -> None:
+        """A wheel command sent with this stamp (rad/s).  ``recorded``: a replay's copy of the command the
+        wheels were driven with when the run was recorded; from the first one on, the agent's own commands
+        (which drive nothing in a replay) are ignored, so a replay with other settings or another controller
+        sees the recorded wheels against the recorded commands, not against its own."""
+        if recorded and not self.replaying:
+            self.replaying = True
+            self._cmds.clear()
+        elif self.replaying and not recorded:
+            return
         if self._cmds and stamp_ns < self._cmds[-1][0]:
             return  # a command never takes effect before an earlier one
         self._cmds.append((stamp_ns, left_rad_s, right_rad_s))

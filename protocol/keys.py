@@ -10,6 +10,7 @@ Layout (``<run>`` isolates runs sharing one network)::
     tagswarm/<run>/robot/<id>/camera/<name>         CameraImage
     tagswarm/<run>/robot/<id>/encoders              EncoderTicks
     tagswarm/<run>/robot/<id>/cmd                   WheelCommand
+    tagswarm/<run>/robot/<id>/recorded_cmd          WheelCommand (a replay's recorded commands)
     tagswarm/<run>/robot/<id>/truth                 GroundTruthPose (evaluation only)
     tagswarm/<run>/robot/<id>/observation           RelativeObservation
     tagswarm/<run>/robot/<id>/odometry              OdometryEstimate
@@ -103,6 +104,10 @@ class Keys:
 
     def cmd(self, robot_id: int | None = None) -> str:
         return self._robot_leaf(robot_id, "cmd")
+
+    def recorded_cmd(self, robot_id: int | None = None) -> str:
+        """A replay's copy of the wheel commands the robot drove with when it was recorded."""
+        return self._robot_leaf(robot_id, "recorded_cmd")
 
     def truth(self, robot_id: int | None = None) -> str:
         return self._robot_leaf(robot_id, "truth")

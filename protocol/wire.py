@@ -123,6 +123,8 @@ KEYS: Final[tuple[KeySpec, ...]] = (
             "agent <id>, tools", "one key per camera of the robot"),
     KeySpec(lambda k: k.encoders(), ("<id>",), m.EncoderTicks, "block", "world", "agent <id>"),
     KeySpec(lambda k: k.cmd(), ("<id>",), m.WheelCommand, "block", "agent <id>", "world"),
+    KeySpec(lambda k: k.recorded_cmd(), ("<id>",), m.WheelCommand, "block", "replay (tagswarm replay, up --replay)",
+            "agent <id>", "a recording's cmd messages: what drove the wheels, for the agent's slip check"),
     KeySpec(lambda k: k.truth(), ("<id>",), m.GroundTruthPose, "block", "world", "tools",
             "evaluation only: agents and server never read it"),
     KeySpec(lambda k: k.observation(), ("<id>",), m.RelativeObservation, "block", "agent <id> (the observer)",

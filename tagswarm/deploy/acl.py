@@ -145,7 +145,7 @@ def grants(keys: Keys, robot_ids: Sequence[int]) -> dict[str, Grant]:
         out[agent_user(rid)] = Grant(
             put=(keys.observation(rid), keys.odometry(rid), keys.robot_status(rid), keys.cmd(rid), keys.ack(me)),
             sub=(keys.images(rid), keys.encoders(rid), keys.tick(), keys.correction(rid), keys.goal(rid),
-                 keys.map()),
+                 keys.map(), keys.recorded_cmd(rid)),
             ask=(keys.map(),),
             token=(keys.alive(me),),
             watch=(keys.alive_all(),))

@@ -84,6 +84,22 @@ def is_world_stream(key: str) -> bool:
     return spec_of(key) in _WORLD_STREAMS
 
 
+def is_command(key: str) -> bool:
+    """True for an agent's wheel command key (``.../robot/<id>/cmd``): what drove the recorded wheels."""
+    spec = spec_of(key)
+    return spec is not None and spec.message is m.WheelCommand and spec.sender.startswith("agent")
+
+
+def recorded_command_key(key: str) -> str:
+    """The replay's key for a recorded wheel command ``key`` (same run): ``.../robot/<id>/recorded_cmd``."""
+    run = run_of(key)
+    keys = Keys(run or "")
+    rid = keys.robot_id_of(key)
+    if run is None or rid is None or not is_command(key):
+        raise ValueError(f"{key!r} is not a wheel command key")
+    return keys.recorded_cmd(rid)
+
+
 def is_ack(key: str) -> bool:
     """True for a lockstep acknowledgement key (``.../world/ack/<role>/<id>``)."""
     return message_type_for_key(key) is m.TickAck

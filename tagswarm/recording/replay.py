@@ -24,7 +24,10 @@ encoders, ground truth; the default with ``--lockstep``) or ``--only all`` (ever
 channel; the default otherwise; acks are never replayed in lockstep), narrowed further
 by ``--keys KEYEXPR`` (repeatable).  Replaying the world into fresh agents and a fresh
 server evaluates them on exactly the recorded data; their wheel commands go nowhere (the
-robots' motion is in the recording).  ``tagswarm up --replay FILE`` does all of that and
+robots' motion is in the recording).  The recorded wheel commands go out on
+``robot/<id>/recorded_cmd`` (with either ``--only``): the agents compare the recorded
+wheels with them, not with their own commands, so changed settings or another
+controller do not show up as wheel slip.  ``tagswarm up --replay FILE`` does all of that and
 writes a run folder.
 """
 
@@ -53,12 +56,14 @@ from tagswarm.recording.mcapio import (
     META_RUN,
     RecordingError,
     is_ack,
+    is_command,
     is_tick,
     is_world_stream,
     iter_raw,
     keyexpr_matches,
     raw_topics,
     read_metadata,
+    recorded_command_key,
     remap_run,
     run_of,
 )
@@ -130,8 +135,10 @@ class Replayer:
 
     def __init__(self, bus: Bus, path: Path, *, accept: Callable[[str], bool], run: str | None,
                  speed: float | None, participants: tuple[str, ...] = (), clock: Clock | None = None,
-                 end_s: float | None = None, wait_for: tuple[str, ...] = ()) -> None:
+                 end_s: float | None = None, wait_for: tuple[str, ...] = (),
+                 echo_commands: bool = True) -> None:
         self.bus, self.path, self.accept, self.speed = bus, path, accept, speed
+        self.echo_commands = echo_commands  # False: recorded commands go out on recorded_cmd only
         self.clock = clock or Clock()
         self.end_s = end_s
         self.lockstep = speed is None
@@ -225,6 +232,13 @@ class Replayer:
                 if lag > 0 and stop.wait(lag):
                     break
             key = self._key(raw.key)
+            if is_command(raw.key):
+                # what drove the recorded wheels, for the fresh agents' slip check (their own commands drive
+                # nothing here, and differ from these as soon as a setting or the controller does)
+                self.bus.put(recorded_command_key(key), raw.data)
+                self.counts["commands"] += 1
+                if not self.echo_commands:
+                    continue
             # lockstep: nothing may be lost (repeatability); timed: images may drop, as the world's do
             drop = not self.lockstep and "/camera/" in key
             self.bus.put(key, raw.data, drop=drop)
@@ -327,7 +341,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         target = run
 
         def accept(topic: str) -> bool:
-            if only == "world" and not is_world_stream(topic):
+            if only == "world" and not (is_world_stream(topic) or is_command(topic)):
                 return False
             if lockstep and is_ack(topic):
                 return False
@@ -344,7 +358,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         with open_bus(inv.bus()) as bus:
             replayer = Replayer(bus, args.file, accept=accept, run=run,
                                 speed=None if lockstep else (args.speed or 1.0), participants=participants,
-                                clock=clock, end_s=end_s, wait_for=wait_for)
+                                clock=clock, end_s=end_s, wait_for=wait_for, echo_commands=only == "all")
             if not replayer.topics:
                 raise ConfigError(f"{args.file}: no recorded channel matches the filter")
             log.info("replaying %d channel(s) of %s%s%s", len(replayer.topics), args.file,

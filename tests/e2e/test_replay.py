@@ -123,6 +123,20 @@ def test_replayed_agents_and_server_publish_the_same_bytes(recorded: tuple[Path,
         assert a[key] == b[key]
 
 
+def test_a_replay_with_other_settings_sees_no_wheel_slip(recorded: tuple[Path, Path], tmp_path: Path) -> None:
+    """The replayed agents drive nothing: with another top speed their commands differ from the recorded
+    ones, and the slip check must compare the recorded wheels with the recorded commands (it reported
+    ~3.4 m of slip per moving robot when it used the agents' own)."""
+    _up("--replay", str(recorded[1]), "--set", "agent.max_speed_m_s=0.15", "--out", str(tmp_path / "run"),
+        "--no-live", "--no-report")
+    counters = json.loads((tmp_path / "run" / "run.json").read_text())["counters"]
+    original = json.loads((recorded[0] / "run.json").read_text())["counters"]
+    for rid in range(3):
+        c, o = counters[f"agent/{rid}"], original[f"agent/{rid}"]
+        assert (c["slip_mm"], c["slip_events"]) == (o["slip_mm"], o["slip_events"]) == (0, 0)
+        assert c["frames_received"] == o["frames_received"] > 190 and c["fixes"] > 50  # the whole replay
+
+
 def _publish(bus: Bus, key: str, msg: m.Msg) -> None:
     bus.put(key, codec.encode(msg))
 

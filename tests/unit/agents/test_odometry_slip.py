@@ -103,3 +103,29 @@ def test_slip_widens_the_odometry_covariance() -> None:
     before = od.cov.copy()
     od.add_slip(0.1)
     assert np.allclose(np.diag(od.cov - before), [0.01, 0.01, 0.01 / 0.11 ** 2])
+
+
+def test_a_replay_compares_the_recorded_wheels_with_the_recorded_commands_not_its_own() -> None:
+    """In a replay the agent's own commands drive nothing: a changed setting or controller (here: shuttling
+    instead of the recorded figure) must not read as slip once the recorded commands come in."""
+    s = load_scenario("paper", ["robots.count=1", "seed=3"])
+    sim = Sim(s)
+
+    def monitor() -> SlipMonitor:
+        return SlipMonitor(s.robot.wheel_radius_m, s.encoders.ticks_per_rev, s.agent.odom_wheel_sigma,
+                           delay_ns=0, timeout_ns=round(s.clock.command_timeout_s * 1e9))
+
+    replaying, naive = monitor(), monitor()
+    for k in range(round(15.0 * s.clock.tick_hz)):
+        ticks = sim.encoder_ticks(0)
+        recorded, own = figure(0, k), shuttle(0, k)
+        for mon in (replaying, naive):
+            mon.measured(sim.time_ns, *ticks)
+        replaying.commanded(sim.time_ns, *recorded, recorded=True)  # the node drains them with the encoders
+        for mon in (replaying, naive):
+            mon.commanded(sim.time_ns, *own)
+        sim.set_command(0, *recorded)
+        sim.step()
+    sim.close()
+    assert replaying.replaying and replaying.slip_m == 0.0 and replaying.events == 0
+    assert naive.slip_m > 1.0 and naive.events > 10  # the defect: own commands against the recorded wheels

@@ -19,10 +19,12 @@ from tagswarm.protocol import messages as m
 from tagswarm.protocol.scenario import load_scenario
 from tagswarm.recording.mcapio import (
     RecordingError,
+    is_command,
     is_world_stream,
     iter_raw,
     keyexpr_matches,
     message_type_for_key,
+    recorded_command_key,
     remap_run,
     verify,
 )
@@ -278,6 +280,11 @@ def test_key_shapes_and_run_remap() -> None:
     assert is_world_stream("tagswarm/a/robot/3/encoders") and is_world_stream("tagswarm/a/world/status")
     assert not is_world_stream("tagswarm/a/robot/3/cmd") and not is_world_stream("tagswarm/a/world/ack/agent/1")
     assert not is_world_stream("tagswarm/a/world/render/0")
+    assert is_command("tagswarm/a/robot/3/cmd") and not is_command("tagswarm/a/robot/3/recorded_cmd")
+    assert not is_command("tagswarm/a/robot/3/encoders") and not is_command("other/a/robot/3/cmd")
+    assert recorded_command_key("tagswarm/a/robot/3/cmd") == "tagswarm/a/robot/3/recorded_cmd"
+    with pytest.raises(ValueError):
+        recorded_command_key("tagswarm/a/robot/3/odometry")
     assert remap_run("tagswarm/a/robot/3/truth", "b") == "tagswarm/b/robot/3/truth"
     assert remap_run("other/a/x", "b") == "other/a/x"
 

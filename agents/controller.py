@@ -53,6 +53,7 @@ import importlib.util
 import logging
 import math
 import sys
+import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -309,12 +310,15 @@ class ControllerRunner:
     log: logging.Logger = field(default_factory=lambda: logging.getLogger("tagswarm.agent.controller"))
     cycles: int = 0
     errors: int = 0
+    fixes: int = 0  # cycles with a new visual fix, as the built-in behaviour counts them
+    slow: int = 0  # steps that took longer than a control period (wall clock)
     guard: CommandGuard = field(init=False)
 
     def __post_init__(self) -> None:
         a = self.config.agent
         self.guard = CommandGuard(footprint_radius(self.config.robot), a.avoid_clearance_m, a.avoid_horizon_s)
         self._boxes = self.config.static_obstacles
+        self._period_s = 1.0 / self.config.scenario.encoders.rate_hz
 
     @property
     def wants_images(self) -> bool:
@@ -327,7 +331,9 @@ class ControllerRunner:
     def command(self, inputs: ControlInput) -> tuple[float, float]:
         """(left, right) wheel speeds in rad/s for this cycle."""
         self.cycles += 1
+        self.fixes += inputs.fix
         robot = self.config.robot
+        t0 = time.perf_counter()
         try:
             v, w = _twist(self.controller.step(inputs), robot)
         except Exception:
@@ -337,6 +343,15 @@ class ControllerRunner:
                                    "(counted as controller_errors, logged once)", inputs.robot_id,
                                    type(self.controller).__name__)
             return 0.0, 0.0
+        finally:
+            took = time.perf_counter() - t0
+            if took > self._period_s:
+                self.slow += 1
+                if self.slow == 1:
+                    self.log.warning("robot %d: the controller %s took %.0f ms for one step, longer than the "
+                                     "%.0f ms control period: in real time its commands come late and frames "
+                                     "queue (counted as controller_slow, logged once)", inputs.robot_id,
+                                     type(self.controller).__name__, 1e3 * took, 1e3 * self._period_s)
         if self.controller.avoid and self.config.agent.avoid and inputs.localised:
             v, w = self.guard.filter(inputs.pose, v, w, inputs.neighbours, self._boxes,
                                      self.config.agent.max_turn_rad_s)
@@ -344,7 +359,7 @@ class ControllerRunner:
 
     def counters(self) -> dict[str, int]:
         return {"controller_cycles": self.cycles, "controller_errors": self.errors,
-                "controller_filtered": self.guard.filtered}
+                "controller_filtered": self.guard.filtered, "controller_slow": self.slow, "fixes": self.fixes}
 
 
 def control_input(*, robot_id: int, time_ns: int, map_odom: Pose2 | None, map_cov: tuple[float, ...] | None,

@@ -26,7 +26,7 @@ from rich.console import Console
 from rich.live import Live
 from rich.table import Table
 
-from tagswarm.agents.controller import load_factory
+from tagswarm.agents.controller import ControllerConfig, load_factory, make
 from tagswarm.evaluation.localised import LOCALISED_M
 from tagswarm.protocol.bus import BusConfig, BusError, open_bus, zenoh_config
 from tagswarm.protocol.keys import Keys
@@ -90,9 +90,11 @@ AGENT_MODULE_ENV = "TAGSWARM_AGENT_MODULE"
 WEAKLY_TIED_SIGMA_M = 0.25
 
 
-def agent_modules(specs: Sequence[str], robot_ids: Sequence[int]) -> dict[int, str]:
+def agent_modules(specs: Sequence[str], robot_ids: Sequence[int], scenario: Scenario | None = None,
+                  run: str = "default") -> dict[int, str]:
     """Robot id -> controller module from ``MODULE[:ROBOTS]`` specs; each module is imported
-    here first, so that a broken one is a one-line error before anything starts."""
+    here first and, given the ``scenario``, its ``make_controller`` called for each of its robots
+    (as the agent will), so that a broken one is a one-line error before anything starts."""
     out: dict[int, str] = {}
     for spec in specs:
         module, robots = spec, ""
@@ -105,7 +107,7 @@ def agent_modules(specs: Sequence[str], robot_ids: Sequence[int]) -> dict[int, s
             raise ConfigError(f"--agent-module {spec}: no module named")
         if module.endswith(".py"):
             module = str(Path(module).resolve())  # the agents resolve it alike, but say which file in their logs
-        load_factory(module)
+        factory = load_factory(module)
         chosen = [int(r) for r in robots.split(",")] if robots else list(robot_ids)
         for rid in chosen:
             if rid not in robot_ids:
@@ -113,6 +115,8 @@ def agent_modules(specs: Sequence[str], robot_ids: Sequence[int]) -> dict[int, s
                                   f"({', '.join(map(str, robot_ids))})")
             if rid in out:
                 raise ConfigError(f"--agent-module {spec}: robot {rid} already has controller {out[rid]}")
+            if scenario is not None:
+                make(factory, ControllerConfig(rid, scenario, run), module)
             out[rid] = module
     return out
 
@@ -323,6 +327,7 @@ def run_up(scenario: Scenario, out: Path, endpoint: str, run: str, *, live: bool
     code = 1 if failure else (130 if stop.is_set() else 0)
     rec.write(out, {"wall_time_s": wall, "exit_code": code, "failure": failure, "endpoint": endpoint,
                     "exit_codes": {c.name: c.proc.returncode for c in children}})
+    _controller_trouble(console, out)
     if report:
         from tagswarm.evaluation.report import write_report
 
@@ -331,6 +336,27 @@ def run_up(scenario: Scenario, out: Path, endpoint: str, run: str, *, live: bool
         _summary(console, metrics)
     console.print(f"run folder: {out}")
     return code
+
+
+def _controller_trouble(console: Console, out: Path) -> None:
+    """Say which robots' own controllers failed or were slow (their agents carried on: counters only)."""
+    try:
+        counters = msgspec.json.decode((out / "run.json").read_bytes()).get("counters", {})
+    except (OSError, msgspec.DecodeError, AttributeError):
+        return
+    notes = []
+    for name, c in sorted(counters.items()):
+        if not (name.startswith("agent/") and isinstance(c, dict)):
+            continue
+        cycles, errors, slow = (int(c.get(k) or 0) for k in ("controller_cycles", "controller_errors",
+                                                               "controller_slow"))
+        if errors:
+            notes.append(f"robot {name[6:]}: {errors} of {cycles} steps failed and stopped the robot "
+                         f"(traceback in logs/agent{name[6:]}.log)")
+        if slow:
+            notes.append(f"robot {name[6:]}: {slow} of {cycles} steps took longer than a control period")
+    if notes:
+        console.print(f"[yellow]your controller: {'; '.join(notes)} (docs/controllers.md)[/]", highlight=False)
 
 
 def _summary(console: Console, metrics: dict[str, Any]) -> None:
@@ -457,15 +483,15 @@ def main(argv: Sequence[str] | None = None) -> int:
             scenario = scenario_for_replay(args.replay, args, env, resolve)
         else:
             scenario = resolve(args, env)
+        # the pid too: two runs started in the same second (a script, a bench) must not share keys
+        run = inv.pick("run", f"up{int(time.time()) % 100000}-{os.getpid()}")
+        Keys(run)
         specs = args.agent_module or [x for x in env.get(AGENT_MODULE_ENV, "").split(";") if x.strip()]
-        controllers = agent_modules(specs, scenario.robot_ids)
+        controllers = agent_modules(specs, scenario.robot_ids, scenario, run)
         if args.record is not None:
             from tagswarm.recording.record import with_recorder
 
             scenario = with_recorder(scenario)  # lockstep: the world waits for the recorder (nothing missed)
-        # the pid too: two runs started in the same second (a script, a bench) must not share keys
-        run = inv.pick("run", f"up{int(time.time()) % 100000}-{os.getpid()}")
-        Keys(run)
         out = args.out or default_out(Path("runs"), datetime.now())
         check_out(out)
         endpoint = (args.listen or [None])[0] or free_endpoint()

@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 import io
+import json
 from pathlib import Path
 from typing import Any
 
 import pytest
 from rich.console import Console
 
-from tagswarm.up import _summary
+from tagswarm.up import _controller_trouble, _summary
 
 
 def _printed(metrics: dict[str, Any]) -> str:
@@ -91,3 +92,21 @@ def test_the_default_run_folder_is_new_even_within_one_second(tmp_path: Path) ->
     check_out(second)  # new: no error
     with pytest.raises(ConfigError, match="already holds files"):
         check_out(first)
+
+
+def test_a_failing_or_slow_own_controller_is_named_and_a_healthy_run_prints_nothing(tmp_path: Path) -> None:
+    def printed(counters: dict[str, Any]) -> str:
+        (tmp_path / "run.json").write_text(json.dumps({"counters": counters}))
+        out = io.StringIO()
+        _controller_trouble(Console(file=out, width=400, color_system=None), tmp_path)
+        return out.getvalue()
+
+    healthy = {"agent/0": {"fixes": 9}, "agent/1": {"controller_cycles": 150, "controller_errors": 0}, "server": {}}
+    assert printed(healthy) == ""
+    text = printed({**healthy, "agent/2": {"controller_cycles": 150, "controller_errors": 75, "controller_slow": 3}})
+    assert "robot 2: 75 of 150 steps failed" in text and "logs/agent2.log" in text
+    assert "robot 2: 3 of 150 steps took longer than a control period" in text and "robot 1" not in text
+    (tmp_path / "run.json").write_text("{not json")
+    out = io.StringIO()
+    _controller_trouble(Console(file=out), tmp_path)  # a run that crashed early: nothing, no traceback
+    assert out.getvalue() == ""

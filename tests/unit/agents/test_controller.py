@@ -93,9 +93,33 @@ def test_a_raising_controller_stops_the_robot_is_counted_and_logged_once(caplog:
         out = [runner.command(_inputs()) for _ in range(6)]
     assert ctrl.calls == 6  # called again after a failure
     assert out[0::2] == [(0.0, 0.0)] * 3 and all(left > 0 and left == right for left, right in out[1::2])
-    assert runner.counters() == {"controller_cycles": 6, "controller_errors": 3, "controller_filtered": 0}
+    counters = runner.counters()
+    assert counters.pop("controller_slow") in range(7)  # wall-clock: a loaded machine may stretch a step
+    assert counters == {"controller_cycles": 6, "controller_errors": 3, "controller_filtered": 0, "fixes": 0}
     errors = [r for r in caplog.records if r.levelno >= logging.ERROR]
     assert len(errors) == 1 and errors[0].exc_info is not None and "RuntimeError" in caplog.text
+
+
+def test_fixes_and_slow_steps_are_counted_and_a_slow_one_logged_once(monkeypatch: pytest.MonkeyPatch,
+                                                                      caplog: pytest.LogCaptureFixture) -> None:
+    """A user's controller gets ``fixes`` counted as the built-in behaviour does (it stayed 0), and a
+    step longer than the control period (1/30 s here) is counted as ``controller_slow``."""
+    clock = [0.0]
+    monkeypatch.setattr("tagswarm.agents.controller.time.perf_counter", lambda: clock[0])
+
+    class Slow(Controller):
+        def step(self, inputs: ControlInput) -> Twist:
+            clock[0] += 0.05 if inputs.t_s >= 2 else 0.01  # 50 ms from the third cycle on, else 10 ms
+            return Twist(0.0, 0.0)
+
+    runner = ControllerRunner(Slow(), _config())
+    with caplog.at_level(logging.WARNING, logger="tagswarm.agent.controller"):
+        for k in range(5):
+            runner.command(_inputs(t_s=float(k), fix=k in (1, 3, 4)))
+    c = runner.counters()
+    assert (c["fixes"], c["controller_slow"], c["controller_cycles"]) == (3, 3, 5)
+    slow = [r for r in caplog.records if "control period" in r.getMessage()]
+    assert len(slow) == 1 and "took 50 ms" in slow[0].getMessage() and "33 ms" in slow[0].getMessage()
 
 
 @pytest.mark.parametrize("bad", [None, (0.1, 0.2), Twist(math.nan, 0.0), WheelSpeeds(1.0, math.inf)])

@@ -116,6 +116,25 @@ def test_up_chooses_robots_per_module(pkg: Path) -> None:
             agent_modules(specs, ids)
 
 
+def test_up_calls_make_controller_for_each_robot_before_anything_starts(pkg: Path) -> None:
+    """A factory that raises or returns no Controller is the same one-line error in ``tagswarm up`` as in
+    the agent (before: the run started, the agents exited 2, and the report was full of nan)."""
+    s = load_scenario("paper", ["robots.count=3"])
+    (pkg / "ctrl_ok.py").write_text(GOOD)
+    (pkg / "ctrl_raises.py").write_text("def make_controller(config):\n    raise RuntimeError('no weights file')\n")
+    (pkg / "ctrl_none.py").write_text("def make_controller(config):\n    return None\n")
+    (pkg / "ctrl_only2.py").write_text(GOOD.replace("    return Spin()", "    assert config.robot_id != 2, 'not 2'\n"
+                                                    "    return Spin()"))
+    assert agent_modules(["ctrl_ok"], s.robot_ids, s) == dict.fromkeys(s.robot_ids, "ctrl_ok")
+    assert agent_modules(["ctrl_only2:0,1"], s.robot_ids, s) == {0: "ctrl_only2", 1: "ctrl_only2"}
+    for spec, message in (("ctrl_raises", "make_controller raised RuntimeError: no weights file"),
+                          ("ctrl_none", "make_controller returned NoneType, not a"),
+                          ("ctrl_only2", "make_controller raised AssertionError: not 2")):
+        with pytest.raises(UsageError, match=f"--agent-module {spec}: {message}"):
+            agent_modules([spec], s.robot_ids, s)
+    assert agent_modules(["ctrl_raises"], s.robot_ids) == dict.fromkeys(s.robot_ids, "ctrl_raises")  # no scenario
+
+
 def test_the_controllers_in_the_docs_load_and_drive(tmp_path: Path) -> None:
     text = (EXAMPLES.parent / "docs" / "controllers.md").read_text()
     blocks = [b.split("```", 1)[0] for b in text.split("```python\n")[1:]]

@@ -36,6 +36,7 @@ from tagswarm.protocol import messages as m
 from tagswarm.protocol.bus import Bus, BusConfig, BusError, open_bus
 from tagswarm.protocol.errors import TagswarmError
 from tagswarm.protocol.keys import ROOT, Keys
+from tagswarm.protocol.layout import map_to_arena_xy, stand_problem
 from tagswarm.recording.runrecorder import RunRecorder
 from tagswarm.runtime.procgroup import Child
 from tagswarm.testing.errors import SwarmError, SwarmProcessDied, SwarmTimeout
@@ -222,7 +223,8 @@ class LiveSwarm:
         relative to this run (``robot/1/odometry``, ``robot/*/correction``, ``server/map``)."""
         full = keyexpr if keyexpr.startswith(f"{ROOT}/") else f"{self.keys.prefix}/{keyexpr.lstrip('/')}"
         try:
-            return Subscription(self.bus, full, newest_only=newest_only)
+            return Subscription(self.bus, full, newest_only=newest_only,
+                                ended=lambda: all(c.poll() is not None for c in self._children.values()))
         except TagswarmError as exc:
             raise SwarmError(f"cannot subscribe to {full!r}: {exc}") from None
         except Exception as exc:  # zenoh rejects a malformed key expression
@@ -257,8 +259,13 @@ class LiveSwarm:
 
     def goto(self, robot: int, x_m: float, y_m: float, tolerance_m: float = 0.1, timeout_s: float = 30.0) -> m.Goal:
         """Send robot ``robot`` to (``x_m``, ``y_m``) in the MAP frame (as ``tagswarm goto``), once its
-        agent is alive; stamped with the current simulated time.  Returns the goal sent."""
+        agent is alive; stamped with the current simulated time.  Returns the goal sent.  A robot not in
+        the run, or a goal where no robot can stand (the agent would refuse it), is a :class:`SwarmError`."""
         goal = make_goal(robot, x_m, y_m, tolerance_m)
+        self._robot(robot)
+        why = stand_problem(self.scenario, *map_to_arena_xy(self.scenario, x_m, y_m))
+        if why is not None:
+            raise SwarmError(f"goto robot {robot} ({x_m:g}, {y_m:g}) (map frame): the agent would refuse it: {why}")
         self._alive(f"agent/{robot}", timeout_s)
         goal = make_goal(robot, x_m, y_m, tolerance_m, self.recorder.sim_ns)
         self.bus.put(self.keys.goal(robot), codec.encode(goal))
@@ -268,15 +275,26 @@ class LiveSwarm:
                  at_s: float | None = None, timeout_s: float = 30.0) -> m.WorldCommand:
         """Move robot ``robot`` to (``x_m``, ``y_m``, ``yaw_rad``) in the ARENA frame without turning its
         wheels (as ``tagswarm kidnap``; ``push``: by that offset), at the world's next step or at the
-        first tick at or after ``at_s`` simulated seconds.  Returns the command sent."""
+        first tick at or after ``at_s`` simulated seconds.  Returns the command sent.  A robot not in the
+        run, or a place where no robot can stand (the world would refuse it), is a :class:`SwarmError`; the
+        world also refuses a place another robot holds then (its counter ``world_command_rejected``)."""
         if at_s is not None and (not math.isfinite(at_s) or at_s < 0):
             raise SwarmError(f"at_s must be a simulated time >= 0, got {at_s!r}")
         make_command(robot, x_m, y_m, yaw_rad, push)
+        self._robot(robot)
+        why = None if push else stand_problem(self.scenario, x_m, y_m)
+        if why is not None:
+            raise SwarmError(f"teleport robot {robot} to ({x_m:g}, {y_m:g}) (arena frame): the world would refuse "
+                             f"it: {why}")
         self._alive("world/0", timeout_s)
         stamp = 0 if at_s is None else stamp_for(at_s, round(1e9 / self.scenario.clock.tick_hz))
         cmd = make_command(robot, x_m, y_m, yaw_rad, push, stamp)
         self.bus.put(self.keys.world_command(), codec.encode(cmd))
         return cmd
+
+    def _robot(self, robot: int) -> None:
+        if robot not in self.scenario.robot_ids:
+            raise SwarmError(f"no robot {robot} in this run (robots {', '.join(map(str, self.scenario.robot_ids))})")
 
     def _alive(self, participant: str, timeout_s: float) -> None:
         if not wait_alive(self.bus, self.keys.alive(participant), timeout_s):

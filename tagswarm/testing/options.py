@@ -143,9 +143,9 @@ class SwarmSpec:
         if clock not in ("lockstep", "realtime"):
             raise SwarmError(f"clock must be 'lockstep' or 'realtime', got {clock!r}")
         if robots is not None and (isinstance(robots, bool) or not isinstance(robots, int) or robots < 1):
-            raise SwarmError(f"robots must be a positive integer, got {robots!r}")
+            raise SwarmScenarioError(f"robots must be a positive integer, got {robots!r}")
         if duration_s is not None and not (isinstance(duration_s, int | float) and 0 < duration_s < math.inf):
-            raise SwarmError(f"duration_s must be a positive number of simulated seconds, got {duration_s!r}")
+            raise SwarmScenarioError(f"duration_s must be a positive number of simulated seconds, got {duration_s!r}")
         modules: list[tuple[int, str]] = []
         for rid, mod in sorted((agent_modules or {}).items()):
             if not isinstance(rid, int) or not isinstance(mod, str) or not mod:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import time
 from collections import deque
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
@@ -10,6 +11,8 @@ from typing import Any
 from tagswarm.protocol import codec
 from tagswarm.protocol.bus import Bus
 from tagswarm.testing.errors import SwarmTimeout
+
+ENDED_GRACE_S = 1.0  # wall seconds a run's messages get to arrive after its last process exited
 
 
 @dataclass(frozen=True)
@@ -29,10 +32,12 @@ class Subscription:
     :func:`tagswarm.protocol.codec.decode_any`); one that does not decode is counted in
     ``rejected``, never delivered.  ``get`` blocks, iterating yields what has arrived so far, ``drain`` takes it all."""
 
-    def __init__(self, bus: Bus, keyexpr: str, *, newest_only: bool = False) -> None:
+    def __init__(self, bus: Bus, keyexpr: str, *, newest_only: bool = False,
+                 ended: Callable[[], bool] | None = None) -> None:
         self.keyexpr = keyexpr
         self.rejected = 0
         self._bus = bus
+        self._ended = ended  # True once every process of the run has exited: nothing more can come
         self._inbox = bus.subscribe(keyexpr, newest_only=newest_only)
         self._ready: deque[Sample] = deque()
 
@@ -58,14 +63,23 @@ class Subscription:
 
     def get(self, timeout_s: float = 30.0, where: Callable[[Sample], bool] | None = None) -> Sample:
         """The next message (the next one ``where`` accepts: the others are dropped), waiting up
-        to ``timeout_s`` wall seconds; :class:`SwarmTimeout` if none comes."""
+        to ``timeout_s`` wall seconds; :class:`SwarmTimeout` if none comes (at once if the run's
+        processes have all exited and nothing is left)."""
+        over = False
+        ended_at: float | None = None
 
         def have() -> bool:
+            nonlocal over, ended_at
+            if ended_at is None and self._ended is not None and self._ended():
+                ended_at = time.monotonic()
             self._pull()
             while self._ready and where is not None and not where(self._ready[0]):
                 self._ready.popleft()
-            return bool(self._ready)
+            # what the processes sent last may still be on its way for a moment after they exited
+            over = ended_at is not None and time.monotonic() - ended_at > ENDED_GRACE_S and not self._ready
+            return bool(self._ready) or over
 
-        if not self._bus.wait_for(have, timeout_s):
-            raise SwarmTimeout(f"no message on {self.keyexpr} within {timeout_s:g} s")
+        if not self._bus.wait_for(have, timeout_s) or over:
+            raise SwarmTimeout(f"no message on {self.keyexpr} "
+                               + ("and the run has ended" if over else f"within {timeout_s:g} s"))
         return self._ready.popleft()

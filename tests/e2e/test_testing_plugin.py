@@ -35,7 +35,7 @@ from pathlib import Path
 
 import pytest
 
-from tagswarm.testing import NetFault
+from tagswarm.testing import NetFault, SwarmError
 
 OUT = Path(os.environ["TSW_OUT"])
 ROBOTS = int(os.environ["TSW_ROBOTS"])
@@ -76,6 +76,11 @@ def test_a_live_swarm(swarm):
         assert first.msg.robot_id == 1 and first.key == f"tagswarm/{{s.run_id}}/robot/1/odometry"
         assert {{e.robot_id for e in s.latest_map(after_s=1.0).robots}} == {{0, 1, 2}}
         _, (x, y, _) = s.recorder.truth[1][-1]  # map frame
+        for bad, why in (((7, x, y), "no robot 7 in this run"), ((1, 40.0, 0.0), "would refuse it: a robot there")):
+            with pytest.raises(SwarmError, match=why):  # said at once, not a timeout later
+                s.goto(*bad)
+        with pytest.raises(SwarmError, match="would not be inside the arena walls"):
+            s.teleport(2, 40.0, 0.0)
         s.goto(1, x, y + 0.4, tolerance_m=0.05)
         s.wait(lambda: math.dist(s.recorder.truth[1][-1][1][:2], (x, y + 0.4)) < 0.1, 120, "robot 1 never arrived")
         cmd = s.teleport(2, 0.3, 0.0, push=True, at_s=round(s.sim_time_s) + 1.0)

@@ -16,7 +16,7 @@ import socket
 import sys
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from datetime import datetime
 from pathlib import Path
 from typing import Any
@@ -125,8 +125,8 @@ class Child(procgroup.Child):
     """One child process (leading its own process group) and its log file; if ``tagswarm up``
     dies without stopping it (SIGKILL, a test's timeout), the reaper takes it down."""
 
-    def __init__(self, name: str, argv: list[str], log: Path, env: dict[str, str] | None = None) -> None:
-        super().__init__(name, argv, log, os.environ if env is None else env)
+    def __init__(self, name: str, argv: list[str], log: Path) -> None:
+        super().__init__(name, argv, log, child_env(os.environ))
         self.log = log
 
     def stop(self, grace_s: float = 10.0) -> None:
@@ -254,17 +254,15 @@ def run_up(scenario: Scenario, out: Path, endpoint: str, run: str, *, live: bool
             journal.unlink(missing_ok=True)
             children.append(Child("server", [*_script("tagswarm-server"), *common, *client, "--journal",
                                              str(journal)], logs / "server.log"))
-            # which agents run a user's controller is up's choice alone: not the environment's
-            agent_env = {k: v for k, v in os.environ.items() if k != AGENT_MODULE_ENV}
             for rid in scenario.robot_ids:
                 own = ["--agent-module", controllers[rid]] if controllers and rid in controllers else []
                 children.append(Child(f"agent/{rid}", [*_script("tagswarm-agent"), *common, *client,
-                                                       "--robot-id", str(rid), *own], logs / f"agent{rid}.log",
-                                      env=agent_env))
+                                                       "--robot-id", str(rid), *own], logs / f"agent{rid}.log"))
             # a replay plays the world; it also waits for this process's token (up/0) so the run folder
             # misses nothing
             world_cmd = [sys.executable, "-m", "tagswarm.recording.replay", str(replay), "--lockstep",
-                         "--wait-for", "up/0"] if replay else _script("tagswarm-world")
+                         "--wait-for", "up/0", "--duration", repr(_replay_end_s(scenario))] if replay \
+                else _script("tagswarm-world")
             if view is not None:  # a read-only tool: never impaired by child_args, it sees what the run publishes
                 view_child = Child("view", [sys.executable, "-m", "tagswarm.view.view", "--scenario",
                                             str(scen_file), "--run", run, *client, "--port", str(view)],
@@ -336,6 +334,12 @@ def run_up(scenario: Scenario, out: Path, endpoint: str, run: str, *, live: bool
         _summary(console, metrics)
     console.print(f"run folder: {out}")
     return code
+
+
+def _replay_end_s(scenario: Scenario) -> float:
+    """How much of a recording ``up --replay`` plays: as far as a world would run for the scenario's
+    duration (its last step is the first one past the duration)."""
+    return scenario.duration_s + 1.5 / scenario.clock.tick_hz
 
 
 def _controller_trouble(console: Console, out: Path) -> None:
@@ -436,16 +440,31 @@ class _Null:
         return None
 
 
-def net_flags(args: Any) -> list[str]:
-    """The fault-injection and Zenoh lease flags given to ``up``, for its children (the
-    environment variables reach them anyway); ``up``'s own recorder is never impaired."""
+def net_flags(net: BusConfig, log_level: str | None = None) -> list[str]:
+    """The fault-injection, Zenoh lease and log-level settings ``up`` resolved (flags over
+    ``TAGSWARM_*``), as flags for its children, whose environment holds no ``TAGSWARM_*`` (see
+    :func:`child_env`); ``up``'s own recorder is never impaired."""
+    default = BusConfig()
     out: list[str] = []
-    for flag in ("net_loss", "net_delay_ms", "net_jitter_ms", "net_seed", "zenoh_lease_ms"):
-        if getattr(args, flag, None) is not None:
-            out += ["--" + flag.replace("_", "-"), str(getattr(args, flag))]
-    for key in getattr(args, "net_fault_keys", None) or []:
+    for flag, value, base in (("--net-loss", net.loss, default.loss),
+                              ("--net-delay-ms", net.delay_ms, default.delay_ms),
+                              ("--net-jitter-ms", net.jitter_ms, default.jitter_ms),
+                              ("--net-seed", net.fault_seed, default.fault_seed),
+                              ("--zenoh-lease-ms", net.lease_ms, default.lease_ms)):
+        if value != base:
+            out += [flag, str(value)]
+    for key in net.fault_keys:
         out += ["--net-fault-keys", key]
+    if log_level is not None:
+        out += ["--log-level", log_level]
     return out
+
+
+def child_env(environ: Mapping[str, str]) -> dict[str, str]:
+    """The children's environment: ours without ``TAGSWARM_*``.  ``up`` resolved the run's settings
+    (scenario file < environment < flags) into the scenario file and flags it gives them; a child
+    reading a variable again would put it above ``up``'s own flags, unlike what the run folder says."""
+    return {k: v for k, v in environ.items() if not k.startswith("TAGSWARM_") or k == "TAGSWARM_VIEW_HOST"}
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -463,6 +482,11 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise ConfigError(f"--view: port must be 1..65535, got {args.view}")
         if args.record is not None and not args.record.parent.is_dir():
             raise ConfigError(f"--record: no such directory {str(args.record.parent)!r}")
+        if args.record is not None and args.record.exists():
+            same = args.replay is not None and args.record.resolve() == args.replay.resolve()
+            raise ConfigError(f"--record {str(args.record)!r}: " + (
+                "is the recording --replay reads; record the replay to another file" if same else
+                "exists already; remove it or name another file (a recording is never overwritten)"))
         for flag in ("connect", "zenoh_mode", "zenoh_user", "zenoh_password_file"):
             if getattr(args, flag, None):
                 raise ConfigError(f"--{flag.replace('_', '-')}: not used by tagswarm up, which is its run's Zenoh "
@@ -501,7 +525,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         try:
             return run_up(scenario, out, endpoint, run, live=not args.no_live and sys.stdout.isatty(),
                           report=not args.no_report, stop=stop, console=Console(), record=args.record,
-                          replay=args.replay, child_args=net_flags(args), view=args.view,
+                          replay=args.replay, child_args=net_flags(net, inv.pick("log_level")), view=args.view,
                           controllers=controllers, zenoh_config_file=net.config_file)
         finally:
             signal.signal(signal.SIGINT, previous)

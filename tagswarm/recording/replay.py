@@ -112,22 +112,35 @@ def scenario_for_replay(recording: Path, args: argparse.Namespace, env: dict[str
     ``--clock`` says otherwise."""
     if args.clock is None and "TAGSWARM_CLOCK" not in env:
         args.clock = "lockstep"
-    if args.scenario is not None or "TAGSWARM_SCENARIO" in env:
-        return resolve(args, env)
     try:
-        table = recorded_scenario(recording)
+        topics = raw_topics(recording)
+        table = None if args.scenario is not None or "TAGSWARM_SCENARIO" in env else recorded_scenario(recording)
     except RecordingError as exc:
         raise ConfigError(f"--replay: {exc}") from None
     if table is None:
-        raise ConfigError(f"--replay: {recording} holds no scenario; name it with --scenario")
-    with tempfile.TemporaryDirectory(prefix="tagswarm-replay-") as tmp:
-        path = Path(tmp) / "recorded-scenario.json"
-        path.write_bytes(msgspec.json.encode(table))
-        args.scenario = str(path)
-        try:
-            return resolve(args, env)
-        finally:
-            args.scenario = None
+        if args.scenario is None and "TAGSWARM_SCENARIO" not in env:
+            raise ConfigError(f"--replay: {recording} holds no scenario; name it with --scenario")
+        scenario = resolve(args, env)
+    else:
+        with tempfile.TemporaryDirectory(prefix="tagswarm-replay-") as tmp:
+            path = Path(tmp) / "recorded-scenario.json"
+            path.write_bytes(msgspec.json.encode(table))
+            args.scenario = str(path)
+            try:
+                scenario = resolve(args, env)
+            finally:
+                args.scenario = None
+    if scenario.clock.mode != "lockstep":
+        raise ConfigError("--replay plays the recording in lockstep (its processes acknowledge every tick); "
+                          f"clock.mode {scenario.clock.mode!r} cannot be replayed: leave --clock out, or play the "
+                          "recording with tagswarm replay --speed X to processes of your own")
+    recorded = sorted({rid for t in topics if is_world_stream(t) and t.endswith("/encoders")
+                       for rid in [Keys(run_of(t) or "x").robot_id_of(t)] if rid is not None})
+    if recorded and list(scenario.robot_ids) != recorded:
+        raise ConfigError(f"--replay: the recording holds robots {', '.join(map(str, recorded))}, the scenario "
+                          f"robots {', '.join(map(str, scenario.robot_ids))}: --robots and --scenario must "
+                          "match the recording (its scenario is used when --scenario is left out)")
+    return scenario
 
 
 class Replayer:

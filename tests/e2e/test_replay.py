@@ -137,6 +137,32 @@ def test_a_replay_with_other_settings_sees_no_wheel_slip(recorded: tuple[Path, P
         assert c["frames_received"] == o["frames_received"] > 190 and c["fixes"] > 50  # the whole replay
 
 
+@pytest.mark.parametrize(("extra", "says"), [
+    (["--clock", "realtime"], "plays the recording in lockstep"),  # hung at x0.04 with ack timeouts
+    (["--robots", "2"], "the recording holds robots 0, 1, 2, the scenario robots 0, 1"),
+    (["--scenario", "hall"], "the recording holds robots 0, 1, 2, the scenario robots 0, 1, 2, 3, 4, 5"),
+    (["--record", "{rec}"], "is the recording --replay reads"),  # it truncated the recording
+    (["--record", "{other}"], "exists already"),
+])
+def test_a_replay_that_cannot_match_its_recording_is_refused(recorded: tuple[Path, Path], tmp_path: Path,
+                                                              extra: list[str], says: str) -> None:
+    other = tmp_path / "other.mcap"
+    other.write_bytes(b"keep me")
+    size = recorded[1].stat().st_size
+    args = [a.replace("{rec}", str(recorded[1])).replace("{other}", str(other)) for a in extra]
+    res = subprocess.run([script("tagswarm"), "up", "--replay", str(recorded[1]), *args, "--out", str(tmp_path / "run"),
+                          "--no-live"], capture_output=True, text=True, timeout=60)
+    assert res.returncode == 2 and says in res.stderr and res.stderr.count("\n") == 1, res.stderr
+    assert recorded[1].stat().st_size == size and other.read_bytes() == b"keep me"
+    assert not (tmp_path / "run").exists()
+
+
+def test_a_replay_stops_at_the_duration_asked(recorded: tuple[Path, Path], tmp_path: Path) -> None:
+    _up("--replay", str(recorded[1]), "--duration", "4", "--out", str(tmp_path / "run"), "--no-live", "--no-report")
+    info = json.loads((tmp_path / "run" / "run.json").read_text())
+    assert 4.0 < info["sim_time_s"] < 4.05  # as a world run of 4 s ends; the recording holds 20 s, all replayed before
+
+
 def _publish(bus: Bus, key: str, msg: m.Msg) -> None:
     bus.put(key, codec.encode(msg))
 

@@ -293,8 +293,17 @@ def test_world_main_bad_env(capsys: pytest.CaptureFixture[str]) -> None:
 
 
 def test_up_forwards_the_lease_and_fault_flags_to_its_children() -> None:
-    from tagswarm.up import net_flags, parser
+    from tagswarm.runtime.config import bus_from
+    from tagswarm.up import child_env, net_flags, parser
 
     args = parser().parse_args(["--zenoh-lease-ms", "2500", "--net-loss", "0.1", "--net-fault-keys", "a/**"])
-    assert net_flags(args) == ["--net-loss", "0.1", "--zenoh-lease-ms", "2500", "--net-fault-keys", "a/**"]
-    assert net_flags(parser().parse_args([])) == []
+    want = ["--net-loss", "0.1", "--zenoh-lease-ms", "2500", "--net-fault-keys", "a/**"]
+    assert net_flags(bus_from(args, {})) == want
+    assert net_flags(bus_from(parser().parse_args([]), {})) == []
+    # the environment is resolved by up (a flag beats it) and reaches the children as flags, never as variables
+    env = {"TAGSWARM_NET_LOSS": "0.3", "TAGSWARM_NET_DELAY_MS": "20", "TAGSWARM_DURATION": "4", "PATH": "/bin",
+           "TAGSWARM_SET": "agent.max_speed_m_s=0.05", "TAGSWARM_VIEW_HOST": "0.0.0.0"}
+    args = parser().parse_args(["--net-loss", "0.1"])
+    assert net_flags(bus_from(args, env), "DEBUG") == ["--net-loss", "0.1", "--net-delay-ms", "20.0",
+                                                       "--log-level", "DEBUG"]
+    assert child_env(env) == {"PATH": "/bin", "TAGSWARM_VIEW_HOST": "0.0.0.0"}

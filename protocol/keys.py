@@ -7,6 +7,7 @@ Layout (``<run>`` isolates runs sharing one network)::
     tagswarm/<run>/world/render/<worker>            RenderPoses (world -> worker)
     tagswarm/<run>/world/status                     AgentStatus of the world
     tagswarm/<run>/world/command                    WorldCommand (teleport / push a robot)
+    tagswarm/<run>/world/applied                    WorldCommand (one the world applied, stamped then)
     tagswarm/<run>/robot/<id>/camera/<name>         CameraImage
     tagswarm/<run>/robot/<id>/encoders              EncoderTicks
     tagswarm/<run>/robot/<id>/cmd                   WheelCommand
@@ -86,6 +87,10 @@ class Keys:
 
     def world_command(self) -> str:
         return f"{self.prefix}/world/command"
+
+    def world_applied(self) -> str:
+        """Each intervention (world command or scenario event) the world applied, at the step it did."""
+        return f"{self.prefix}/world/applied"
 
     # -- robots --------------------------------------------------------------
     def robot(self, robot_id: int) -> str:

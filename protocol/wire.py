@@ -119,6 +119,9 @@ KEYS: Final[tuple[KeySpec, ...]] = (
             "render worker <worker>", "only with render.workers > 0"),
     KeySpec(lambda k: k.world_status(), (), m.AgentStatus, "block", "world", "tools", "about once a second"),
     KeySpec(lambda k: k.world_command(), (), m.WorldCommand, "block", "operator (tagswarm kidnap)", "world"),
+    KeySpec(lambda k: k.world_applied(), (), m.WorldCommand, "block", "world", "tools",
+            "each teleport or push the world applied (a command or a scenario event), stamped with its step; "
+            "refused ones never appear"),
     KeySpec(lambda k: k.images(), ("<id>", "<name>"), m.CameraImage, "drop_realtime", "world or render worker",
             "agent <id>, tools", "one key per camera of the robot"),
     KeySpec(lambda k: k.encoders(), ("<id>",), m.EncoderTicks, "block", "world", "agent <id>"),

@@ -133,6 +133,9 @@ class WorldNode:
                 self._refuse(f"{iv.describe()}: {exc}")
                 continue
             self.counters["world_events" if iv.from_event else "world_commands"] += 1
+            key = self.keys.world_applied()
+            self._publish(key, m.WorldCommand(seq=self.seq.next(key), stamp_ns=self.time_ns, robot_id=iv.robot_id,
+                                              action=iv.action, x_m=iv.x_m, y_m=iv.y_m, yaw_rad=iv.yaw_rad))
             log.info("t=%.3f s (step %d) %s: now at (%.3f, %.3f, %.3f rad)", self.time_ns / 1e9,
                      self.sim.step_index, iv.describe(), st.x_m, st.y_m, st.yaw_rad)
 

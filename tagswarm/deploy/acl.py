@@ -122,8 +122,8 @@ def grants(keys: Keys, robot_ids: Sequence[int]) -> dict[str, Grant]:
     render_all = _siblings(keys.render(0))
     out = {
         WORLD: Grant(
-            put=(keys.tick(), keys.world_status(), render_all, keys.images(), keys.encoders(), keys.truth(),
-                 _siblings(keys.ack("render/0"))),
+            put=(keys.tick(), keys.world_status(), keys.world_applied(), render_all, keys.images(), keys.encoders(),
+                 keys.truth(), _siblings(keys.ack("render/0"))),
             sub=(keys.cmd(), keys.world_command(), keys.acks(), render_all),
             token=(keys.alive("world/0"), _siblings(keys.alive("render/0"))),
             watch=(keys.alive_all(),)),

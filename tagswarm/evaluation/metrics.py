@@ -32,8 +32,9 @@ Inputs (the run folder contract)
 robot k was never localised: its fused metrics are ``null``.  Optional (older run
 folders lack them; formats in :mod:`tagswarm.evaluation.runformat`):
 ``trajectories/fused_cov_<k>.csv`` (the published fused covariance),
-``relocalisations.csv`` (the server's re-localisation events) and
-``world_commands.csv`` (kidnaps sent on the network).
+``relocalisations.csv`` (the server's re-localisation events),
+``world_commands.csv`` (kidnaps sent on the network) and ``interventions.csv`` (the
+teleports and pushes the world applied).
 
 "Localised" at time t (used by ``time_localised`` and ``time_to_relocalise_s``):
 the newest fused estimate at or before t is at most ``localised_hold_s`` old and
@@ -157,10 +158,14 @@ the true initial pose, so its error is pure drift).
   ``"observers"`` (robot ids, -1 = a landmark), ``"error_before_m"``,
   ``"error_after_m"}`` (fused position error of the newest sample strictly before
   and the oldest strictly after the event; ``null`` if none).
-- ``kidnaps``: every kidnap, in time order: scheduled ones (``run.json``
-  ``scenario.events`` with ``action`` teleport or push) and recorded world
-  commands (``world_commands.csv``, at their ``stamp_ns``, or their arrival time
-  if stamped 0; a command within 0.5 s of a scheduled event of the same robot is
+- ``kidnaps``: every kidnap the world applied (``interventions.csv``), in time
+  order, at the step it applied it (a refused command, or an event due after the
+  end, is none: a warning counts them); an application within 0.5 s after a
+  scheduled event of the same robot is that event.  Run folders older than
+  ``interventions.csv``: scheduled ones (``run.json`` ``scenario.events`` with
+  ``action`` teleport or push) and recorded world commands
+  (``world_commands.csv``, at their ``stamp_ns``, or their arrival time if
+  stamped 0; a command within 0.5 s of a scheduled event of the same robot is
   that event).  ``{"t_s", "robot", "action", "source"`` ("scenario" or
   "command"), ``"displacement_m"`` (the largest step of the true path within
   [t - 0.1 s, t + 1 s]: the world applies a command at its next step; ``null``

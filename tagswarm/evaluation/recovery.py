@@ -221,9 +221,11 @@ def _num(v: Any) -> float | None:
 
 
 def kidnaps_of(run: RunData, warnings: list[str]) -> list[Kidnap]:
-    """Scheduled kidnaps (``run.json`` ``scenario.events``) and recorded world commands,
-    a command within :data:`KIDNAP_MERGE_S` of a scheduled event of the same robot
-    counting as that event; in time order."""
+    """The interventions the world applied (``interventions.csv``), at the step it applied them, an
+    application within :data:`KIDNAP_MERGE_S` after a scheduled event of the same robot being that
+    event; in time order.  A run folder older than that file: the scheduled kidnaps (``run.json``
+    ``scenario.events``) and the recorded world commands, a command within :data:`KIDNAP_MERGE_S` of a
+    scheduled event of the same robot counting as that event."""
     scenario = run.info.get("scenario")
     raw = scenario.get("events") if isinstance(scenario, dict) else None
     found: list[Kidnap] = []
@@ -236,7 +238,16 @@ def kidnaps_of(run: RunData, warnings: list[str]) -> list[Kidnap]:
             continue
         found.append(Kidnap(at, robot, str(action), "scenario"))
     scheduled = list(found)
-    for c in run.world_commands:
+    if run.applied is not None:  # what the world did, at the step it did it: refused ones never count
+        applied = [Kidnap(a.stamp_s, a.robot, a.action, "scenario" if any(
+            k.robot == a.robot and -1e-3 <= a.stamp_s - k.t_s <= KIDNAP_MERGE_S for k in scheduled) else "command")
+                   for a in run.applied]
+        refused = len(scheduled) + len(run.world_commands) - len(applied)
+        if refused > 0:
+            warnings.append(f"{refused} kidnap(s) asked for were not applied by the world (refused, or due after "
+                            "the end of the run): see the world's log")
+        found = applied
+    for c in ([] if run.applied is not None else run.world_commands):
         t = c.stamp_s if c.stamp_s > 0 else c.received_s  # a tool that does not know the sim time stamps 0
         if any(k.robot == c.robot and abs(k.t_s - t) <= KIDNAP_MERGE_S for k in scheduled):
             continue

@@ -31,7 +31,12 @@ from evo.core.trajectory import PoseTrajectory3D
 from evo.tools import file_interface
 from numpy.typing import NDArray
 
-from tagswarm.evaluation.runformat import FUSED_COV_HEADER, RELOC_HEADER, WORLD_COMMANDS_HEADER
+from tagswarm.evaluation.runformat import (
+    FUSED_COV_HEADER,
+    INTERVENTIONS_HEADER,
+    RELOC_HEADER,
+    WORLD_COMMANDS_HEADER,
+)
 from tagswarm.protocol.errors import UsageError
 
 F64 = NDArray[np.float64]
@@ -126,6 +131,8 @@ class RunData:
     fused_cov: dict[int, CovTrack | None] = field(default_factory=dict)
     relocalisations: list[RelocEvent] = field(default_factory=list)
     world_commands: list[WorldCommandRow] = field(default_factory=list)
+    #: the interventions the world applied (``interventions.csv``); None for a run folder older than it
+    applied: list[WorldCommandRow] | None = None
 
     def estimate(self, kind: str, robot: int) -> PoseTrajectory3D | None:
         """The ``kind`` ("fused"/"odom") trajectory of ``robot``."""
@@ -251,6 +258,23 @@ def read_world_commands(path: Path) -> list[WorldCommandRow]:
     return sorted(out, key=lambda c: (c.stamp_s, c.robot))
 
 
+def read_interventions(path: Path) -> list[WorldCommandRow] | None:
+    """``interventions.csv`` (header :data:`~tagswarm.evaluation.runformat.INTERVENTIONS_HEADER`), sorted by
+    time, as rows received when applied; None if the run folder has no such file (older than it)."""
+    if not path.is_file():
+        return None
+    out = []
+    for i, r in enumerate(_read_csv(path, INTERVENTIONS_HEADER, []), start=2):
+        action = (r["action"] or "").strip()
+        if action not in ("teleport", "push"):
+            raise RunFolderError(f"{path}:{i}: action must be teleport or push, got {action!r}")
+        t = _int(r["stamp_ns"], path, i, "stamp_ns") / 1e9
+        out.append(WorldCommandRow(t, _int(r["robot_id"], path, i, "robot_id"), action,
+                                   _float(r["x_m"], path, i, "x_m"), _float(r["y_m"], path, i, "y_m"),
+                                   _float(r["yaw_rad"], path, i, "yaw_rad"), t))
+    return sorted(out, key=lambda c: (c.stamp_s, c.robot))
+
+
 def read_fused_cov(path: Path) -> CovTrack | None:
     """``fused_cov_<k>.csv`` (header :data:`~tagswarm.evaluation.runformat.FUSED_COV_HEADER`), sorted by
     time, or ``None`` if the file is missing or has no row."""
@@ -297,4 +321,5 @@ def load_run(run_dir: Path) -> RunData:
         fused_cov={k: read_fused_cov(traj_dir / f"fused_cov_{k}.csv") for k in robots},
         relocalisations=read_relocalisations(run_dir / "relocalisations.csv"),
         world_commands=read_world_commands(run_dir / "world_commands.csv"),
+        applied=read_interventions(run_dir / "interventions.csv"),
     )

@@ -13,6 +13,9 @@ importing either's dependencies (Zenoh on one side, evo on the other).
   :class:`~tagswarm.protocol.messages.WorldCommand` messages seen on the network (kidnaps:
   teleport to / push by (x_m, y_m, yaw_rad), ARENA frame); ``received_ns`` is the
   recorder's simulation time when it arrived (a tool may stamp 0).
+- ``interventions.csv`` (:data:`INTERVENTIONS_HEADER`): what the world applied of them and of
+  the scenario's ``[[events]]`` (``world/applied``), stamped with the step it applied them at;
+  refused ones are not in it.  Its absence marks a run folder older than it.
 """
 
 from __future__ import annotations
@@ -23,3 +26,4 @@ FUSED_COV_HEADER: Final = ("stamp_ns", *(f"c{i}{j}" for i in range(3) for j in r
 RELOC_HEADER: Final = ("stamp_ns", "robot_id", "jump_m", "from_x_m", "from_y_m", "from_yaw_rad", "to_x_m", "to_y_m",
                        "to_yaw_rad", "evidence", "observers")
 WORLD_COMMANDS_HEADER: Final = ("stamp_ns", "robot_id", "action", "x_m", "y_m", "yaw_rad", "received_ns")
+INTERVENTIONS_HEADER: Final = ("stamp_ns", "robot_id", "action", "x_m", "y_m", "yaw_rad")

@@ -22,7 +22,12 @@ from typing import Any
 
 import msgspec
 
-from tagswarm.evaluation.runformat import FUSED_COV_HEADER, RELOC_HEADER, WORLD_COMMANDS_HEADER
+from tagswarm.evaluation.runformat import (
+    FUSED_COV_HEADER,
+    INTERVENTIONS_HEADER,
+    RELOC_HEADER,
+    WORLD_COMMANDS_HEADER,
+)
 from tagswarm.protocol import codec
 from tagswarm.protocol import messages as m
 from tagswarm.protocol.bus import Bus
@@ -55,6 +60,7 @@ class RunRecorder:
             "tick": bus.subscribe(keys.tick(), newest_only=True),
             "reloc": bus.subscribe(keys.relocalisation()),
             "wcmd": bus.subscribe(keys.world_command()),
+            "applied": bus.subscribe(keys.world_applied()),
         }
         self.truth: dict[int, list[tuple[int, Pose2]]] = defaultdict(list)
         self.odom: dict[int, list[tuple[int, Pose2]]] = defaultdict(list)
@@ -63,6 +69,7 @@ class RunRecorder:
         self.relocalisations: list[m.Relocalisation] = []
         #: (command, simulation time of its arrival here in ns: a tool may not know the sim time)
         self.world_commands: list[tuple[m.WorldCommand, int]] = []
+        self.applied: list[m.WorldCommand] = []  # what the world applied of them and of the events
         self.observations: list[tuple[int, int, str, int, float, float, float]] = []
         self.modes: list[tuple[int, int, str]] = []
         self.counters: dict[str, dict[str, int]] = {}
@@ -119,6 +126,10 @@ class RunRecorder:
             wc = self._decode(m.WorldCommand, it.value)
             if wc is not None and self._known(wc.robot_id):
                 self.world_commands.append((wc, self.sim_ns))
+        for it in ib["applied"].drain():
+            wc = self._decode(m.WorldCommand, it.value)
+            if wc is not None and self._known(wc.robot_id):
+                self.applied.append(wc)
         for name in ("status", "world", "server"):
             for it in ib[name].drain():
                 st = self._decode(m.AgentStatus, it.value, it.key if name == "status" else None)
@@ -163,7 +174,7 @@ class RunRecorder:
 
     def write(self, run_dir: Path, info: dict[str, Any]) -> None:
         """Write trajectories (with ``fused_cov_<k>.csv``), observations.csv, modes.csv,
-        relocalisations.csv, world_commands.csv and run.json."""
+        relocalisations.csv, world_commands.csv, interventions.csv and run.json."""
         traj = run_dir / "trajectories"
         traj.mkdir(parents=True, exist_ok=True)
         for rid in self.s.robot_ids:
@@ -201,6 +212,11 @@ class RunRecorder:
             w.writerow(WORLD_COMMANDS_HEADER)
             w.writerows([c.stamp_ns, c.robot_id, c.action, f"{c.x_m:.6f}", f"{c.y_m:.6f}", f"{c.yaw_rad:.6f}", rx]
                         for c, rx in sorted(self.world_commands, key=lambda e: (e[0].stamp_ns, e[0].robot_id)))
+        with open(run_dir / "interventions.csv", "w", newline="") as f:
+            w = csv.writer(f)
+            w.writerow(INTERVENTIONS_HEADER)
+            w.writerows([c.stamp_ns, c.robot_id, c.action, f"{c.x_m:.6f}", f"{c.y_m:.6f}", f"{c.yaw_rad:.6f}"]
+                        for c in sorted(self.applied, key=lambda c: (c.stamp_ns, c.robot_id)))
         run = {"scenario": msgspec.to_builtins(self.s), "robots": list(self.s.robot_ids),
                "origin_id": self.s.map.origin_id, "clock": self.s.clock.mode, "sim_time_s": self.sim_ns / 1e9,
                "counters": self.counters,

@@ -16,7 +16,12 @@ import pytest
 from tagswarm.evaluation.covframe import position_cov_in_map
 from tagswarm.evaluation.metrics import RunFolderError, compute_metrics, load_run
 from tagswarm.evaluation.recovery import sigma_median
-from tagswarm.evaluation.runformat import FUSED_COV_HEADER, RELOC_HEADER, WORLD_COMMANDS_HEADER
+from tagswarm.evaluation.runformat import (
+    FUSED_COV_HEADER,
+    INTERVENTIONS_HEADER,
+    RELOC_HEADER,
+    WORLD_COMMANDS_HEADER,
+)
 from tagswarm.protocol import codec
 from tagswarm.protocol import messages as m
 from tagswarm.protocol.bus import Inbox
@@ -174,6 +179,25 @@ def test_recorded_world_commands_are_kidnaps_and_merge_with_scheduled_ones(tmp_p
     ks = compute_metrics(run)["kidnaps"]
     assert [(k["t_s"], k["robot"], k["source"]) for k in ks] == [(5.0, 1, "scenario"), (8.5, 2, "command")]
     assert ks[1]["displacement_m"] == pytest.approx(1.5, abs=1e-9)
+
+
+def test_only_what_the_world_applied_is_a_kidnap_at_the_step_it_applied_it(tmp_path: Path) -> None:
+    """A run folder with interventions.csv: refused commands, an event due after the end and a command
+    whose ``at_s`` had passed count as the world applied them (they were all kidnaps at their asked time)."""
+    run = kidnap_run(tmp_path, scenario=scheduled((5.0, 1, "teleport"), (30.0, 2, "push")))
+    # robot 2's push sent for 1.0 s when it was 8.4 s: applied at 8.5 s; two refused teleports
+    write_commands(run, [(1.0, 2, "push", 8.4), (0.0, 1, "teleport", 6.0), (0.0, 2, "teleport", 7.0)])
+    lines = [",".join(INTERVENTIONS_HEADER), f"{round(5.0 * 1e9)},1,teleport,2.0,0.0,0.0",
+             f"{round(8.5 * 1e9)},2,push,1.5,0.0,0.0"]
+    (run / "interventions.csv").write_text("\n".join(lines) + "\n")
+    m = compute_metrics(run)
+    ks = m["kidnaps"]
+    assert [(k["t_s"], k["robot"], k["source"]) for k in ks] == [(5.0, 1, "scenario"), (8.5, 2, "command")]
+    assert ks[1]["displacement_m"] == pytest.approx(1.5, abs=1e-9)  # at 1.0 s it read ~0: nothing had moved
+    assert m["swarm"]["kidnaps"]["count"] == 2
+    assert any("3 kidnap(s) asked for were not applied" in w for w in m["warnings"]), m["warnings"]
+    (run / "interventions.csv").write_text(",".join(INTERVENTIONS_HEADER) + "\n")  # nothing applied at all
+    assert compute_metrics(run)["kidnaps"] == []
 
 
 def test_no_events_no_kidnaps_and_bad_rows_are_named(tmp_path: Path) -> None:

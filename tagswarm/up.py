@@ -28,6 +28,7 @@ from rich.table import Table
 
 from tagswarm.agents.controller import ControllerConfig, load_factory, make
 from tagswarm.evaluation.localised import LOCALISED_M
+from tagswarm.evaluation.runsummary import controller_trouble
 from tagswarm.protocol.bus import BusConfig, BusError, open_bus, zenoh_config
 from tagswarm.protocol.keys import Keys
 from tagswarm.protocol.scenario import Scenario
@@ -325,7 +326,8 @@ def run_up(scenario: Scenario, out: Path, endpoint: str, run: str, *, live: bool
     code = 1 if failure else (130 if stop.is_set() else 0)
     rec.write(out, {"wall_time_s": wall, "exit_code": code, "failure": failure, "endpoint": endpoint,
                     "exit_codes": {c.name: c.proc.returncode for c in children}})
-    _controller_trouble(console, out)
+    if not report:  # else it is among the report's warnings, printed below
+        _controller_trouble(console, out)
     if report:
         from tagswarm.evaluation.report import write_report
 
@@ -348,19 +350,8 @@ def _controller_trouble(console: Console, out: Path) -> None:
         counters = msgspec.json.decode((out / "run.json").read_bytes()).get("counters", {})
     except (OSError, msgspec.DecodeError, AttributeError):
         return
-    notes = []
-    for name, c in sorted(counters.items()):
-        if not (name.startswith("agent/") and isinstance(c, dict)):
-            continue
-        cycles, errors, slow = (int(c.get(k) or 0) for k in ("controller_cycles", "controller_errors",
-                                                               "controller_slow"))
-        if errors:
-            notes.append(f"robot {name[6:]}: {errors} of {cycles} steps failed and stopped the robot "
-                         f"(traceback in logs/agent{name[6:]}.log)")
-        if slow:
-            notes.append(f"robot {name[6:]}: {slow} of {cycles} steps took longer than a control period")
-    if notes:
-        console.print(f"[yellow]your controller: {'; '.join(notes)} (docs/controllers.md)[/]", highlight=False)
+    for note in controller_trouble(counters):
+        console.print(f"[yellow]{note} (docs/controllers.md)[/]", highlight=False)
 
 
 def _summary(console: Console, metrics: dict[str, Any]) -> None:
@@ -409,7 +400,7 @@ def _summary(console: Console, metrics: dict[str, Any]) -> None:
                       "the origin robot, so their poses swing within that σ; more robots in sight of each other, "
                       "landmarks or a finer camera help (README, 'Your own scene')[/]", highlight=False)
     for w in metrics.get("warnings", []):
-        if "heard nothing from" in w:
+        if "heard nothing from" in w or "'s controller: " in w or "not applied by the world" in w:
             console.print(f"[yellow]warning: {w}[/]", highlight=False)
 
 

@@ -174,7 +174,9 @@ the true initial pose, so its error is pure drift).
   reaching that far; ``null`` if never), ``"first_relocalisation_s"`` (from the
   kidnap to the robot's first re-localisation event at or after it; ``null`` if
   none)}``.
-- ``warnings``: human-readable notes about missing or unusable inputs.
+- ``warnings``: human-readable notes about missing or unusable inputs, sources
+  the recorder lost, kidnaps not applied, and robots whose own controller failed
+  or was slow (``controller_errors`` / ``controller_slow`` in ``run.json``).
 """
 
 from __future__ import annotations
@@ -209,7 +211,14 @@ from tagswarm.evaluation.runfolder import (
     read_observations,
     read_tum,
 )
-from tagswarm.evaluation.runsummary import cost, mode_durations, robot_behaviour, silent_sources, swarm_behaviour
+from tagswarm.evaluation.runsummary import (
+    controller_trouble,
+    cost,
+    mode_durations,
+    robot_behaviour,
+    silent_sources,
+    swarm_behaviour,
+)
 from tagswarm.evaluation.trajerror import (
     ASSOC_MAX_DIFF_S,
     KINDS,
@@ -274,6 +283,7 @@ def evaluate(run: RunData) -> Evaluation:
         costs.update(_rendered_by_workers(run))
     events = recovery_metrics(run, tracks, robots_out, swarm, KINDS, warnings)
     silent = silent_sources(run.info, warnings)
+    warnings.extend(controller_trouble(run.info.get("counters")))
 
     dist = error_vs_distance(run, tracks)
     metrics: dict[str, Any] = {

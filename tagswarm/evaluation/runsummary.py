@@ -85,6 +85,30 @@ def robot_behaviour(run: RunData, warnings: list[str]) -> dict[int, dict[str, An
 SILENT_AFTER_S = 2.0
 
 
+def controller_trouble(counters: Any) -> list[str]:
+    """One note per robot whose own controller (``--agent-module``) failed or was slow, from the
+    agents' counters (``run.json`` ``counters``): ``controller_errors`` (steps that raised or
+    returned no finite command; the robot got a zero command) and ``controller_slow`` (steps longer
+    than a control period).  The agent carries on in both cases, so only these counters tell."""
+    notes = []
+    for name, c in sorted(_dict(counters).items()):
+        if not (str(name).startswith("agent/") and isinstance(c, dict)):
+            continue
+        rid = str(name)[len("agent/"):]
+        cycles, errors, slow = (_int_or_zero(c.get(k)) for k in ("controller_cycles", "controller_errors",
+                                                                  "controller_slow"))
+        if errors:
+            notes.append(f"robot {rid}'s controller: {errors} of {cycles} steps failed and stopped the robot "
+                         f"(traceback in logs/agent{rid}.log)")
+        if slow:
+            notes.append(f"robot {rid}'s controller: {slow} of {cycles} steps took longer than a control period")
+    return notes
+
+
+def _int_or_zero(v: Any) -> int:
+    return int(v) if isinstance(v, int | float) and not isinstance(v, bool) else 0
+
+
 def silent_sources(info: dict[str, Any], warnings: list[str]) -> dict[str, float]:
     """Sources (``world``, ``server``, ``agent/<k>``) the recorder last heard more than
     :data:`SILENT_AFTER_S` simulated seconds before the run's end (``run.json``

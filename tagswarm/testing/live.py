@@ -21,8 +21,8 @@ import signal
 import subprocess
 import sys
 import time
-from collections.abc import Callable
-from contextlib import ExitStack
+from collections.abc import Callable, Iterator
+from contextlib import ExitStack, contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -43,7 +43,7 @@ from tagswarm.testing.errors import SwarmError, SwarmProcessDied, SwarmTimeout
 from tagswarm.testing.options import NetFault, SwarmSpec, check_name, child_env, command, log_name, process_names
 from tagswarm.testing.result import Run
 from tagswarm.testing.runfolder import free_endpoint, write_run
-from tagswarm.testing.subscription import Subscription
+from tagswarm.testing.subscription import ENDED_GRACE_S, Subscription
 
 _KEEP: Any = object()  # restart with the fault layer the process had
 
@@ -192,11 +192,15 @@ class LiveSwarm:
         self.recorder.poll()
         return self.recorder.sim_ns / 1e9
 
-    def wait(self, pred: Callable[[], bool], timeout_s: float = 60.0, what: str = "condition") -> None:
+    def wait(self, pred: Callable[[], bool], timeout_s: float = 60.0, what: str = "condition", *,
+             _stops_without_world: bool = False) -> None:
         """Poll the recorder until ``pred()`` holds (checked on every arrival, under the bus lock:
         keep it short and make no Zenoh query in it).  :class:`SwarmProcessDied` as soon as a
-        process fails, :class:`SwarmTimeout` (naming ``what``) after ``timeout_s`` wall seconds."""
+        process fails, :class:`SwarmTimeout` (naming ``what``) after ``timeout_s`` wall seconds, or
+        as soon as the run has ended (the world finished its duration and what it sent had
+        :data:`~tagswarm.testing.subscription.ENDED_GRACE_S` to arrive) with ``pred()`` still false."""
         dead: list[SwarmProcessDied] = []
+        over: list[float] = []  # wall time the world was first seen gone
 
         def check() -> bool:
             self.recorder.poll()
@@ -204,18 +208,30 @@ class LiveSwarm:
             if died is not None:
                 dead.append(died)
                 return True
-            return pred()
+            if pred():
+                return True
+            world = self._children.get("world")
+            gone = world is not None and world.poll() is not None and (
+                _stops_without_world or (world.proc.returncode == 0 and not world.signalled))
+            if gone and not over:
+                over.append(time.monotonic())
+            return bool(over) and time.monotonic() - over[0] > ENDED_GRACE_S
 
         ok = self.bus.wait_for(check, timeout_s)
         if dead:
             raise dead[0]
+        if over and not pred():
+            raise SwarmTimeout(f"{what} (the world {'ended' if not self.running('world') else 'left'} at simulated "
+                               f"time {self.recorder.sim_ns / 1e9:.2f} s)\n{self.tails()}")
         if not ok:
             raise SwarmTimeout(f"{what} (after {timeout_s:g} s; simulated time {self.recorder.sim_ns / 1e9:.2f} s)"
                                f"\n{self.tails()}")
 
     def wait_sim(self, t_s: float, timeout_s: float = 120.0) -> None:
-        """Wait until the simulation reached ``t_s`` simulated seconds."""
-        self.wait(lambda: self.recorder.sim_ns >= t_s * 1e9, timeout_s, f"simulated time never reached {t_s:g} s")
+        """Wait until the simulation reached ``t_s`` simulated seconds (at once a :class:`SwarmTimeout` if
+        the world is gone: ended, or killed by the test, time does not move)."""
+        self.wait(lambda: self.recorder.sim_ns >= t_s * 1e9, timeout_s, f"simulated time never reached {t_s:g} s",
+                  _stops_without_world=True)
 
     # ------------------------------------------------------------------ talking to the run
     def subscribe(self, keyexpr: str, *, newest_only: bool = False) -> Subscription:
@@ -261,8 +277,9 @@ class LiveSwarm:
         """Send robot ``robot`` to (``x_m``, ``y_m``) in the MAP frame (as ``tagswarm goto``), once its
         agent is alive; stamped with the current simulated time.  Returns the goal sent.  A robot not in
         the run, or a goal where no robot can stand (the agent would refuse it), is a :class:`SwarmError`."""
-        goal = make_goal(robot, x_m, y_m, tolerance_m)
         self._robot(robot)
+        with _as_swarm_error("goto"):
+            make_goal(robot, x_m, y_m, tolerance_m)
         why = stand_problem(self.scenario, *map_to_arena_xy(self.scenario, x_m, y_m))
         if why is not None:
             raise SwarmError(f"goto robot {robot} ({x_m:g}, {y_m:g}) (map frame): the agent would refuse it: {why}")
@@ -280,8 +297,12 @@ class LiveSwarm:
         world also refuses a place another robot holds then (its counter ``world_command_rejected``)."""
         if at_s is not None and (not math.isfinite(at_s) or at_s < 0):
             raise SwarmError(f"at_s must be a simulated time >= 0, got {at_s!r}")
-        make_command(robot, x_m, y_m, yaw_rad, push)
+        if at_s is not None and at_s * 1e9 < self.recorder.sim_ns:
+            raise SwarmError(f"at_s {at_s:g} s has passed (simulated time {self.recorder.sim_ns / 1e9:.2f} s): leave "
+                             "it out to move the robot at the world's next step")
         self._robot(robot)
+        with _as_swarm_error("teleport"):
+            make_command(robot, x_m, y_m, yaw_rad, push)
         why = None if push else stand_problem(self.scenario, x_m, y_m)
         if why is not None:
             raise SwarmError(f"teleport robot {robot} to ({x_m:g}, {y_m:g}) (arena frame): the world would refuse "
@@ -297,6 +318,10 @@ class LiveSwarm:
             raise SwarmError(f"no robot {robot} in this run (robots {', '.join(map(str, self.scenario.robot_ids))})")
 
     def _alive(self, participant: str, timeout_s: float) -> None:
+        child = self._children.get(participant.removesuffix("/0"))
+        if child is not None and child.poll() is not None:  # no token will come: say so now, not in timeout_s
+            raise SwarmError(f"{participant} is not running (it exited with code {child.poll()}); spawn or "
+                             "restart it first")
         if not wait_alive(self.bus, self.keys.alive(participant), timeout_s):
             raise SwarmTimeout(f"{participant} not alive after {timeout_s:g} s\n{self.tails()}")
 
@@ -361,3 +386,15 @@ class LiveSwarm:
             for c in self._history:
                 c.reap()
             self._stack.close()
+
+
+@contextmanager
+def _as_swarm_error(what: str) -> Iterator[None]:
+    """The operator helpers' checks (finite numbers, ranges) raise ConfigError, worded for the CLI: in a
+    test they are a SwarmError, like everything the fixture raises on purpose."""
+    try:
+        yield
+    except TagswarmError as exc:
+        if isinstance(exc, SwarmError):
+            raise
+        raise SwarmError(f"{what}: {exc}") from None

@@ -194,9 +194,15 @@ class SwarmSpec:
             table = msgspec.to_builtins(s)
             table["clock"]["participants"] = [f"agent/{r}" for r in s.robot_ids] + ["server/0"]
             s = msgspec.convert(table, Scenario)
-        for rid, _ in self.agent_modules:
+        for rid, mod in self.agent_modules:
             if rid not in s.robot_ids:
                 raise SwarmError(f"agent_modules: robot {rid} is not in the scenario (robots {list(s.robot_ids)})")
+            from tagswarm.agents.controller import ControllerConfig, load_factory, make
+
+            try:  # as the agent will, before anything starts: a broken module is one line, not a dead agent
+                make(load_factory(mod), ControllerConfig(rid, s), mod)
+            except TagswarmError as exc:
+                raise SwarmError(f"agent_modules[{rid}]: {exc}") from None
         names = set(process_names(s))
         for name in [n for n, _ in self.net] + [n for n, _ in self.extra_args]:
             if name not in names:

@@ -79,6 +79,34 @@ class Run:
         return float(e[-1, 1]) if len(e) else float("inf")
 
     def log(self, name: str) -> str:
-        """The log of process ``name`` (``world``, ``server``, ``agent/<id>``; a restart's log is ``agent1.1``)."""
-        path = self.run_dir / "logs" / f"{name.replace('/', '')}.log"
-        return path.read_text(errors="replace") if path.exists() else ""
+        """The log of process ``name`` (``world``, ``server``, ``agent/<id>``; a restart's is ``agent/<id>.1``;
+        ``world/0`` and ``server/0``, as the world's log names them, are the same).  A name with no log in
+        the run folder is a :class:`SwarmError` naming those there are."""
+        stem = _process(name).replace("/", "")
+        path = self.run_dir / "logs" / f"{stem}.log"
+        if not path.is_file():
+            have = sorted(p.stem for p in (self.run_dir / "logs").glob("*.log"))
+            raise SwarmError(f"no log of {name!r} in {self.run_dir / 'logs'} (there are: {', '.join(have) or 'none'})")
+        return path.read_text(errors="replace")
+
+    @cached_property
+    def _counters(self) -> dict[str, dict[str, Any]]:
+        try:
+            table = json.loads((self.run_dir / "run.json").read_text()).get("counters", {})
+        except (OSError, ValueError, AttributeError) as exc:
+            raise SwarmError(f"no readable counters in {self.run_dir / 'run.json'}: {exc}") from None
+        return table if isinstance(table, dict) else {}
+
+    def counters(self, name: str) -> dict[str, Any]:
+        """The last status counters of process ``name`` (``world``, ``server``, ``agent/<id>``), as in
+        ``run.json``: e.g. ``controller_errors`` and ``controller_slow`` of a robot running your
+        controller, ``contacts_robot_robot`` of the world.  :class:`SwarmError` for a name with none."""
+        key = _process(name)
+        if key not in self._counters:
+            raise SwarmError(f"no counters of {name!r} in this run (there are: {', '.join(sorted(self._counters))})")
+        return dict(self._counters[key])
+
+
+def _process(name: str) -> str:
+    """``world/0`` and ``server/0`` (participant names) are the processes ``world`` and ``server``."""
+    return name.removesuffix("/0") if name in ("world/0", "server/0") else name

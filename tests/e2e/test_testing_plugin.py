@@ -35,7 +35,7 @@ from pathlib import Path
 
 import pytest
 
-from tagswarm.testing import NetFault, SwarmError
+from tagswarm.testing import NetFault, SwarmError, SwarmTimeout
 
 OUT = Path(os.environ["TSW_OUT"])
 ROBOTS = int(os.environ["TSW_ROBOTS"])
@@ -66,6 +66,8 @@ def test_my_own_controller_drives_robot_1(swarm):
     assert max(math.dist(row[1:3], start[1:3]) for row in run.truth(1)) < 0.02  # held, did not patrol
     assert "held" in (run.run_dir / "modes.csv").read_text()
     assert run.final_error(1) < 0.10  # localised by the server like the built-in agent
+    assert run.counters("agent/1")["controller_errors"] == 0 and run.counters("agent/1")["controller_cycles"] > 150
+    assert not [w for w in run.metrics["warnings"] if "controller" in w]
 
 
 def test_a_live_swarm(swarm):
@@ -81,6 +83,10 @@ def test_a_live_swarm(swarm):
                 s.goto(*bad)
         with pytest.raises(SwarmError, match="would not be inside the arena walls"):
             s.teleport(2, 40.0, 0.0)
+        with pytest.raises(SwarmError, match="goto: X and Y must be finite"):
+            s.goto(1, float("nan"), 0.0)
+        with pytest.raises(SwarmError, match="has passed"):
+            s.teleport(2, 0.3, 0.0, push=True, at_s=0.5)
         s.goto(1, x, y + 0.4, tolerance_m=0.05)
         s.wait(lambda: math.dist(s.recorder.truth[1][-1][1][:2], (x, y + 0.4)) < 0.1, 120, "robot 1 never arrived")
         cmd = s.teleport(2, 0.3, 0.0, push=True, at_s=round(s.sim_time_s) + 1.0)
@@ -94,12 +100,22 @@ def test_a_live_swarm(swarm):
         s.kill("agent/2")
         killed_ns = s.recorder.sim_ns
         assert s.process("agent/2").returncode == -signal.SIGKILL
+        with pytest.raises(SwarmError, match="agent/2 is not running"):  # at once, not after timeout_s
+            s.goto(2, 0.0, 0.0, timeout_s=600)
         s.spawn("agent/2", net=NetFault(loss=0.05, seed=2))
         assert odo2.get(timeout_s=120, where=lambda smp: smp.msg.stamp_ns > killed_ns).msg.robot_id == 2
         s.freeze("agent/0")
         assert s.running("agent/0")
         s.thaw("agent/0")
         run = s.finish()
+        with pytest.raises(SwarmTimeout, match="the world ended"):  # at once, not after timeout_s
+            s.wait_sim(1000.0, timeout_s=600)
+        with pytest.raises(SwarmTimeout, match="and the run has ended"):
+            odo.get(timeout_s=600, where=lambda smp: False)
+    with pytest.raises(SwarmError, match="no log of 'agnet/1'"):
+        run.log("agnet/1")
+    assert run.log("server/0") == run.log("server") and "server" in run.log("server")
+    assert run.counters("world")["world_commands"] == 1 and run.counters("agent/1")["fixes"] > 0
     assert "injecting network faults" in run.log("agent/2.1") and "injecting" not in run.log("agent/2")
     assert run.exit_codes == {{"server": 0, "agent/0": 0, "agent/1": 0, "agent/2": 0, "world": 0}}
     assert run.metrics["run"]["robots"] == [0, 1, 2]

@@ -104,8 +104,8 @@ def test_a_failing_or_slow_own_controller_is_named_and_a_healthy_run_prints_noth
     healthy = {"agent/0": {"fixes": 9}, "agent/1": {"controller_cycles": 150, "controller_errors": 0}, "server": {}}
     assert printed(healthy) == ""
     text = printed({**healthy, "agent/2": {"controller_cycles": 150, "controller_errors": 75, "controller_slow": 3}})
-    assert "robot 2: 75 of 150 steps failed" in text and "logs/agent2.log" in text
-    assert "robot 2: 3 of 150 steps took longer than a control period" in text and "robot 1" not in text
+    assert "robot 2's controller: 75 of 150 steps failed" in text and "logs/agent2.log" in text
+    assert "robot 2's controller: 3 of 150 steps took longer than a control period" in text and "robot 1" not in text
     (tmp_path / "run.json").write_text("{not json")
     out = io.StringIO()
     _controller_trouble(Console(file=out), tmp_path)  # a run that crashed early: nothing, no traceback

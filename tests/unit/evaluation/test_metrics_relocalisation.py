@@ -424,3 +424,16 @@ def test_older_run_folders_without_last_heard_name_no_silent_source(tmp_path: Pa
     metrics = compute_metrics(run)
     assert metrics["run"]["silent_sources"] == {}
     assert not [w for w in metrics["warnings"] if "heard nothing" in w]
+
+
+def test_a_robot_whose_own_controller_failed_or_was_slow_is_a_warning(tmp_path: Path) -> None:
+    """A controller that raises every step leaves its robot standing, which is easy to localise: only its
+    counters tell, so metrics.json names it (the pytest fixture's Run.metrics too)."""
+    t = T10
+    counters = {"agent/0": {"fixes": 3}, "agent/1": {"controller_cycles": 300, "controller_errors": 300},
+                "agent/2": {"controller_cycles": 300, "controller_errors": 0, "controller_slow": 4}, "world": {}}
+    run = make_run(tmp_path, {k: (t, static(float(k), 0.0, t)) for k in range(3)}, counters=counters)
+    warnings = compute_metrics(run)["warnings"]
+    assert [w for w in warnings if "controller" in w] == [
+        "robot 1's controller: 300 of 300 steps failed and stopped the robot (traceback in logs/agent1.log)",
+        "robot 2's controller: 4 of 300 steps took longer than a control period"]

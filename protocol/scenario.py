@@ -167,15 +167,36 @@ def _trim_to_count(table: dict[str, Any], scenario_count: int | None = None) -> 
             table[section] = [it for it in items if not isinstance(it, dict) or it.get("robot", 0) not in cut]
 
 
+def _start_means_explicit(robots: Any, strict: str | None) -> None:
+    """A ``robots.start`` list without ``robots.placement`` means explicit placement (and, without
+    ``robots.count``, as many robots as poses): the default ring would silently move the robots from
+    where the file puts them.  ``strict`` (the file's name): a start list beside another placement in
+    the same file is an error (an override may switch placement on purpose)."""
+    if not isinstance(robots, dict) or not isinstance(robots.get("start"), list) or not robots["start"]:
+        return
+    placement = robots.get("placement")
+    if placement is None:
+        robots["placement"] = "explicit"
+        robots.setdefault("count", len(robots["start"]))
+        log.info("robots.start given without robots.placement: placement = \"explicit\"")
+    elif placement != "explicit" and strict is not None:
+        raise ScenarioError(f"{strict}: robots.start is used only with robots.placement = \"explicit\", not "
+                            f"{placement!r}: set placement to \"explicit\" or remove start")
+
+
 def load_scenario(name_or_path: str = "paper", overrides: tuple[str, ...] | list[str] = ()) -> Scenario:
     """Load, override and validate a scenario.  Robots beyond an explicit start list
     get free start poses and missions, and the tag-ID scheme is compacted if it has
     no room for them (:mod:`tagswarm.protocol.robotfill`); each such step is logged at INFO."""
     table = read_scenario_dict(name_or_path)
+    # a resolved scenario (the run folder's scenario.json) keeps the start list of the file it came from
+    _start_means_explicit(table.get("robots"), None if str(name_or_path).endswith(".json")
+                          else f"scenario {name_or_path!r}")
     robots = table.get("robots")
     toml_count = robots.get("count") if isinstance(robots, dict) else None
     for o in overrides:
         apply_override(table, o)
+    _start_means_explicit(table.get("robots"), None)
     _trim_to_count(table, toml_count if isinstance(toml_count, int) else None)
     scenario: Scenario = convert(table, Scenario, f"scenario {name_or_path!r}")
     scenario, notes = complete(scenario, toml_count if isinstance(toml_count, int) else Robots().count)
@@ -224,8 +245,15 @@ def validate(s: Scenario) -> None:
             _claim(owner, tid, f"robot {rid} {face.name.lower()}", fam_n, s.tags.family, "tags")
     for i, lm in enumerate(s.landmarks):
         _claim(owner, lm.id, f"landmark {i}", fam_n, s.tags.family, f"landmarks[{i}].id")
-        if math.hypot(lm.x_m, lm.y_m) > math.hypot(s.arena.size_x_m, s.arena.size_y_m):
-            raise ScenarioError(f"landmarks[{i}]: ({lm.x_m}, {lm.y_m}) is far outside the arena")
+        # on a wall's face or in the arena; a tag behind a wall is seen by nobody
+        lim_x, lim_y = s.arena.size_x_m / 2 + s.arena.wall_thickness_m, s.arena.size_y_m / 2 + s.arena.wall_thickness_m
+        if abs(lm.x_m) > lim_x or abs(lm.y_m) > lim_y:
+            raise ScenarioError(f"landmarks[{i}]: ({lm.x_m}, {lm.y_m}) is outside the arena's walls (arena frame, "
+                                f"|x| <= {lim_x:g}, |y| <= {lim_y:g})")
+    for k, ob in enumerate(s.arena.obstacles):
+        if abs(ob.x_m) > s.arena.size_x_m / 2 or abs(ob.y_m) > s.arena.size_y_m / 2:
+            raise ScenarioError(f"arena.obstacles[{k}]: its centre ({ob.x_m}, {ob.y_m}) is outside the arena "
+                                f"(arena frame, |x| <= {s.arena.size_x_m / 2:g}, |y| <= {s.arena.size_y_m / 2:g})")
     _validate_decoys(s)
     names = [c.name for c in s.robot.cameras]
     if not names:

@@ -527,3 +527,28 @@ def test_wall_boxes() -> None:
     for _, half in walls:
         assert half[2] == 0.25
         assert 0.05 in half[:2]
+
+
+def test_a_start_list_without_placement_is_where_the_robots_start(tmp_path: Path) -> None:
+    """A new user's file with start poses and no placement line: the default ring moved the robots away
+    from them without a word (and a robot of the ring landed on an obstacle the user kept clear)."""
+    path = tmp_path / "mine.toml"
+    path.write_text('name = "mine"\n[arena]\nobstacles = [{x_m = 1.0, y_m = 1.0, size_x_m = 0.4, size_y_m = 0.4}]\n'
+                    "[robots]\nstart = [{x_m = -3.0, y_m = 0.0}, {x_m = -2.0, y_m = 0.0, yaw_rad = 0.5}]\n")
+    s = load_scenario(str(path))
+    assert (s.robots.placement, s.robots.count) == ("explicit", 2)
+    assert [(p.x_m, p.y_m) for p in s.robots.start] == [(-3.0, 0.0), (-2.0, 0.0)]
+    assert load_scenario(str(path), ['robots.placement="grid"']).robots.placement == "grid"  # on purpose
+    path.write_text(path.read_text().replace("[robots]\n", '[robots]\nplacement = "ring"\n'))
+    with pytest.raises(ScenarioError, match=r'robots\.start is used only with robots\.placement = "explicit"'):
+        load_scenario(str(path))
+
+
+@pytest.mark.parametrize(("override", "says"), [
+    ("arena.obstacles=[{x_m=20.0, y_m=0.0, size_x_m=0.5, size_y_m=0.5}]", r"arena.obstacles\[0\]: its centre"),
+    ("landmarks=[{id=200, x_m=-8.0, y_m=0.0}]", r"landmarks\[0\]: \(-8.0, 0.0\) is outside the arena's walls"),
+])
+def test_obstacles_and_landmarks_beyond_the_walls_are_refused(override: str, says: str) -> None:
+    with pytest.raises(ScenarioError, match=says):
+        load_scenario("paper", [override])
+    load_scenario("landmarks")  # its tags on the walls' faces stay fine

@@ -333,7 +333,7 @@ def run_up(scenario: Scenario, out: Path, endpoint: str, run: str, *, live: bool
 
         metrics = write_report(out)
         console.print(f"metrics: {out / 'metrics.json'}  plots: {out / 'plots'}")
-        _summary(console, metrics)
+        _summary(console, metrics, failed=bool(failure))
     console.print(f"run folder: {out}")
     return code
 
@@ -354,10 +354,12 @@ def _controller_trouble(console: Console, out: Path) -> None:
         console.print(f"[yellow]{note} (docs/controllers.md)[/]", highlight=False)
 
 
-def _summary(console: Console, metrics: dict[str, Any]) -> None:
+def _summary(console: Console, metrics: dict[str, Any], *, failed: bool = False) -> None:
     swarm = metrics.get("swarm", {})
     if not swarm:
         return
+    if failed:  # the hints below read the scene's geometry into what a crash cut short
+        console.print("[red]the run failed (above): these numbers cover only what ran[/]", highlight=False)
     t = Table(title="swarm accuracy (map frame)")
     t.add_column("trajectory")
     t.add_column("ATE RMSE [m]")
@@ -377,12 +379,16 @@ def _summary(console: Console, metrics: dict[str, Any]) -> None:
                   f"wall {contacts.get('robot_wall', '—')}", highlight=False)
     firsts = {k: (r.get("fused") or {}).get("first_s") for k, r in metrics.get("robots", {}).items()}
     never = [k for k, f in firsts.items() if f is None]
-    if never:
+    if never and not failed:
         origin = metrics.get("run", {}).get("origin_id")
+        anchored = bool(metrics.get("run", {}).get("landmarks")) or str(origin) in never
+        tie = ("no sighting of a landmark, or chain of sightings to a robot that saw one, placed them within the run; "
+               "landmarks in more robots' view, or missions that pass them, help" if anchored else
+               f"no chain of sightings joined them to the origin robot {origin} within the run; landmarks, a more "
+               "central origin or missions that meet help")
         console.print(f"[yellow]never placed: robot(s) {', '.join(never)} of {len(firsts)} (the fused error above is "
-                      f"of the other {len(firsts) - len(never)}): no chain of sightings joined them to the origin "
-                      f"robot {origin} within the run; landmarks, a more central origin or missions that meet help "
-                      "(README, 'Your own scene')[/]", highlight=False)
+                      f"of the other {len(firsts) - len(never)}): {tie} (README, 'Your own scene')[/]",
+                      highlight=False)
     over = {k: ((r.get("fused") or {}).get("ate_unaligned") or {}) for k, r in metrics.get("robots", {}).items()}
     over = {k: a for k, a in over.items() if a.get("max") is not None and a["max"] >= LOCALISED_M}
     if over:

@@ -57,7 +57,8 @@ the true initial pose, so its error is pure drift).
   ``[server] method`` (``"graph"`` or ``"stitch"``, from the scenario in ``run.json``);
   ``silent_sources`` ``{source: last heard s}``: the world, server or agents the
   recorder stopped hearing over 2 s before the end (their data is incomplete; also
-  a warning), from ``run.json`` ``last_heard_s``.
+  a warning), from ``run.json`` ``last_heard_s``; ``landmarks``, how many fixed tags
+  the scenario has (they, not the origin robot, fix the map frame then).
 - ``settings``: ``assoc_max_diff_s`` (timestamp association tolerance, s),
   ``rpe_delta_m`` (RPE segment length, m), ``neighbour_window_s`` (± window for
   error-vs-distance, s), ``distance_bins_m`` (bin edges, m; ``null`` = infinity),
@@ -291,7 +292,8 @@ def evaluate(run: RunData) -> Evaluation:
         "run": {"clock": run.info.get("clock"), "sim_time_s": costs["sim_time_s"],
                 "wall_time_s": costs["wall_time_s"], "exit_code": run.info.get("exit_code"),
                 "failure": run.info.get("failure"), "origin_id": run.info.get("origin_id"),
-                "robots": list(run.robots), "method": _method(run.info), "silent_sources": silent},
+                "robots": list(run.robots), "method": _method(run.info), "silent_sources": silent,
+                "landmarks": _landmarks(run.info)},
         "settings": {"assoc_max_diff_s": ASSOC_MAX_DIFF_S, "rpe_delta_m": RPE_DELTA_M,
                      "neighbour_window_s": NEIGHBOUR_WINDOW_S,
                      "distance_bins_m": [e if math.isfinite(e) else None for e in DISTANCE_BINS_M],
@@ -306,6 +308,13 @@ def evaluate(run: RunData) -> Evaluation:
         "warnings": warnings,
     }
     return Evaluation(run=run, tracks=tracks, alignment=alignment, distance=dist, metrics=_finite(metrics))
+
+
+def _landmarks(info: dict[str, Any]) -> int:
+    """Number of ``[[landmarks]]`` in the run's scenario (``run.json``), 0 if unknown."""
+    scenario = info.get("scenario")
+    lms = scenario.get("landmarks") if isinstance(scenario, dict) else None
+    return len(lms) if isinstance(lms, list) else 0
 
 
 def _method(info: dict[str, Any]) -> str:

@@ -110,3 +110,13 @@ def test_a_failing_or_slow_own_controller_is_named_and_a_healthy_run_prints_noth
     out = io.StringIO()
     _controller_trouble(Console(file=out), tmp_path)  # a run that crashed early: nothing, no traceback
     assert out.getvalue() == ""
+
+
+def test_never_placed_with_landmarks_blames_the_landmarks_and_a_failed_run_blames_nothing() -> None:
+    m = _metrics({"0": None, "1": None, "2": 1.0}, [])
+    m["run"]["landmarks"] = 4
+    text = _printed(m)
+    assert "never placed: robot(s) 0, 1 of 3" in text and "landmark" in text and "origin robot 0" not in text
+    failed = io.StringIO()
+    _summary(Console(file=failed, width=400, color_system=None), _metrics({"0": None, "1": None}, []), failed=True)
+    assert "the run failed" in failed.getvalue() and "never placed" not in failed.getvalue()

@@ -72,6 +72,19 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 0
     name, rest = args[0], args[1:]
     if name == "scenarios":
+        if rest and rest[0] in ("-h", "--help"):
+            print("usage: tagswarm scenarios\n\nList the built-in scenarios, one line each: pass a name to "
+                  "--scenario (tagswarm up --scenario hall), or a path to your own TOML file (README, "
+                  "'Your own scene').")
+            return 0
+        if rest:
+            from tagswarm.runtime.config import ConfigError
+            from tagswarm.runtime.process import run_main
+
+            def extra() -> int:
+                raise ConfigError(f"scenarios takes no arguments, got {' '.join(rest)!r}")
+
+            return run_main("tagswarm scenarios", extra)
         described = builtin_descriptions()
         width = max(map(len, described), default=0)
         print("\n".join(f"{n:<{width}}  {d}" for n, d in described.items()))

@@ -100,7 +100,8 @@ def agent_modules(specs: Sequence[str], robot_ids: Sequence[int], scenario: Scen
     for spec in specs:
         module, robots = spec, ""
         head, sep, tail = spec.rpartition(":")
-        if sep and re.fullmatch(r"[0-9, ]*", tail):
+        # a module name holds no colon: after the last one come ROBOTS (unless the whole spec names a file)
+        if sep and not Path(spec).is_file():
             module, robots = head, tail
             if not re.fullmatch(r" *[0-9]+ *(, *[0-9]+ *)*", tail):
                 raise ConfigError(f"--agent-module {spec}: ROBOTS must be robot ids like 1,3")

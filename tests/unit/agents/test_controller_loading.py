@@ -110,6 +110,7 @@ def test_up_chooses_robots_per_module(pkg: Path) -> None:
     for specs, message in ((["ctrl_x:7"], "robot 7 is not in this run"),
                            (["ctrl_x:1", "ctrl_y:1,2"], "robot 1 already has controller ctrl_x"),
                            (["ctrl_x:1,,2"], "ROBOTS must be robot ids like 1,3"),
+                           (["ctrl_x.py:a"], "ROBOTS must be robot ids like 1,3"),
                            ([":1"], "no module named"),
                            (["ctrl_zz:1"], "--agent-module ctrl_zz: cannot import it")):
         with pytest.raises(UsageError, match=message):

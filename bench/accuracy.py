@@ -6,7 +6,9 @@ Writes ``bench/results/accuracy.json`` and plots next to it.
 - static: robots at distinct points of an even 4 x 4 lattice over the 7 m x 7 m
   arena with seeded random headings, no motion; whole-cube and single-tag pose.  The paper's stitching from ONE round of
   observations (the first camera frame) and the factor-graph map after one
-  second are both scored against the truth (map frame = robot 0's pose).
+  second are both scored against the truth (map frame = robot 0's pose).  "Looking around": the
+  same placements, the robots turning once on the spot first as station keepers do by default
+  (agent.look_around), the map scored after 12 s.
 - dynamic: scenarios on missions with the odometry error model on, several
   seeds: ATE of fused vs odometry-only (unaligned and with one shared SE(2)
   alignment), pairwise distance error, re-localisation rotations, time lost.
@@ -93,20 +95,40 @@ def static_placement(seed: int, robots: int = 4) -> str:
     return f"robots.start=[{poses}]"
 
 
-def static_trial(seed: int, work: Path, *extra: str, tag: str = "") -> dict[str, Any]:
+#: the static case with the robots' own first look around (agent.look_around: a whole turn on the spot at
+#: 0.6 rad/s, ~10.5 s): their positions stay fixed, their headings end where they began
+LOOK_AROUND_S = 12.0
+
+
+def _truth_at(path: Path, t_s: float) -> np.ndarray | None:
+    """The truth row (TUM) nearest ``t_s``."""
+    if not path.exists() or path.stat().st_size == 0:
+        return None
+    a = np.loadtxt(path, ndmin=2)
+    return a[int(np.argmin(np.abs(a[:, 0] - t_s)))]
+
+
+def static_trial(seed: int, work: Path, *extra: str, tag: str = "", look_around: bool = False) -> dict[str, Any]:
+    """One Fig. 5 trial: the paper's protocol (robots stand still, ``--duration 1``) or, with
+    ``look_around``, the robots first turn once on the spot as station keepers do by default
+    (:data:`LOOK_AROUND_S`).  Stitching is scored on the first round of observations against the
+    first truth; the fused map at its last pose against the truth of that instant."""
     args: list[str] = []
-    for o in ('robots.placement="explicit"', static_placement(seed), "missions=[]", CAM640, *extra):
+    still = [] if look_around else ["agent.look_around=false"]
+    for o in ('robots.placement="explicit"', static_placement(seed), "missions=[]", CAM640, *still, *extra):
         args += ["--set", o]
-    run = up(work / f"static{tag}{seed}", "--seed", str(seed), "--duration", "1.0", "--no-report", *args)
+    duration = LOOK_AROUND_S if look_around else 1.0
+    run = up(work / f"static{tag}{seed}", "--seed", str(seed), "--duration", str(duration), "--no-report", *args)
     meta = json.loads((run / "run.json").read_text())
     robots = meta["robots"]
     truth = {r: _tum_first_last(run / "trajectories" / f"truth_{r}.tum")[0] for r in robots}
     tpose = {r: (float(t[1]), float(t[2]), _yaw(t)) for r, t in truth.items() if t is not None}
-    edges, first = [], None
+    edges, seen, first = [], [], None
     with open(run / "observations.csv") as f:
         for row in csv.DictReader(f):
             if row["target_kind"] != "robot":
                 continue
+            seen.append((int(row["observer"]), int(row["target_id"])))
             stamp = int(row["stamp_ns"])
             first = stamp if first is None else first
             if stamp >= first + ROUND_NS:
@@ -116,21 +138,25 @@ def static_trial(seed: int, work: Path, *extra: str, tag: str = "") -> dict[str,
                               (float(row["x_m"]), float(row["y_m"]), float(row["yaw_rad"])), cov))
     placed = stitch(edges, origin=0)
     out: dict[str, Any] = {"seed": seed, "robots": len(robots), "stitch": [], "fusion": []}
+
+    def nearest(r: int, pairs: list[tuple[int, int]]) -> float | None:
+        others = {b for a, b in pairs if a == r} | {a for a, b in pairs if b == r}
+        return min((math.dist(tpose[r][:2], tpose[o][:2]) for o in others if o in tpose), default=None)
+
+    first_pairs = [(e.observer, e.target) for e in edges]
     for r in robots:
         if r == 0:
             continue
-        observers = [tpose[e.observer] for e in edges if e.target == r] + \
-                    [tpose[e.target] for e in edges if e.observer == r]
-        dist = min((math.dist(tpose[r][:2], p[:2]) for p in observers), default=None)
         if r in placed:
             d = se2_between(tpose[r], placed[r])
             out["stitch"].append({"robot": r, "err_m": math.hypot(d[0], d[1]), "yaw_deg": abs(math.degrees(d[2])),
-                                  "dist_m": dist})
+                                  "dist_m": nearest(r, first_pairs)})
         _, last = _tum_first_last(run / "trajectories" / f"fused_{r}.tum")
-        if last is not None:
-            out["fusion"].append({"robot": r, "err_m": math.hypot(last[1] - tpose[r][0], last[2] - tpose[r][1]),
-                                  "yaw_deg": abs(math.degrees(wrap_angle(_yaw(last) - tpose[r][2]))),
-                                  "dist_m": dist})
+        t_now = None if last is None else _truth_at(run / "trajectories" / f"truth_{r}.tum", float(last[0]))
+        if last is not None and t_now is not None:
+            out["fusion"].append({"robot": r, "err_m": math.hypot(last[1] - t_now[1], last[2] - t_now[2]),
+                                  "yaw_deg": abs(math.degrees(wrap_angle(_yaw(last) - _yaw(t_now)))),
+                                  "dist_m": nearest(r, seen)})
     return out
 
 
@@ -330,6 +356,16 @@ CAMERA_ROWS: dict[str, tuple[str, list[str]]] = {
     **{k: v for k, v in ABLATIONS.items() if k.startswith("camera_")},
     "rig": ("rig", []),  # four 640x480 120 deg fisheyes per robot: real-time factor ~0.01, most of the rows' time
 }
+STATIC_TAGS = {"whole cube": "", "single tag": "single", "looking around": "look"}
+
+
+def static_groups(trials: int, single_tag_trials: int) -> list[tuple[str, list[str], int]]:
+    """(label, overrides, trials) of the static groups: the paper's protocol with whole-cube and
+    single-tag pose, and the robots' own first look around (:data:`LOOK_AROUND_S`)."""
+    return [("whole cube", [], trials), ("single tag", ['agent.pose_method="single_tag"'], single_tag_trials),
+            ("looking around", [], trials)]
+
+
 #: the static Fig. 5 case through each camera (the lattice placements of static_trial, 640x480 60 deg)
 STATIC_CAMERAS: dict[str, list[str]] = {"ideal": [], "realistic": ["camera.preset=realistic"]}
 
@@ -380,10 +416,10 @@ def main() -> int:
         work = Path(tmp)
         # every run in one pool, longest first, so no core idles at the end of a phase
         runs: list[tuple[float, tuple[str, Any], Any]] = []  # (simulated seconds, (group, key), run)
-        for label, extra, n in (("whole cube", [], a.trials),
-                                ("single tag", ['agent.pose_method="single_tag"'], a.single_tag_trials)):
-            tag = "single" if extra else ""
-            runs += [(1.0, (label, seed), lambda s=seed, e=extra, t=tag: static_trial(s, work, *e, tag=t))
+        for label, extra, n in static_groups(a.trials, a.single_tag_trials):
+            tag, look = STATIC_TAGS[label], label == "looking around"
+            runs += [(LOOK_AROUND_S if look else 1.0, (label, seed),
+                      lambda s=seed, e=extra, t=tag, lk=look: static_trial(s, work, *e, tag=t, look_around=lk))
                      for seed in range(n)]
         dyn_jobs = [(sc, seed) for sc in ("paper", "allmoving", "leapfrog", "landmarks", "paper-realistic")
                     for seed in range(a.seeds if sc == "paper" else a.variant_seeds)]
@@ -412,9 +448,10 @@ def main() -> int:
         runs.sort(key=lambda r: -r[0])
         done = dict(zip([key for _, key, _ in runs], _parallel(a.jobs, [fn for _, _, fn in runs]), strict=True))
     static = {label: [done[(label, seed)] for seed in range(n)]
-              for label, n in (("whole cube", a.trials), ("single tag", a.single_tag_trials))}
+              for label, _, n in static_groups(a.trials, a.single_tag_trials)}
     result["static"] = summarise_static(static["whole cube"])
     result["static_single_tag"] = summarise_static(static["single tag"])
+    result["static_looking_around"] = summarise_static(static["looking around"])
     console.print("static", json.dumps({k: result["static"][k] for k in ("stitch", "fusion")}, indent=1))
     plot_static(static, a.out.parent / f"{a.out.stem}_error_vs_distance.png")
     result["dynamic"] = [done[("dynamic", job)] for job in dyn_jobs]
@@ -452,7 +489,8 @@ def main() -> int:
     s = Table(title=f"static (Fig. 5): {a.trials} trials x 4 robots ({a.single_tag_trials} single-tag)")
     for c in ("pose", "method", "localised", "median cm", "p95 cm", "max cm", "yaw median deg", "yaw p95 deg"):
         s.add_column(c)
-    for label, key in (("whole cube", "static"), ("single tag", "static_single_tag")):
+    for label, key in (("whole cube", "static"), ("single tag", "static_single_tag"),
+                       ("looking around", "static_looking_around")):
         for kind in ("stitch", "fusion"):
             k = result[key][kind]
             s.add_row(label, kind, f"{100 * k['share_localised']:.0f}%", _cm(k["err_median_m"]), _cm(k["err_p95_m"]),
@@ -477,11 +515,14 @@ def camera_only(duration: float, trials: int, jobs: int, out: Path) -> int:
         work = Path(tmp)
         fns = [lambda n=n, sc=sc, ov=ov: dynamic_run(f"cam_{n}", work, 0, duration, *ov, scenario=sc)
                for n, (sc, ov) in CAMERA_ROWS.items()]
-        fns += [lambda c=c, seed=seed: static_trial(seed, work, *STATIC_CAMERAS[c], tag=f"{c}_")
-                for c in STATIC_CAMERAS for seed in range(trials)]
+        groups = [(c, look) for c in STATIC_CAMERAS for look in (False, True)]
+        fns += [lambda c=c, seed=seed, look=look: static_trial(seed, work, *STATIC_CAMERAS[c],
+                                                               tag=f"{c}_{'look' if look else ''}", look_around=look)
+                for c, look in groups for seed in range(trials)]
         done = _parallel(jobs, fns)
     rows, flat = done[:len(CAMERA_ROWS)], done[len(CAMERA_ROWS):]
-    static = {c: summarise_static(flat[i * trials:(i + 1) * trials]) for i, c in enumerate(STATIC_CAMERAS)}
+    static = {(f"{c}, looking around" if look else c): summarise_static(flat[i * trials:(i + 1) * trials])
+              for i, (c, look) in enumerate(groups)}
     for r in rows:
         f, o = r["fused"], r["odom"]
         r["fused_vs_odom"] = (o["ate_unaligned_rmse"] / f["ate_unaligned_rmse"]

@@ -110,3 +110,14 @@ def inverse_cov(rel: Pose2, cov: Cov) -> Cov:
     ci, si = math.cos(rel[2]), math.sin(rel[2])
     j = -np.array([[ci, si, rel[0] * si - rel[1] * ci], [-si, ci, rel[0] * ci + rel[1] * si], [0, 0, 1.0]])
     return np.asarray(j @ cov @ j.T)
+
+
+def relative_cov(rel: Pose2, cov_from: Cov, cov_to: Cov) -> Cov:
+    """(3, 3) covariance, in GTSAM's tangent space of ``rel`` = from⁻¹ ⊕ to, of the relative
+    pose of two independent poses whose own (tangent-space) covariances are ``cov_from`` and
+    ``cov_to`` (first order: Ad(rel⁻¹) cov_from Ad(rel⁻¹)ᵀ + cov_to).  Unlike a plain sum, the
+    heading error of ``from`` moves a pose ``r`` metres away by about r·σ_yaw sideways."""
+    c, s = math.cos(rel[2]), math.sin(rel[2])
+    x, y = -(c * rel[0] + s * rel[1]), s * rel[0] - c * rel[1]  # the translation of rel⁻¹
+    ad = np.array([[c, s, y], [-s, c, -x], [0.0, 0.0, 1.0]])  # Pose2::AdjointMap of rel⁻¹ (rotation -yaw)
+    return np.asarray(ad @ np.asarray(cov_from, float) @ ad.T + np.asarray(cov_to, float))

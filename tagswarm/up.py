@@ -16,7 +16,7 @@ import socket
 import sys
 import threading
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from datetime import datetime
 from pathlib import Path
 from typing import Any
@@ -42,7 +42,7 @@ from tagswarm.runtime.config import (
     bus_from,
     scenario_from,
 )
-from tagswarm.runtime.process import run_main, setup_logging
+from tagswarm.runtime.process import child_env, run_main, setup_logging
 
 BIN = Path(sys.executable).parent
 
@@ -128,7 +128,7 @@ class Child(procgroup.Child):
     dies without stopping it (SIGKILL, a test's timeout), the reaper takes it down."""
 
     def __init__(self, name: str, argv: list[str], log: Path) -> None:
-        super().__init__(name, argv, log, child_env(os.environ))
+        super().__init__(name, argv, log, child_env(os.environ, keep=("TAGSWARM_VIEW_HOST",)))
         self.log = log
 
     def stop(self, grace_s: float = 10.0) -> None:
@@ -456,13 +456,6 @@ def net_flags(net: BusConfig, log_level: str | None = None) -> list[str]:
     if log_level is not None:
         out += ["--log-level", log_level]
     return out
-
-
-def child_env(environ: Mapping[str, str]) -> dict[str, str]:
-    """The children's environment: ours without ``TAGSWARM_*``.  ``up`` resolved the run's settings
-    (scenario file < environment < flags) into the scenario file and flags it gives them; a child
-    reading a variable again would put it above ``up``'s own flags, unlike what the run folder says."""
-    return {k: v for k, v in environ.items() if not k.startswith("TAGSWARM_") or k == "TAGSWARM_VIEW_HOST"}
 
 
 def main(argv: Sequence[str] | None = None) -> int:

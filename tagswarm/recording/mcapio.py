@@ -92,12 +92,16 @@ def is_command(key: str) -> bool:
 
 def recorded_command_key(key: str) -> str:
     """The replay's key for a recorded wheel command ``key`` (same run): ``.../robot/<id>/recorded_cmd``."""
-    run = run_of(key)
-    keys = Keys(run or "")
-    rid = keys.robot_id_of(key)
+    run, rid = run_of(key), robot_id_of(key)
     if run is None or rid is None or not is_command(key):
         raise ValueError(f"{key!r} is not a wheel command key")
-    return keys.recorded_cmd(rid)
+    return Keys(run).recorded_cmd(rid)
+
+
+def robot_id_of(key: str) -> int | None:
+    """The robot id of a tagswarm key under ``.../robot/<id>/...`` of its own run, else None."""
+    run = run_of(key)
+    return None if run is None else Keys(run).robot_id_of(key)
 
 
 def is_ack(key: str) -> bool:

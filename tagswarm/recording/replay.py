@@ -65,6 +65,7 @@ from tagswarm.recording.mcapio import (
     read_metadata,
     recorded_command_key,
     remap_run,
+    robot_id_of,
     run_of,
 )
 from tagswarm.runtime import streams
@@ -135,7 +136,7 @@ def scenario_for_replay(recording: Path, args: argparse.Namespace, env: dict[str
                           f"clock.mode {scenario.clock.mode!r} cannot be replayed: leave --clock out, or play the "
                           "recording with tagswarm replay --speed X to processes of your own")
     recorded = sorted({rid for t in topics if is_world_stream(t) and t.endswith("/encoders")
-                       for rid in [Keys(run_of(t) or "x").robot_id_of(t)] if rid is not None})
+                       for rid in [robot_id_of(t)] if rid is not None})
     if recorded and list(scenario.robot_ids) != recorded:
         raise ConfigError(f"--replay: the recording holds robots {', '.join(map(str, recorded))}, the scenario "
                           f"robots {', '.join(map(str, scenario.robot_ids))}: --robots and --scenario must "

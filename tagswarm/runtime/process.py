@@ -4,10 +4,12 @@ boundary that turns errors into exit codes (:func:`run_main`)."""
 from __future__ import annotations
 
 import logging
+import os
 import signal
 import sys
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Collection, Mapping, Sequence
+from pathlib import Path
 from typing import Protocol, TypeVar
 
 from tagswarm.protocol.bus import Bus, BusConfig, open_bus
@@ -22,6 +24,24 @@ def setup_logging(level: str | None, role: str) -> None:
         raise ConfigError(f"--log-level: unknown level {level!r}")
     logging.basicConfig(level=name, stream=sys.stderr,
                         format=f"%(asctime)s {role} %(levelname)s %(name)s: %(message)s", force=True)
+
+
+def child_env(environ: Mapping[str, str], *, keep: Collection[str] = (),
+              import_path: Sequence[str] | None = None) -> dict[str, str]:
+    """The environment of a child process started by ``tagswarm up`` or the pytest fixture: ours
+    without ``TAGSWARM_*`` (but the names in ``keep``), unbuffered.  Whoever starts the children
+    resolved the run's settings (scenario file < environment < flags) into the scenario file and
+    flags it gives them; a child reading a variable again would put it above those flags, unlike
+    what the run folder says (and a developer's own variables would leak into a test).
+    ``import_path`` (a test's ``sys.path``, for an agent running the test's own controller module)
+    is appended to ``PYTHONPATH``: what the test can import, that agent can."""
+    env = {k: v for k, v in environ.items() if not k.startswith("TAGSWARM_") or k in keep}
+    env["PYTHONUNBUFFERED"] = "1"
+    if import_path is not None:
+        extra = [p for p in import_path if p and Path(p).is_dir()]
+        env["PYTHONPATH"] = os.pathsep.join(dict.fromkeys([*env.get("PYTHONPATH", "").split(os.pathsep), *extra])
+                                            ).strip(os.pathsep)
+    return env
 
 
 def run_main(prog: str, body: Callable[[], int]) -> int:

@@ -38,9 +38,10 @@ from tagswarm.protocol.errors import TagswarmError
 from tagswarm.protocol.keys import ROOT, Keys
 from tagswarm.protocol.layout import map_to_arena_xy, stand_problem
 from tagswarm.recording.runrecorder import RunRecorder
+from tagswarm.runtime.process import child_env
 from tagswarm.runtime.procgroup import Child
 from tagswarm.testing.errors import SwarmError, SwarmProcessDied, SwarmTimeout
-from tagswarm.testing.options import NetFault, SwarmSpec, check_name, child_env, command, log_name, process_names
+from tagswarm.testing.options import NetFault, SwarmSpec, check_name, command, log_name, process_names
 from tagswarm.testing.result import Run
 from tagswarm.testing.runfolder import free_endpoint, write_run
 from tagswarm.testing.subscription import ENDED_GRACE_S, Subscription
@@ -122,7 +123,7 @@ class LiveSwarm:
         n = sum(1 for c in self._history if c.name == name)
         log = self.run_dir / "logs" / f"{log_name(name)}{'' if n == 0 else f'.{n}'}.log"
         own_module = self.spec.agent_module(name) is not None
-        child = Child(name, argv, log, child_env(os.environ, sys.path if own_module else None))
+        child = Child(name, argv, log, child_env(os.environ, import_path=sys.path if own_module else None))
         self._children[name] = child
         self._history.append(child)
         return child.proc
@@ -319,9 +320,9 @@ class LiveSwarm:
 
     def _alive(self, participant: str, timeout_s: float) -> None:
         child = self._children.get(participant.removesuffix("/0"))
-        if child is not None and child.poll() is not None:  # no token will come: say so now, not in timeout_s
-            raise SwarmError(f"{participant} is not running (it exited with code {child.poll()}); spawn or "
-                             "restart it first")
+        code = None if child is None else child.poll()
+        if code is not None:  # no token will come: say so now, not in timeout_s
+            raise SwarmError(f"{participant} is not running (it exited with code {code}); spawn or restart it first")
         if not wait_alive(self.bus, self.keys.alive(participant), timeout_s):
             raise SwarmTimeout(f"{participant} not alive after {timeout_s:g} s\n{self.tails()}")
 

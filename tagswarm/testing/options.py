@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import re
 import sys
 from collections.abc import Mapping, Sequence
@@ -262,17 +261,4 @@ def command(name: str, common: Sequence[str], extra: Sequence[str] = (), fault: 
         head = [*script("tagswarm-agent", bin_dir), "--robot-id", name.split("/")[1]]
     return [*head, *common, *(fault.flags() if fault is not None else ()), *extra]
 
-
-def child_env(environ: Mapping[str, str], import_path: Sequence[str] | None = None) -> dict[str, str]:
-    """The children's environment: ours without ``TAGSWARM_*`` (a run is configured by its flags
-    alone, so a variable set for the developer's own runs cannot leak into a test), unbuffered.
-    ``import_path`` (the test's ``sys.path``, for an agent running the test's own controller
-    module) is appended to ``PYTHONPATH``: what the test can import, that agent can."""
-    env = {k: v for k, v in environ.items() if not k.startswith("TAGSWARM_")}
-    env["PYTHONUNBUFFERED"] = "1"
-    if import_path is not None:
-        extra = [p for p in import_path if p and Path(p).is_dir()]
-        env["PYTHONPATH"] = os.pathsep.join(dict.fromkeys([*env.get("PYTHONPATH", "").split(os.pathsep), *extra])
-                                            ).strip(os.pathsep)
-    return env
 

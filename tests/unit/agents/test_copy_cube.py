@@ -6,6 +6,8 @@ keeps it out of the map (tests/e2e/test_copy_cube_run.py)."""
 from __future__ import annotations
 
 import math
+import tempfile
+from pathlib import Path
 
 import numpy as np
 import pybullet as pb
@@ -30,7 +32,8 @@ def _estimate(preset: str, robot_1_xy: tuple[float, float], robot_1_yaw: float =
     s = load_scenario("paper", [*BASE, COPY, f"camera.preset={preset}"])
     plain = load_scenario("paper", [*BASE, f"camera.preset={preset}"])  # the render scene gets the copy below
     cam = s.robot.cameras[0]
-    with Renderer(plain) as r:
+    # an asset folder of our own: the renderer's temporary one is gone once its scene is built
+    with tempfile.TemporaryDirectory(prefix="tagswarm-test-assets-") as assets, Renderer(plain, Path(assets)) as r:
         build_decoys(r.cid, s, r.asset_dir, CHASSIS_RGBA)
         r.set_pose(0, (0, 0, 0), (0, 0, 0, 1))
         # both robots face the observer's camera with their back tag (yaw 0: the back is at -x)

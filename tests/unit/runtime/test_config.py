@@ -294,7 +294,8 @@ def test_world_main_bad_env(capsys: pytest.CaptureFixture[str]) -> None:
 
 def test_up_forwards_the_lease_and_fault_flags_to_its_children() -> None:
     from tagswarm.runtime.config import bus_from
-    from tagswarm.up import child_env, net_flags, parser
+    from tagswarm.runtime.process import child_env
+    from tagswarm.up import net_flags, parser
 
     args = parser().parse_args(["--zenoh-lease-ms", "2500", "--net-loss", "0.1", "--net-fault-keys", "a/**"])
     want = ["--net-loss", "0.1", "--zenoh-lease-ms", "2500", "--net-fault-keys", "a/**"]
@@ -306,4 +307,5 @@ def test_up_forwards_the_lease_and_fault_flags_to_its_children() -> None:
     args = parser().parse_args(["--net-loss", "0.1"])
     assert net_flags(bus_from(args, env), "DEBUG") == ["--net-loss", "0.1", "--net-delay-ms", "20.0",
                                                        "--log-level", "DEBUG"]
-    assert child_env(env) == {"PATH": "/bin", "TAGSWARM_VIEW_HOST": "0.0.0.0"}
+    assert child_env(env, keep=("TAGSWARM_VIEW_HOST",)) == {"PATH": "/bin", "TAGSWARM_VIEW_HOST": "0.0.0.0",
+                                                            "PYTHONUNBUFFERED": "1"}

@@ -311,10 +311,12 @@ def test_a_driving_robot_turned_a_little_gets_its_heading_back_from_consistent_v
     assert fusion.counters["admitted_consistent"] > 0
     est = fusion.pose(3)
     assert est is not None and _yaw_error(fusion, 3, truth3) < 0.03 and math.dist(est[0][:2], truth3[:2]) < 0.05
-    # without admitting them the views stay rejected and the heading stays off
+    # without admitting them the heading comes back too, later: the gate weighs robot 3's grown heading
+    # sigma levered by the 3-4.5 m range, and lets the views through once it covers the error (before the
+    # lever was in the gate, 80+ views were rejected and the heading stayed 0.15 rad off)
     stuck, truth3 = _drive_after_a_turn(FusionParams(reloc_admit=False))
-    assert stuck.counters["admitted_consistent"] == 0 and stuck.counters["rejected_gate"] > 80
-    assert _yaw_error(stuck, 3, truth3) > 0.1
+    assert stuck.counters["admitted_consistent"] == 0 and 0 < stuck.counters["rejected_gate"] < 30
+    assert _yaw_error(stuck, 3, truth3) < 0.03
     for rid in (0, 1, 2):  # the others stay where they are without the admitted views (noise: ~1 cm)
         other, ref = fusion.pose(rid), stuck.pose(rid)
         assert other is not None and ref is not None and math.dist(other[0][:2], ref[0][:2]) < 0.005, rid
@@ -341,3 +343,4 @@ def test_a_witness_far_surer_of_itself_than_of_the_suspect_is_trusted_without_a_
     assert not any(_verdicts(0.15))  # not sure enough: 0.15 > 0.5 * 0.20
     assert not any(_verdicts(None))  # nothing known of the witness: the old rule alone
     assert not any(_verdicts(0.05, FusionParams(reloc_trust_sigma_ratio=0.0)))
+

@@ -10,7 +10,7 @@ from tagswarm.protocol.bus import BusConfig
 from tagswarm.protocol.scenario import load_scenario
 from tagswarm.server.config import ServerConfig
 from tagswarm.server.node import make_fusion
-from tagswarm.server.noise import FusionParams, floored_obs_cov, tangent_cov
+from tagswarm.server.noise import FusionParams, floored_obs_cov, relative_cov, tangent_cov
 
 
 def _config(*overrides: str) -> ServerConfig:
@@ -38,3 +38,24 @@ def test_the_floor_adds_isotropic_position_variance_and_leaves_yaw() -> None:
     rel = (2.0, 0.5, math.radians(70))
     added = tangent_cov(rel, out) - tangent_cov(rel, cov)
     assert np.allclose(added, np.diag([4e-4, 4e-4, 0.0]))
+
+
+def test_relative_cov_matches_sampled_relative_poses_and_levers_the_heading_by_the_range() -> None:
+    import gtsam
+
+    rng = np.random.default_rng(0)
+    a, b = gtsam.Pose2(1.0, 2.0, 0.7), gtsam.Pose2(-3.0, 5.5, -2.4)
+    cov_a, cov_b = np.diag([0.02**2, 0.03**2, 0.05**2]), np.diag([0.01**2, 0.04**2, 0.02**2])
+    cov_a[0, 2] = cov_a[2, 0] = 0.5 * 0.02 * 0.05
+    rel = a.between(b)
+    eps = []
+    for _ in range(20000):  # both poses perturbed in their own tangent spaces, as GTSAM's marginals are
+        a2 = a.compose(gtsam.Pose2.Expmap(rng.multivariate_normal(np.zeros(3), cov_a)))
+        b2 = b.compose(gtsam.Pose2.Expmap(rng.multivariate_normal(np.zeros(3), cov_b)))
+        eps.append(gtsam.Pose2.Logmap(rel.between(a2.between(b2))))
+    sampled = np.cov(np.array(eps).T)
+    model = relative_cov((rel.x(), rel.y(), rel.theta()), cov_a, cov_b)
+    assert np.allclose(model, sampled, rtol=0.08, atol=2e-5), (model, sampled)
+    # the sideways spread of a far target is mostly the observer's heading: about range * sigma_yaw
+    rng_m = math.hypot(rel.x(), rel.y())
+    assert np.trace(model[:2, :2]) > 0.8 * (0.05 * rng_m) ** 2 > 10 * np.trace((cov_a + cov_b)[:2, :2])

@@ -10,12 +10,12 @@ import pytest
 
 from tagswarm.protocol.scenario import parse_value
 from tagswarm.runtime.config import Invocation, OneLineParser, add_common_args
+from tagswarm.runtime.process import child_env
 from tagswarm.testing.errors import SwarmError
 from tagswarm.testing.options import (
     NetFault,
     SwarmSpec,
     check_name,
-    child_env,
     command,
     log_name,
     overrides,
@@ -122,7 +122,7 @@ def test_children_get_no_tagswarm_variables() -> None:
 
 
 def test_an_agent_with_the_tests_own_controller_can_import_what_the_test_can(tmp_path: Path) -> None:
-    env = child_env({"PYTHONPATH": "/opt/lib"}, ["", str(tmp_path), "/no/such/dir", str(tmp_path)])
+    env = child_env({"PYTHONPATH": "/opt/lib"}, import_path=["", str(tmp_path), "/no/such/dir", str(tmp_path)])
     assert env["PYTHONPATH"] == f"/opt/lib:{tmp_path}"
     assert "PYTHONPATH" not in child_env({})
     spec = SwarmSpec.make(robots=2, agent_modules={1: "ctl"})

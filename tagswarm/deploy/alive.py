@@ -37,7 +37,7 @@ def parser() -> OneLineParser:
     p.add_argument("--heartbeat", metavar="PATH", help="check a heartbeat file instead of a liveliness token")
     p.add_argument("--max-age", type=float, default=5.0, metavar="SECONDS",
                    help="with --heartbeat: the file must have been touched this recently (default 5)")
-    add_common_args(p)
+    add_common_args(p, scenario="none", faults=False)
     return p
 
 

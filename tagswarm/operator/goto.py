@@ -54,7 +54,7 @@ def parser() -> OneLineParser:
     p.add_argument("--timeout", type=float, default=10.0, metavar="SECONDS",
                    help="how long to wait for the agent's liveliness token and a subscriber of the goal key, "
                    "in all (default 10)")
-    add_common_args(p)
+    add_common_args(p, scenario="none", faults=False)
     return p
 
 

@@ -77,7 +77,7 @@ def parser() -> OneLineParser:
     p.add_argument("--timeout", type=float, default=10.0, metavar="SECONDS",
                    help="how long to wait for the world's liveliness token and a subscriber of the command "
                    "key, in all (default 10)")
-    add_common_args(p)
+    add_common_args(p, scenario="file", faults=False)
     return p
 
 

@@ -15,7 +15,7 @@ import os
 import re
 import sys
 from collections.abc import Mapping, Sequence
-from typing import Any, NoReturn
+from typing import Any, Literal, NoReturn
 
 from tagswarm.protocol.bus import (
     DEFAULT_LEASE_MS,
@@ -53,17 +53,25 @@ class OneLineParser(argparse.ArgumentParser):
         raise SystemExit(2)
 
 
-def add_common_args(p: argparse.ArgumentParser) -> None:
-    """Flags every process understands (scenario, overrides, network, logging)."""
-    g = p.add_argument_group("scenario (TOML < TAGSWARM_* environment < these flags)")
-    g.add_argument("--scenario", help="built-in scenario name or .toml path (default: paper; env TAGSWARM_SCENARIO)")
-    g.add_argument("--set", dest="overrides", action="append", default=[], metavar="FIELD=VALUE",
-                   help="override any scenario field, e.g. --set clock.mode=lockstep (repeatable; "
-                        "env TAGSWARM_SET='a.b=1;c.d=2')")
-    g.add_argument("--seed", type=int, help="random seed (env TAGSWARM_SEED)")
-    g.add_argument("--robots", type=int, help="number of robots (env TAGSWARM_ROBOTS)")
-    g.add_argument("--clock", choices=("realtime", "lockstep"), help="clock mode (env TAGSWARM_CLOCK)")
-    g.add_argument("--duration", type=float, metavar="SECONDS", help="simulated seconds to run (env TAGSWARM_DURATION)")
+def add_common_args(p: argparse.ArgumentParser, *, scenario: Literal["run", "file", "none"] = "run",
+                    faults: bool = True) -> None:
+    """Flags every process understands (scenario, overrides, network, logging).  A tool that
+    runs nothing takes fewer, so a flag that would do nothing is an error, not ignored:
+    ``scenario="file"`` only ``--scenario`` and ``--set`` (it reads the scenario, runs none),
+    ``"none"`` no scenario flags; ``faults=False`` no fault injection."""
+    if scenario != "none":
+        g = p.add_argument_group("scenario (TOML < TAGSWARM_* environment < these flags)")
+        g.add_argument("--scenario",
+                       help="built-in scenario name or .toml path (default: paper; env TAGSWARM_SCENARIO)")
+        g.add_argument("--set", dest="overrides", action="append", default=[], metavar="FIELD=VALUE",
+                       help="override any scenario field, e.g. --set clock.mode=lockstep (repeatable; "
+                            "env TAGSWARM_SET='a.b=1;c.d=2')")
+    if scenario == "run":
+        g.add_argument("--seed", type=int, help="random seed (env TAGSWARM_SEED)")
+        g.add_argument("--robots", type=int, help="number of robots (env TAGSWARM_ROBOTS)")
+        g.add_argument("--clock", choices=("realtime", "lockstep"), help="clock mode (env TAGSWARM_CLOCK)")
+        g.add_argument("--duration", type=float, metavar="SECONDS",
+                       help="simulated seconds to run (env TAGSWARM_DURATION)")
     n = p.add_argument_group("network (Zenoh)")
     n.add_argument("--run", help="run id: namespaces every key so runs can share a network (env TAGSWARM_RUN; "
                                  "default: default)")
@@ -83,18 +91,20 @@ def add_common_args(p: argparse.ArgumentParser) -> None:
                    help="Zenoh link lease this process announces: peers drop it (and its liveliness) after "
                         f"that long without hearing from it ({MIN_LEASE_MS}..{MAX_LEASE_MS}; env "
                         f"TAGSWARM_ZENOH_LEASE_MS; default {DEFAULT_LEASE_MS})")
-    f = p.add_argument_group("network fault injection (on what this process receives; for tests and demos)")
-    f.add_argument("--net-loss", metavar="SHARE", help="share of matching messages lost, 0..1 (env TAGSWARM_NET_LOSS)")
-    f.add_argument("--net-delay-ms", metavar="MS", help="delay added to matching messages in milliseconds "
-                                                       "(env TAGSWARM_NET_DELAY_MS)")
-    f.add_argument("--net-jitter-ms", metavar="MS", help="spread of that delay: each message late by delay ± jitter "
-                                                        "(uniform, seeded; per-key order kept; env "
-                                                        "TAGSWARM_NET_JITTER_MS)")
-    f.add_argument("--net-fault-keys", action="append", metavar="KEYEXPR",
-                   help="key expression the faults apply to (repeatable; env TAGSWARM_NET_FAULT_KEYS, comma-separated; "
-                        "default: encoders, wheel commands, goals, observations, odometry and the map; never "
-                        "the clock, corrections or images)")
-    f.add_argument("--net-seed", metavar="N", help="seed of the loss pattern (env TAGSWARM_NET_SEED; default 0)")
+    if faults:
+        f = p.add_argument_group("network fault injection (on what this process receives; for tests and demos)")
+        f.add_argument("--net-loss", metavar="SHARE",
+                       help="share of matching messages lost, 0..1 (env TAGSWARM_NET_LOSS)")
+        f.add_argument("--net-delay-ms", metavar="MS", help="delay added to matching messages in milliseconds "
+                                                           "(env TAGSWARM_NET_DELAY_MS)")
+        f.add_argument("--net-jitter-ms", metavar="MS",
+                       help="spread of that delay: each message late by delay ± jitter (uniform, seeded; per-key "
+                            "order kept; env TAGSWARM_NET_JITTER_MS)")
+        f.add_argument("--net-fault-keys", action="append", metavar="KEYEXPR",
+                       help="key expression the faults apply to (repeatable; env TAGSWARM_NET_FAULT_KEYS, "
+                            "comma-separated; default: encoders, wheel commands, goals, observations, odometry "
+                            "and the map; never the clock, corrections or images)")
+        f.add_argument("--net-seed", metavar="N", help="seed of the loss pattern (env TAGSWARM_NET_SEED; default 0)")
     p.add_argument("--log-level", default=None, help="DEBUG, INFO, WARNING... (env TAGSWARM_LOG_LEVEL; default INFO)")
 
 
@@ -120,7 +130,7 @@ def scenario_from(args: argparse.Namespace, env: Mapping[str, str]) -> Scenario:
         env_value = env.get(ENV_PREFIX + attr.upper())
         if env_value is not None:
             overrides.append(f"{field}={_quote(field, env_value)}")
-    overrides += list(args.overrides or [])
+    overrides += list(getattr(args, "overrides", None) or [])
     for attr, field in (("seed", "seed"), ("robots", "robots.count"), ("clock", "clock.mode"),
                         ("duration", "duration_s")):
         value = getattr(args, attr, None)

@@ -132,7 +132,7 @@ def parser() -> OneLineParser:
     p.add_argument("--echo", action="store_true", help="print every message as a JSON line instead of the table")
     p.add_argument("--plain", action="store_true", help="plain-text snapshots even on a terminal")
     p.add_argument("--no-alive", action="store_true", help="do not list liveliness tokens")
-    add_common_args(p)
+    add_common_args(p, scenario="none")
     return p
 
 

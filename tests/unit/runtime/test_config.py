@@ -309,3 +309,28 @@ def test_up_forwards_the_lease_and_fault_flags_to_its_children() -> None:
                                                        "--log-level", "DEBUG"]
     assert child_env(env, keep=("TAGSWARM_VIEW_HOST",)) == {"PATH": "/bin", "TAGSWARM_VIEW_HOST": "0.0.0.0",
                                                             "PYTHONUNBUFFERED": "1"}
+
+
+@pytest.mark.parametrize(("module", "positional", "refused", "kept"), [
+    ("tagswarm.operator.goto", ["1", "0", "0"], ["--duration", "--robots", "--seed", "--clock", "--scenario",
+                                                "--set", "--net-loss"], ["--run", "--connect"]),
+    ("tagswarm.operator.kidnap", ["1", "0", "0"], ["--duration", "--robots", "--seed", "--clock", "--net-loss"],
+     ["--scenario", "--set", "--run"]),
+    ("tagswarm.spy.spy", [], ["--duration", "--robots", "--scenario", "--set"], ["--run", "--net-loss"]),
+    ("tagswarm.deploy.alive", ["world/0"], ["--duration", "--robots", "--scenario", "--net-loss"], ["--run"]),
+])
+def test_tools_that_run_nothing_refuse_the_flags_that_would_do_nothing(
+        module: str, positional: list[str], refused: list[str], kept: list[str],
+        capsys: pytest.CaptureFixture[str]) -> None:
+    import importlib
+
+    mod = importlib.import_module(module)
+    values = {"--clock": "lockstep", "--set": "seed=1", "--scenario": "paper", "--run": "r1",
+              "--connect": "tcp/127.0.0.1:7447"}
+    for flag in refused:
+        with pytest.raises(SystemExit) as exc:
+            mod.parser().parse_args([*positional, flag, values.get(flag, "1")])
+        assert exc.value.code == 2
+        assert f"unrecognized arguments: {flag}" in capsys.readouterr().err
+    for flag in kept:
+        mod.parser().parse_args([*positional, flag, values.get(flag, "1")])

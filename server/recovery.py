@@ -15,9 +15,10 @@ Mangelson et al. 2018; Kimera-Multi) does for loop closures:
   different instants compares directly while the suspect moves on odometry;
 - only a *trusted* witness gives evidence: a landmark, the origin robot, or a
   robot that agrees with a third robot (an accepted observation with somebody
-  other than the suspect within ``reloc_trust_s``), or a robot far surer of its own
-  position than of the suspect's (its σ under ``reloc_trust_sigma_ratio`` of the
-  suspect's).  A robot that is wrong itself therefore cannot drag its observers along.
+  other than the suspect within ``reloc_trust_s``), or a robot far surer of where it puts
+  the suspect than the suspect is of itself (its σ there, heading levered by the range,
+  under ``reloc_trust_sigma_ratio`` of the suspect's).  A robot that is wrong itself
+  therefore cannot drag its observers along.
   The second rule is for two robots out of everyone's view: neither agrees with a third,
   yet one may have been seen a moment ago and the other not for many seconds (measured in
   the hall, seed 2: a robot 22-30 cm off for 8 s saw two robots whose estimates were right
@@ -45,7 +46,11 @@ Mangelson et al. 2018; Kimera-Multi) does for loop closures:
 - the move must be significant: the consensus of the agreeing evidence (their
   mean, weighted by certainty) must differ from the suspect's estimate by more
   than both can be wrong together (3 σ in position, or more than
-  ``reloc_min_turn_rad`` in yaw).  Far observations lever the yaw error by the
+  ``reloc_min_turn_rad`` in yaw).  Each piece's spread is the measurement's plus its
+  witness's own uncertainty carried to the suspect, heading levered by the range
+  (:func:`tagswarm.server.noise.relative_cov`): a witness whose heading drifted 9° while it
+  turned on the spot otherwise re-localised a correctly placed robot 5.5 m away 0.84 m the
+  wrong way on 12 views that agreed only because they shared that heading.  Far observations lever the yaw error by the
   range, so several of them can agree on a pose tens of centimetres off; a
   robot 10 cm off would otherwise be re-localised 25 cm the other way (measured
   in a 10-robot hall).  Such a set does not move the robot: its observation is

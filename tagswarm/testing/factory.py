@@ -78,7 +78,7 @@ class SwarmFactory:
         spec = SwarmSpec.make(scenario=scenario, robots=robots, seed=seed, duration_s=duration_s, clock=clock,
                               set=set, agent_modules=agent_modules, net=net, extra_args=extra_args,
                               log_level=log_level, **overrides)
-        key = (spec, plots)
+        key = (spec.same_run_key(), plots)
         if reuse and key in self._cache:
             return self._cache[key]
         with self._start(spec, launch=True, grace_s=5.0) as live:

@@ -182,6 +182,15 @@ class SwarmSpec:
             out.append(f"robots.count={int(self.robots)}")
         return [*out, *self.overrides]
 
+    def same_run_key(self) -> tuple[object, ...]:
+        """What makes two specs the same run: the resolved scenario (so ``robots=None`` and the
+        scenario's own count are one run) and everything outside it.  SwarmScenarioError if invalid."""
+        try:
+            s = load_scenario(self.scenario, self.scenario_overrides())
+        except ScenarioError as exc:
+            raise SwarmScenarioError(str(exc)) from None
+        return (msgspec.json.encode(s), self.agent_modules, self.net, self.net_all, self.extra_args, self.log_level)
+
     def build_scenario(self) -> Scenario:
         """The resolved scenario; in lockstep every agent and the server ack each tick (as in
         ``tagswarm up``) unless the scenario names its participants.  SwarmScenarioError if invalid."""

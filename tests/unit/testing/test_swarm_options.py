@@ -138,3 +138,12 @@ def test_a_scenario_that_does_not_load_is_a_swarm_error_naming_the_field() -> No
         SwarmSpec.make(robots=2, **{"robot.cameras": [{"width": -1}]}).build_scenario()
     assert isinstance(exc.value, SwarmError) and isinstance(exc.value, ScenarioError)
     assert "robot.cameras[0].width" in str(exc.value)
+
+
+def test_a_reused_run_is_keyed_by_what_it_resolves_to() -> None:
+    # robots=None keeps the paper scenario's own 4 robots: the same run as robots=4, not a second one
+    assert SwarmSpec.make(robots=None).same_run_key() == SwarmSpec.make(robots=4).same_run_key()
+    assert SwarmSpec.make(seed=0).same_run_key() != SwarmSpec.make(seed=1).same_run_key()
+    assert SwarmSpec.make(robots=3).same_run_key() != SwarmSpec.make(robots=4).same_run_key()
+    assert SwarmSpec.make(robots=4, agent_modules={1: "ctl"}).same_run_key() != SwarmSpec.make(robots=4).same_run_key()
+    assert SwarmSpec.make(set={"agent.max_speed_m_s": 0.1}).same_run_key() != SwarmSpec.make().same_run_key()

@@ -185,19 +185,20 @@ class SwarmSpec:
     def same_run_key(self) -> tuple[object, ...]:
         """What makes two specs the same run: the resolved scenario (so ``robots=None`` and the
         scenario's own count are one run) and everything outside it.  SwarmScenarioError if invalid."""
+        return (msgspec.json.encode(self._load()), self.agent_modules, self.net, self.net_all, self.extra_args,
+                self.log_level)
+
+    def _load(self) -> Scenario:
+        """The scenario with this spec's overrides, as ``--set`` would give it; SwarmScenarioError if invalid."""
         try:
-            s = load_scenario(self.scenario, self.scenario_overrides())
+            return load_scenario(self.scenario, self.scenario_overrides())
         except ScenarioError as exc:
             raise SwarmScenarioError(str(exc)) from None
-        return (msgspec.json.encode(s), self.agent_modules, self.net, self.net_all, self.extra_args, self.log_level)
 
     def build_scenario(self) -> Scenario:
         """The resolved scenario; in lockstep every agent and the server ack each tick (as in
         ``tagswarm up``) unless the scenario names its participants.  SwarmScenarioError if invalid."""
-        try:
-            s = load_scenario(self.scenario, self.scenario_overrides())
-        except ScenarioError as exc:
-            raise SwarmScenarioError(str(exc)) from None
+        s = self._load()
         if s.clock.mode == "lockstep" and not s.clock.participants:
             table = msgspec.to_builtins(s)
             table["clock"]["participants"] = [f"agent/{r}" for r in s.robot_ids] + ["server/0"]

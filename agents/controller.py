@@ -53,7 +53,10 @@ import importlib.util
 import logging
 import math
 import sys
+import threading
 import time
+import traceback
+import weakref
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -301,6 +304,41 @@ def _twist(cmd: object, robot: Robot) -> tuple[float, float]:
     return v, w
 
 
+HUNG_STEP_S = 5.0  # wall seconds after which a step that has not returned is reported (with where it is)
+
+
+class _HangWatch:
+    """Reports, once per step, a controller step that has not returned after ``HUNG_STEP_S``
+    wall seconds, with the stack it is stuck in: an exception is logged by the runner, but a
+    step that never returns says nothing by itself (in lockstep the world and the server stop
+    waiting for the robot after ``clock.ack_stall_after`` timeouts; in real time it stands)."""
+
+    def __init__(self, log: logging.Logger, name: str, robot_id: int) -> None:
+        self.log, self.name, self.robot_id = log, name, robot_id
+        self.started: float | None = None  # perf_counter of the step under way
+        self.thread_id = 0
+        self.reported: float | None = None  # the step already reported
+        self.hung = 0
+        self._stop = threading.Event()
+        threading.Thread(target=self._watch, name=f"controller-watch-{robot_id}", daemon=True).start()
+
+    def _watch(self) -> None:
+        while not self._stop.wait(0.5):
+            t0 = self.started
+            if t0 is None or t0 == self.reported or time.perf_counter() - t0 < HUNG_STEP_S:
+                continue
+            self.reported = t0
+            self.hung += 1
+            frame = sys._current_frames().get(self.thread_id)
+            where = "".join(traceback.format_stack(frame)[-3:]) if frame is not None else "(stack unknown)\n"
+            self.log.warning("robot %d: the controller %s's step has not returned for %.0f s (counted as "
+                             "controller_hung); it is here:\n%s", self.robot_id, self.name, HUNG_STEP_S,
+                             where.rstrip())
+
+    def close(self) -> None:
+        self._stop.set()
+
+
 @dataclass
 class ControllerRunner:
     """Runs one controller for the agent: error containment, collision filter, wheel speeds."""
@@ -319,6 +357,7 @@ class ControllerRunner:
         self.guard = CommandGuard(footprint_radius(self.config.robot), a.avoid_clearance_m, a.avoid_horizon_s)
         self._boxes = self.config.static_obstacles
         self._period_s = 1.0 / self.config.scenario.encoders.rate_hz
+        self._watch: _HangWatch | None = None  # started with the first step
 
     @property
     def wants_images(self) -> bool:
@@ -333,7 +372,11 @@ class ControllerRunner:
         self.cycles += 1
         self.fixes += inputs.fix
         robot = self.config.robot
+        if self._watch is None:
+            self._watch = _HangWatch(self.log, type(self.controller).__name__, inputs.robot_id)
+            weakref.finalize(self, self._watch.close)  # a runner replaced (a new run) takes its watch with it
         t0 = time.perf_counter()
+        self._watch.thread_id, self._watch.started = threading.get_ident(), t0
         try:
             v, w = _twist(self.controller.step(inputs), robot)
         except Exception:
@@ -344,6 +387,7 @@ class ControllerRunner:
                                    type(self.controller).__name__)
             return 0.0, 0.0
         finally:
+            self._watch.started = None
             took = time.perf_counter() - t0
             if took > self._period_s:
                 self.slow += 1
@@ -359,7 +403,13 @@ class ControllerRunner:
 
     def counters(self) -> dict[str, int]:
         return {"controller_cycles": self.cycles, "controller_errors": self.errors,
-                "controller_filtered": self.guard.filtered, "controller_slow": self.slow, "fixes": self.fixes}
+                "controller_filtered": self.guard.filtered, "controller_slow": self.slow, "fixes": self.fixes,
+                "controller_hung": 0 if self._watch is None else self._watch.hung}
+
+    def close(self) -> None:
+        """Stop the hang watch (the agent's controller is replaced, or the agent ends)."""
+        if self._watch is not None:
+            self._watch.close()
 
 
 def control_input(*, robot_id: int, time_ns: int, map_odom: Pose2 | None, map_cov: tuple[float, ...] | None,

@@ -270,7 +270,10 @@ class Clock(Spec, frozen=True, kw_only=True, forbid_unknown_fields=True):
     """``realtime``: the world paces itself to ``speed`` x wall time.
     ``lockstep``: after each tick it waits for an ack from every live participant
     in ``participants`` (``"agent/0"``, ``"server/0"``...); one that has not acked
-    after ``ack_timeout_s`` is skipped for that tick and logged; one whose
+    after ``ack_timeout_s`` is skipped for that tick and logged, and after
+    ``ack_stall_after`` such timeouts in a row (alive but silent: a controller
+    whose step hangs) it is not waited for until it acknowledges a tick again
+    (0: wait ``ack_timeout_s`` on every tick); one whose
     liveliness token vanishes is dropped until it comes back.  The world waits up
     to ``join_timeout_s`` for participants to appear before the first tick.
     ``observers`` (``"up/0"``, ``"record/0"``) are waited for in the same way
@@ -284,6 +287,7 @@ class Clock(Spec, frozen=True, kw_only=True, forbid_unknown_fields=True):
     participants: tuple[str, ...] = ()
     observers: tuple[str, ...] = ()
     ack_timeout_s: Pos = 5.0
+    ack_stall_after: Annotated[int, msgspec.Meta(ge=0)] = 3
     join_timeout_s: Pos = 30.0
     command_timeout_s: Pos = 0.5
 

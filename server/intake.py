@@ -112,3 +112,38 @@ class OdometryWait:
         """The live robots whose agent acked the tick but whose odometry of it never came."""
         return [r for r in sorted(alive)
                 if latest_rx.get(r, -1) < self.stamp_ns and (self.step, self.stamp_ns) in acked[r]]
+
+
+class SilentRobots:
+    """Lockstep: robots whose agent is alive but silent (a controller whose step hangs: the
+    process and its liveliness token live on, its odometry stops).  After ``stall_after``
+    odometry waits in a row ran out for a robot, it is *stalled*: not waited for until its
+    odometry comes again, so it costs the run a few ``clock.ack_timeout_s`` rather than one
+    per tick, as the world treats its ack (:class:`tagswarm.world.lockstep.AckTracker`).
+    ``stall_after`` 0 never stalls anyone."""
+
+    def __init__(self, stall_after: int) -> None:
+        self.stall_after = stall_after
+        self.missed: dict[int, int] = {}  # waits in a row that ran out
+        self.stalled: dict[int, int] = {}  # robot -> its newest odometry stamp when stalled
+
+    def waited(self, alive: set[int], latest_rx: Mapping[int, int]) -> set[int]:
+        """The live robots to wait for: a stalled one is back once newer odometry arrived."""
+        for r, stamp in list(self.stalled.items()):
+            if latest_rx.get(r, -1) > stamp:
+                del self.stalled[r]
+                self.missed.pop(r, None)
+        return alive - set(self.stalled)
+
+    def settled(self, waited: set[int], late: set[int], latest_rx: Mapping[int, int]) -> list[int]:
+        """After one tick's wait: ``late`` are the waited robots whose odometry did not come
+        before the deadline (empty if it did not run out).  Returns the robots stalled now."""
+        now_stalled = []
+        for r in waited - late:
+            self.missed.pop(r, None)
+        for r in sorted(late):
+            self.missed[r] = self.missed.get(r, 0) + 1
+            if self.stall_after and self.missed[r] >= self.stall_after:
+                self.stalled[r] = latest_rx.get(r, -1)
+                now_stalled.append(r)
+        return now_stalled

@@ -37,7 +37,7 @@ from tagswarm.server import outputs
 from tagswarm.server.config import ServerConfig, build_config
 from tagswarm.server.estimator import Estimator, apply_input
 from tagswarm.server.fusion import Fusion, FusionParams
-from tagswarm.server.intake import Intake, OdometryWait
+from tagswarm.server.intake import Intake, OdometryWait, SilentRobots
 from tagswarm.server.stitchmap import StitchMap
 
 log = logging.getLogger("tagswarm.server")
@@ -119,6 +119,7 @@ class ServerNode:
         # robot -> (step, stamp_ns) of its agent's newest acks (a few: forged ones cannot push out the one
         # of the tick being waited for as easily)
         self.acked: dict[int, deque[tuple[int, int]]] = {rid: deque(maxlen=ACKS_KEPT) for rid in self.roster}
+        self.silent = SilentRobots(self.s.clock.ack_stall_after)
         self.odometry_grace_s = ODOMETRY_GRACE_S + config.bus.delay_ms / 1e3
         self.alive_in = bus.watch_liveliness(self.keys.alive_role("agent"))
         self.world_alive_in = bus.watch_liveliness(self.keys.alive_role("world"))
@@ -430,10 +431,12 @@ class ServerNode:
                             time.monotonic() + self.s.clock.ack_timeout_s)
         done = [False]
         armed = [wait.deadline]  # what the current wait runs until
+        waited = self.silent.waited(self.alive, self.latest_rx)
 
         def settled() -> bool:
             self._drain()
-            done[0] = self._world_left() or wait.settled(time.monotonic(), self.alive, self.latest_rx, self.acked)
+            done[0] = self._world_left() or wait.settled(time.monotonic(), waited & self.alive, self.latest_rx,
+                                                         self.acked)
             return done[0]
 
         def woken() -> bool:  # settled, or a grace began that ends before the current wait does
@@ -449,6 +452,13 @@ class ServerNode:
             armed[0] = wait.next_at
         if self._world_left():
             return
+        late = set() if done[0] else {r for r in waited & self.alive if self.latest_rx.get(r, -1) < tick.stamp_ns
+                                      and (tick.step, tick.stamp_ns) not in self.acked[r]}
+        for r in self.silent.settled(waited, late, self.latest_rx):
+            self.counters["odometry_stalls"] += 1
+            log.warning("robot %d's odometry missed %d ticks in a row (its agent alive but silent: a step that "
+                        "hangs?); not waiting for it any more until its odometry comes again", r,
+                        self.silent.stall_after)
         self.counters["odometry_lost"] += len(wait.lost(self.alive, self.latest_rx, self.acked))
 
     def _step_lockstep(self, ticks: list[m.Tick]) -> bool:

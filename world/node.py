@@ -72,8 +72,8 @@ class WorldNode:
         self.renderer = Renderer(s) if s.render.workers == 0 else None
         self.tick_hz = s.clock.tick_hz
         self.lockstep = s.clock.mode == "lockstep"
-        self.participants = AckTracker(s.clock.participants)
-        self.workers = AckTracker(f"render/{i}" for i in range(s.render.workers))
+        self.participants = AckTracker(s.clock.participants, s.clock.ack_stall_after)
+        self.workers = AckTracker((f"render/{i}" for i in range(s.render.workers)), s.clock.ack_stall_after)
         self.observers_alive: set[str] = set()
         self.rejects = streams.RejectCounter(log)
         self.counters: Counter[str] = Counter()
@@ -190,7 +190,10 @@ class WorldNode:
             log.warning("%s %s did not acknowledge step %d within %.1f s; continuing without them",
                         what, ", ".join(late), step, self.s.clock.ack_timeout_s)
             for p in late:  # skip them for this step, require them again from the next one
-                tracker.ack(p, step)
+                if tracker.skip(p, step):
+                    self.counters["ack_stalls"] += 1
+                    log.warning("%s %s missed %d steps in a row (alive but silent: a step that hangs?); not waiting "
+                                "for it any more until it acknowledges a step again", what, p, tracker.stall_after)
 
     def wait_for_participants(self, timeout_s: float | None = None) -> bool:
         """Before the first tick: wait until every declared participant, observer and

@@ -70,11 +70,30 @@ def make_controller(config):
 """
 
 
-def _up(out: Path, duration_s: float, *agent_modules: str) -> None:
+HANGING = 1
+HANGING_SOURCE = """
+import time
+
+from tagswarm.agents.controller import Controller, Twist
+
+
+class Hang(Controller):
+    def step(self, inputs):
+        if inputs.t_s >= 2.0:
+            time.sleep(3600)  # a bug: the step never returns
+        return Twist(0.0, 0.0)
+
+
+def make_controller(config):
+    return Hang()
+"""
+
+
+def _up(out: Path, duration_s: float, *agent_modules: str, extra: tuple[str, ...] = ()) -> None:
     flags = [f for spec in agent_modules for f in ("--agent-module", spec)]
     res = subprocess.run([script("tagswarm"), "up", "--clock", "lockstep", "--seed", "0", "--duration",
                           str(duration_s), "--listen", endpoint(), "--run", f"own{os.getpid()}x{uuid.uuid4().hex[:6]}",
-                          "--out", str(out), "--no-live", *flags], capture_output=True, text=True, timeout=900)
+                          "--out", str(out), "--no-live", *flags, *extra], capture_output=True, text=True, timeout=900)
     assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
 
 
@@ -187,3 +206,24 @@ def test_a_broken_module_exits_2_with_one_line(tmp_path: Path) -> None:
     lines = agent.stderr.strip().splitlines()
     assert agent.returncode == 2 and len(lines) == 1, agent.stderr
     assert lines[0].startswith("tagswarm-agent: error: --agent-module no_such_pkg.ctrl: cannot import it")
+
+
+def test_a_controller_whose_step_hangs_costs_the_run_a_few_timeouts_and_the_log_says_where(tmp_path: Path) -> None:
+    """Robot 1's step never returns from t = 2 s on.  Its agent stays alive (liveliness and all), so
+    the lockstep world and the server wait for it: ``clock.ack_timeout_s`` (1 s here) on every tick,
+    which made this 8 s run take 180 timeouts (3.4 min); now each stops waiting after
+    ``clock.ack_stall_after`` (3) in a row, and the agent logs where the step is stuck."""
+    module = tmp_path / "hang.py"
+    module.write_text(HANGING_SOURCE)
+    out = tmp_path / "run"
+    _up(out, 8.0, f"{module}:{HANGING}", extra=("--set", "clock.ack_timeout_s=1.0"))
+    summary = json.loads((out / "run.json").read_text())
+    world, server = summary["counters"]["world"], summary["counters"]["server"]
+    assert world["ack_timeouts"] == 3 and world["ack_stalls"] == 1, world
+    assert server["odometry_stalls"] == 1 and server["odometry_wait_timeouts"] == 3, server
+    # the others ran to the end
+    for rid in (0, 2, 3):
+        assert _truth(out, rid)[-1, 0] >= 8.0 - 0.1
+    log = (out / "logs" / f"agent{HANGING}.log").read_text()
+    assert "the controller Hang's step has not returned for 5 s" in log and "time.sleep(3600)" in log
+    assert "missed 3 steps in a row" in (out / "logs" / "world.log").read_text()

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import logging
 import math
+import time
 from pathlib import Path
 
 import numpy as np
@@ -95,9 +96,29 @@ def test_a_raising_controller_stops_the_robot_is_counted_and_logged_once(caplog:
     assert out[0::2] == [(0.0, 0.0)] * 3 and all(left > 0 and left == right for left, right in out[1::2])
     counters = runner.counters()
     assert counters.pop("controller_slow") in range(7)  # wall-clock: a loaded machine may stretch a step
-    assert counters == {"controller_cycles": 6, "controller_errors": 3, "controller_filtered": 0, "fixes": 0}
+    assert counters == {"controller_cycles": 6, "controller_errors": 3, "controller_filtered": 0, "fixes": 0,
+                        "controller_hung": 0}
     errors = [r for r in caplog.records if r.levelno >= logging.ERROR]
     assert len(errors) == 1 and errors[0].exc_info is not None and "RuntimeError" in caplog.text
+
+
+def test_a_step_that_does_not_return_is_reported_once_with_where_it_is(monkeypatch: pytest.MonkeyPatch,
+                                                                      caplog: pytest.LogCaptureFixture) -> None:
+    monkeypatch.setattr("tagswarm.agents.controller.HUNG_STEP_S", 0.2)
+
+    class Stuck(Controller):
+        def step(self, inputs: ControlInput) -> Twist:
+            time.sleep(1.6)  # three looks of the watch: reported once all the same
+            return Twist(0.0, 0.0)
+
+    runner = ControllerRunner(Stuck(), _config())
+    with caplog.at_level(logging.WARNING):
+        runner.command(_inputs())
+        runner.command(_inputs())  # a second stuck step is a second report
+    runner.close()
+    hung = [r for r in caplog.records if "has not returned" in r.getMessage()]
+    assert len(hung) == 2 and runner.counters()["controller_hung"] == 2
+    assert "in step" in hung[0].getMessage() and "time.sleep(1.6)" in hung[0].getMessage()
 
 
 def test_fixes_and_slow_steps_are_counted_and_a_slow_one_logged_once(monkeypatch: pytest.MonkeyPatch,

@@ -102,6 +102,11 @@ def controller_trouble(counters: Any) -> list[str]:
                          f"(traceback in logs/agent{rid}.log)")
         if slow:
             notes.append(f"robot {rid}'s controller: {slow} of {cycles} steps took longer than a control period")
+    # a step that never returns leaves no counter of its agent (it reports no more): the world's tells
+    stalls = _int_or_zero(_dict(_dict(counters).get("world")).get("ack_stalls"))
+    if stalls:
+        notes.append(f"the lockstep world stopped waiting for a participant alive but silent ({stalls} time(s)): "
+                     "a controller step that never returns? logs/world.log names it, its agent's log shows where")
     return notes
 
 

@@ -227,3 +227,5 @@ def test_a_controller_whose_step_hangs_costs_the_run_a_few_timeouts_and_the_log_
     log = (out / "logs" / f"agent{HANGING}.log").read_text()
     assert "the controller Hang's step has not returned for 5 s" in log and "time.sleep(3600)" in log
     assert "missed 3 steps in a row" in (out / "logs" / "world.log").read_text()
+    warnings = json.loads((out / "metrics.json").read_text())["warnings"]
+    assert any("stopped waiting for a participant alive but silent" in w for w in warnings), warnings

@@ -106,6 +106,9 @@ def test_a_failing_or_slow_own_controller_is_named_and_a_healthy_run_prints_noth
     text = printed({**healthy, "agent/2": {"controller_cycles": 150, "controller_errors": 75, "controller_slow": 3}})
     assert "robot 2's controller: 75 of 150 steps failed" in text and "logs/agent2.log" in text
     assert "robot 2's controller: 3 of 150 steps took longer than a control period" in text and "robot 1" not in text
+    assert "stopped waiting" not in text
+    hung = printed({**healthy, "world": {"ack_timeouts": 3, "ack_stalls": 1}})
+    assert "the lockstep world stopped waiting for a participant alive but silent (1 time(s))" in hung
     (tmp_path / "run.json").write_text("{not json")
     out = io.StringIO()
     _controller_trouble(Console(file=out), tmp_path)  # a run that crashed early: nothing, no traceback

@@ -305,6 +305,7 @@ def _twist(cmd: object, robot: Robot) -> tuple[float, float]:
 
 
 HUNG_STEP_S = 5.0  # wall seconds after which a step that has not returned is reported (with where it is)
+HANG_FRAMES = 8  # frames of the stuck step's stack that report shows
 
 
 class _HangWatch:
@@ -330,7 +331,11 @@ class _HangWatch:
             self.reported = t0
             self.hung += 1
             frame = sys._current_frames().get(self.thread_id)
-            where = "".join(traceback.format_stack(frame)[-3:]) if frame is not None else "(stack unknown)\n"
+            stack = traceback.extract_stack(frame) if frame is not None else traceback.StackSummary()
+            # the user's frames: those below this runner's call of step (the last HANG_FRAMES of them)
+            calls = [i for i, f in enumerate(stack) if f.name == "command" and f.filename == __file__]
+            mine = stack[calls[-1] + 1:] if calls else stack
+            where = "".join(traceback.format_list(mine[-HANG_FRAMES:])) or "(stack unknown)\n"
             self.log.warning("robot %d: the controller %s's step has not returned for %.0f s (counted as "
                              "controller_hung); it is here:\n%s", self.robot_id, self.name, HUNG_STEP_S,
                              where.rstrip())

@@ -135,6 +135,11 @@ class SilentRobots:
                 self.missed.pop(r, None)
         return alive - set(self.stalled)
 
+    def forget(self, robot: int) -> None:
+        """``robot``'s agent went or came (its liveliness token changed): whatever it missed is over."""
+        self.missed.pop(robot, None)
+        self.stalled.pop(robot, None)
+
     def settled(self, waited: set[int], late: set[int], latest_rx: Mapping[int, int]) -> list[int]:
         """After one tick's wait: ``late`` are the waited robots whose odometry did not come
         before the deadline (empty if it did not run out).  Returns the robots stalled now."""

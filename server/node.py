@@ -173,6 +173,7 @@ class ServerNode:
             if who and who.startswith("agent/") and who[6:].isdigit():
                 agent = int(who[6:])
                 self.presence.token(agent, change.value, self.time_ns)
+                self.silent.forget(agent)  # gone or (back) up: a stall, if any, ends with it
                 if not change.value:
                     log.info("robot %d's agent is gone; its last pose stays in the map", agent)
         # acks before odometry: an agent's odometry of a tick was enqueued before its ack of that tick
@@ -293,6 +294,7 @@ class ServerNode:
             # (self.acked is kept: a new run's first acks may be in already; an old one matches no tick of
             # the new run before the agent's next acks replace it)
             self.latest_rx.clear()
+            self.silent = SilentRobots(self.s.clock.ack_stall_after)
             self.time_ns = self._next_map_ns = self._next_update_ns = 0
             self._next_checkpoint_ns = self._checkpoint_every_ns
         elif isinstance(record, jr.Checkpoint):
@@ -426,17 +428,19 @@ class ServerNode:
         is still missing ``odometry_grace_s`` later (counted in ``odometry_lost``; fusion
         then merges that increment with the next, see :mod:`tagswarm.server.fusion`).  A robot
         whose agent does not answer at all is waited for up to ``clock.ack_timeout_s``
-        (``odometry_wait_timeouts``), as the world waits for its ack."""
+        (``odometry_wait_timeouts``), as the world waits for its ack, and after
+        ``clock.ack_stall_after`` such waits in a row not at all until its odometry comes again
+        (``odometry_stalls``; :class:`~tagswarm.server.intake.SilentRobots`)."""
         wait = OdometryWait(tick.step, tick.stamp_ns, self.odometry_grace_s,
                             time.monotonic() + self.s.clock.ack_timeout_s)
         done = [False]
         armed = [wait.deadline]  # what the current wait runs until
-        waited = self.silent.waited(self.alive, self.latest_rx)
+        self.silent.waited(self.alive, self.latest_rx)  # a stalled robot whose odometry came again is back
 
         def settled() -> bool:
             self._drain()
-            done[0] = self._world_left() or wait.settled(time.monotonic(), waited & self.alive, self.latest_rx,
-                                                         self.acked)
+            done[0] = self._world_left() or wait.settled(time.monotonic(), self.alive - self.silent.stalled.keys(),
+                                                         self.latest_rx, self.acked)
             return done[0]
 
         def woken() -> bool:  # settled, or a grace began that ends before the current wait does
@@ -452,7 +456,8 @@ class ServerNode:
             armed[0] = wait.next_at
         if self._world_left():
             return
-        late = set() if done[0] else {r for r in waited & self.alive if self.latest_rx.get(r, -1) < tick.stamp_ns
+        waited = self.alive - self.silent.stalled.keys()
+        late = set() if done[0] else {r for r in waited if self.latest_rx.get(r, -1) < tick.stamp_ns
                                       and (tick.step, tick.stamp_ns) not in self.acked[r]}
         for r in self.silent.settled(waited, late, self.latest_rx):
             self.counters["odometry_stalls"] += 1

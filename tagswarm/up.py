@@ -407,7 +407,8 @@ def _summary(console: Console, metrics: dict[str, Any], *, failed: bool = False)
                       "the origin robot, so their poses swing within that σ; more robots in sight of each other, "
                       "landmarks or a finer camera help (README, 'Your own scene')[/]", highlight=False)
     for w in metrics.get("warnings", []):
-        if "heard nothing from" in w or "'s controller: " in w or "not applied by the world" in w:
+        if ("heard nothing from" in w or "'s controller: " in w or "not applied by the world" in w
+                or "stopped waiting for a participant" in w):
             console.print(f"[yellow]warning: {w}[/]", highlight=False)
 
 

@@ -168,7 +168,7 @@ class Replayer:
         self.counts: Counter[str] = Counter()
         self.rejects = streams.RejectCounter(log)
         self.ack_timeouts = 0
-        self.tracker = AckTracker(participants)
+        self.tracker = AckTracker(participants, self.clock.ack_stall_after)
         self.joiners = AckTracker(wait_for)  # only their liveliness counts (before the first tick)
         self.keys = Keys(self.target_run) if self.target_run is not None else None
         if self.presence:
@@ -223,7 +223,9 @@ class Replayer:
             log.warning("%s did not acknowledge step %d within %.1f s; continuing without them", ", ".join(late),
                         step, self.clock.ack_timeout_s)
             for p in late:
-                self.tracker.ack(p, step)
+                if self.tracker.skip(p, step):
+                    log.warning("%s missed %d steps in a row (alive but silent); not waiting for it any more until "
+                                "it acknowledges a step again", p, self.tracker.stall_after)
 
     # ------------------------------------------------------------------ loop
     def run(self, stop: threading.Event) -> int:

@@ -51,6 +51,8 @@ def test_a_silent_source_is_printed_other_warnings_are_not() -> None:
                                           "no mode samples: time_lost_s is 0"]))
     assert "warning: the recorder heard nothing from server after 15.9 s" in text
     assert "no mode samples" not in text
+    hung = "the lockstep world stopped waiting for a participant alive but silent (1 time(s)): x"
+    assert "warning: the lockstep world stopped waiting" in _printed(_metrics({"0": 0.0}, [hung]))
 
 
 def test_up_pace_counts_from_the_first_simulated_time_not_process_start() -> None:

@@ -412,7 +412,7 @@ class ControllerRunner:
                 "controller_hung": 0 if self._watch is None else self._watch.hung}
 
     def close(self) -> None:
-        """Stop the hang watch (the agent's controller is replaced, or the agent ends)."""
+        """Stop the hang watch now (a runner that is dropped stops it too, through ``weakref.finalize``)."""
         if self._watch is not None:
             self._watch.close()
 

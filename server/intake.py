@@ -127,13 +127,15 @@ class SilentRobots:
         self.missed: dict[int, int] = {}  # waits in a row that ran out
         self.stalled: dict[int, int] = {}  # robot -> its newest odometry stamp when stalled
 
-    def waited(self, alive: set[int], latest_rx: Mapping[int, int]) -> set[int]:
-        """The live robots to wait for: a stalled one is back once newer odometry arrived."""
+    def release(self, latest_rx: Mapping[int, int]) -> None:
+        """A stalled robot is back once newer odometry than when it stalled arrived."""
         for r, stamp in list(self.stalled.items()):
             if latest_rx.get(r, -1) > stamp:
-                del self.stalled[r]
-                self.missed.pop(r, None)
-        return alive - set(self.stalled)
+                self.forget(r)
+
+    def waited(self, alive: set[int]) -> set[int]:
+        """The live robots to wait for."""
+        return alive - self.stalled.keys()
 
     def forget(self, robot: int) -> None:
         """``robot``'s agent went or came (its liveliness token changed): whatever it missed is over."""

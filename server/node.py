@@ -435,11 +435,11 @@ class ServerNode:
                             time.monotonic() + self.s.clock.ack_timeout_s)
         done = [False]
         armed = [wait.deadline]  # what the current wait runs until
-        self.silent.waited(self.alive, self.latest_rx)  # a stalled robot whose odometry came again is back
+        self.silent.release(self.latest_rx)
 
         def settled() -> bool:
             self._drain()
-            done[0] = self._world_left() or wait.settled(time.monotonic(), self.alive - self.silent.stalled.keys(),
+            done[0] = self._world_left() or wait.settled(time.monotonic(), self.silent.waited(self.alive),
                                                          self.latest_rx, self.acked)
             return done[0]
 
@@ -456,7 +456,7 @@ class ServerNode:
             armed[0] = wait.next_at
         if self._world_left():
             return
-        waited = self.alive - self.silent.stalled.keys()
+        waited = self.silent.waited(self.alive)
         late = set() if done[0] else {r for r in waited if self.latest_rx.get(r, -1) < tick.stamp_ns
                                       and (tick.step, tick.stamp_ns) not in self.acked[r]}
         for r in self.silent.settled(waited, late, self.latest_rx):

@@ -144,10 +144,11 @@ class KeyframeGraph:
         return se2_compose(r.estimate, se2_between(r.kf_odom, r.latest_odom[1]))
 
     def new_keyframe(self, rid: int, stamp_ns: int, odom_pose: Pose2, initial: Pose2 | None = None,
-                     prior: float | None = None) -> int:
+                     prior: float | None = None, disturbed: Cov | None = None) -> int:
         """Add a keyframe variable for ``rid`` at ``stamp_ns`` (odometry ``odom_pose``): tied to
         the previous keyframe by the odometry between them, else started at ``initial``;
-        ``prior`` (m and rad) pins it with an isotropic prior."""
+        ``prior`` (m and rad) pins it with an isotropic prior.  ``disturbed``: (3, 3) covariance
+        added to that odometry increment, for a robot moved without its wheels knowing."""
         r = self.robots[rid]
         if r.kf_key is not None and r.kf_stamp == stamp_ns:
             return r.kf_key
@@ -156,6 +157,8 @@ class KeyframeGraph:
         if r.kf_key is not None and r.estimate is not None:
             delta = se2_between(r.kf_odom, odom_pose)
             cov = odom_increment_cov(delta, self.p, r.slip_m - r.kf_slip_m)
+            if disturbed is not None:
+                cov = cov + disturbed
             self.factors.add(gtsam.BetweenFactorPose2(r.kf_key, key, gtsam.Pose2(*delta),
                                                       gtsam.noiseModel.Gaussian.Covariance(cov)))
             guess = se2_compose(r.estimate, delta)

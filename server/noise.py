@@ -67,6 +67,9 @@ class FusionParams:
     # gated-out observations that form such a consistent set but call for too small a move to re-localise
     # are admitted as factors (robust): the graph, not a jump, corrects an estimate a little off in yaw
     reloc_admit: bool = True
+    # an established robot's observation within the gate but beyond this floor (m; half of it in rad) is
+    # evidence as well as a factor: a consistent set of them loosens the robot's odometry (0: off)
+    surprise_floor_m: float = 0.02
     # slip evidence (the agents' OdometryEstimate.slip_m, metres of unexplained wheel travel) widens an
     # odometry increment: this many metres of position sigma (and sigma / (wheel base / 2) of yaw) per metre
     odom_slip_sigma: float = 1.0

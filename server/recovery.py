@@ -69,11 +69,12 @@ from __future__ import annotations
 import math
 from collections import Counter, deque
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 
-from tagswarm.protocol.geometry import Pose2, se2_compose
-from tagswarm.server.noise import FusionParams
+from tagswarm.protocol.geometry import Pose2, se2_compose, se2_inverse
+from tagswarm.server.noise import Cov, FusionParams, inverse_cov, relative_cov
 from tagswarm.server.placement import Candidate, choose
 
 LANDMARK_WITNESS = -1
@@ -86,6 +87,55 @@ def witness_of(suspect: int, cand: Candidate) -> int:
         return LANDMARK_WITNESS
     observer, target = meas[0], meas[1]
     return int(target if observer == suspect else observer)
+
+
+class View(NamedTuple):
+    """What one observation says of one of its two robots (the suspect): ``cand`` puts the
+    suspect's odometry origin in the map (its spread: the measurement's plus the witness's own
+    position and heading levered by the range); ``odom`` is the suspect's odometry pose then,
+    ``now`` its estimated map pose then, ``witness_var_m2`` the witness's share of the spread per axis."""
+
+    suspect: int
+    cand: Candidate
+    odom: Pose2
+    now: Pose2
+    witness_var_m2: float
+
+
+def views(observer: int, target: int, stamp_ns: int, rel: Pose2, cov: Cov, po: Pose2, pg: Pose2,
+          oo: Pose2, go: Pose2, cov_o: Cov, cov_g: Cov) -> tuple[View, View]:
+    """The observation ``rel`` (target in the observer's frame, covariance ``cov``) as a view of
+    the target (witness: the observer) and of the observer (witness: the target); ``po``/``pg``
+    are their estimated map poses, ``oo``/``go`` their odometry poses, ``cov_o``/``cov_g`` their
+    tangent-space covariances (3, 3)."""
+    meas = (observer, target, rel, cov)
+    inv = inverse_cov(rel, cov)
+    # where a witness puts the suspect is as uncertain as the witness's own position plus its heading
+    # levered by the range: a robot 5.5 m away seen by one whose heading had drifted 9 deg while it
+    # turned on the spot was re-localised 0.84 m the wrong way on 12 "agreeing" views (static trial 16)
+    zero = np.zeros((3, 3))
+    w_o = float(np.trace(relative_cov(rel, cov_o, zero)[:2, :2]))
+    w_g = float(np.trace(relative_cov(se2_inverse(rel), cov_g, zero)[:2, :2]))
+    placed_g, placed_o = se2_compose(po, rel), se2_compose(pg, se2_inverse(rel))
+    return (View(target, Candidate(stamp_ns, se2_compose(placed_g, se2_inverse(go)), float(cov[0, 0] + cov[1, 1]) + w_o,
+                                   meas), go, pg, w_o / 2),
+            View(observer, Candidate(stamp_ns, se2_compose(placed_o, se2_inverse(oo)),
+                                     float(inv[0, 0] + inv[1, 1]) + w_g, meas), oo, po, w_g / 2))
+
+
+# where an accepted observation put a robot: (odometry origin in the map, its variance m² per axis, the
+# robot's odometry pose then); None where it is not known (a landmark's view, a snapshot of an older version)
+Place = tuple[Pose2, float, Pose2] | None
+
+
+def consensus(agree: list[Candidate], odom: Pose2) -> Pose2:
+    """Where the evidence ``agree`` puts its suspect when its odometry reads ``odom``
+    (map frame): each piece carried there, weighted by its certainty (circular mean of yaw)."""
+    now = [se2_compose(c.origin, odom) for c in agree]
+    w = np.array([1.0 / max(c.trace / 2, 1e-6) for c in agree])
+    mean = (w[:, None] * np.array([p[:2] for p in now])).sum(axis=0) / w.sum()
+    yaw = math.atan2(float((w * np.sin([p[2] for p in now])).sum()), float((w * np.cos([p[2] for p in now])).sum()))
+    return float(mean[0]), float(mean[1]), yaw
 
 
 @dataclass
@@ -117,26 +167,52 @@ class Recovery:
     where: dict[int, dict[int, tuple[float, float]]] = field(default_factory=dict)
     # places where a robot's identity was seen while the map had it elsewhere (x_m, y_m), per robot
     decoy_sites: dict[int, list[tuple[float, float]]] = field(default_factory=dict)
+    # (stamp_ns, place) of each robot's accepted observations lately, alongside ``partners``
+    seen_at: dict[int, deque[tuple[int, Place]]] = field(default_factory=dict)
     counters: Counter[str] = field(default_factory=Counter)  # the fusion's
 
-    def accepted(self, a: int, b: int, stamp_ns: int) -> None:
-        """An observation between ``a`` and ``b`` (``b`` = LANDMARK_WITNESS for a landmark) passed the gate."""
+    def accepted(self, a: int, b: int, stamp_ns: int, seen: tuple[View, ...] = ()) -> None:
+        """An observation between ``a`` and ``b`` (``b`` = LANDMARK_WITNESS for a landmark) passed the
+        gate; ``seen``: what it says of each robot (:func:`views`)."""
+        by = {v.suspect: v for v in seen}
         for x, y in ((a, b), (b, a)):
             if x == LANDMARK_WITNESS:
                 continue
             q = self.partners.setdefault(x, deque(maxlen=256))
             q.append((stamp_ns, y))
-            self._void(x, stamp_ns)
+            v = by.get(x)
+            place: Place = None if v is None else (v.cand.origin, v.cand.trace / 2, v.odom)
+            self.seen_at.setdefault(x, deque(maxlen=256)).append((stamp_ns, place))
+            self._void(x, stamp_ns, place)
 
-    def _void(self, rid: int, stamp_ns: int) -> None:
-        """``rid`` was seen where the map has it at ``stamp_ns``: its older robot-pair
-        evidence is void, and the place it agreed on becomes a decoy site."""
+    def _contradicts(self, place: Place, c: Candidate) -> bool:
+        """Whether an accepted observation that put its robot at ``place`` rules out the evidence ``c``
+        (both carried to the robot's odometry pose of that observation).  A view that cannot tell the
+        two places apart rules out nothing: a robot nudged 15 cm still saw the origin robot 2.5 m away
+        as it expected (its own heading sigma levered by the range covers the shift), and that view,
+        counted as "seen where the map has it", voided the origin's views of the nudge and made the
+        robot's true place a decoy site."""
+        if place is None:
+            return True
+        origin, var_m2, odom = place
+        x, y, _ = se2_compose(origin, odom)
+        cx, cy, _ = se2_compose(c.origin, odom)
+        # each spread's whole trace, not its per-axis mean: a far view's is nearly all sideways (its heading
+        # levered by the range), and a 2.5-sigma sideways view 2.5 m away ruled out its robot's true place
+        return math.hypot(x - cx, y - cy) > 3 * math.sqrt(2 * var_m2 + c.trace)
+
+    def _void(self, rid: int, stamp_ns: int, place: Place = None) -> None:
+        """``rid`` was seen where the map has it at ``stamp_ns``, at ``place``: its older robot-pair
+        evidence that this rules out is void, and the place it agreed on becomes a decoy site."""
         ev = self.robot_ev.get(rid)
         if not ev or min(c.stamp_ns for c in ev) > stamp_ns:
             return
         where = self.where.get(rid, {})
-        old = [where[c.stamp_ns] for c in ev if c.stamp_ns <= stamp_ns and c.stamp_ns in where]
-        kept = [c for c in ev if c.stamp_ns > stamp_ns]
+        void = {id(c) for c in ev if c.stamp_ns <= stamp_ns and self._contradicts(place, c)}
+        if not void:
+            return
+        old = [where[c.stamp_ns] for c in ev if id(c) in void and c.stamp_ns in where]
+        kept = [c for c in ev if id(c) not in void]
         self.counters["reloc_evidence_void"] += len(ev) - len(kept)
         self.robot_ev[rid] = kept
         self.where[rid] = {c.stamp_ns: where[c.stamp_ns] for c in kept if c.stamp_ns in where}
@@ -166,8 +242,8 @@ class Recovery:
         horizon = stamp_ns - int(self.p.reloc_trust_s * 1e9)
         return any(t >= horizon and other != suspect for t, other in self.partners.get(witness, ()))
 
-    def _counter_evidence(self, suspect: int, since_ns: int) -> int:
-        return sum(1 for t, _ in self.partners.get(suspect, ()) if t >= since_ns)
+    def _counter_evidence(self, suspect: int, since_ns: int, best: Candidate) -> int:
+        return sum(1 for t, place in self.seen_at.get(suspect, ()) if t >= since_ns and self._contradicts(place, best))
 
     def add(self, suspect: int, cand: Candidate, landmark: bool = False,
             current: tuple[Pose2, Pose2, float] | None = None, witness_var_m2: float | None = None) -> Verdict | None:
@@ -184,8 +260,7 @@ class Recovery:
             return None
         store = self.landmark_ev if landmark else self.robot_ev
         horizon = cand.stamp_ns - int(self.p.reloc_window_s * 1e9)
-        seen = max((t for t, _ in self.partners.get(suspect, ())), default=-1)
-        if cand.stamp_ns <= seen:
+        if any(t >= cand.stamp_ns and self._contradicts(place, cand) for t, place in self.seen_at.get(suspect, ())):
             self.counters["reloc_evidence_void"] += 1  # the suspect was seen where the map has it after this
             return None
         ev = [c for c in store.get(suspect, []) if c.stamp_ns >= horizon]
@@ -214,7 +289,7 @@ class Recovery:
         repeated = len(agree) >= self.p.reloc_min_single and span_s >= self.p.reloc_span_s
         if not (many or repeated or (landmark and len(agree) >= self.p.reloc_min)):
             return None
-        if self._counter_evidence(suspect, first) * 3 > len(agree):
+        if self._counter_evidence(suspect, first, best) * 3 > len(agree):
             return None
         admit = current is not None and not self.significant(agree, len(witnesses), *current)
         if admit and not self.p.reloc_admit:
@@ -225,15 +300,12 @@ class Recovery:
         """Whether the consensus of ``agree`` is far enough from the estimated ``pose``
         (map frame, position variance ``var_m2`` per axis) to move the robot; ``odom`` is
         its odometry pose of that instant, which carries each piece of evidence there."""
-        now = [se2_compose(c.origin, odom) for c in agree]
-        w = np.array([1.0 / max(c.trace / 2, 1e-6) for c in agree])
-        mean = (w[:, None] * np.array([p[:2] for p in now])).sum(axis=0) / w.sum()
-        yaw = math.atan2(float((w * np.sin([p[2] for p in now])).sum()), float((w * np.cos([p[2] for p in now])).sum()))
+        mean_x, mean_y, yaw = consensus(agree, odom)
         # observations from one witness share its error (its own pose, the same tag), so the
         # consensus is only as certain as its median piece over the number of witnesses
         var_cons = float(np.median([c.trace / 2 for c in agree])) / n_witnesses
         floor = self.p.gate_floor_m
-        dist = math.hypot(mean[0] - pose[0], mean[1] - pose[1])
+        dist = math.hypot(mean_x - pose[0], mean_y - pose[1])
         turn = abs(math.remainder(yaw - pose[2], math.tau))
         return dist > 3 * math.sqrt(var_cons + var_m2 + floor**2) or turn > self.p.reloc_min_turn_rad
 
@@ -243,6 +315,7 @@ class Recovery:
         self.robot_ev.pop(rid, None)
         self.landmark_ev.pop(rid, None)
         self.partners.pop(rid, None)
+        self.seen_at.pop(rid, None)
         self.where.pop(rid, None)
         for store in (self.robot_ev,):
             for other, ev in list(store.items()):

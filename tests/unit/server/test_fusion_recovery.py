@@ -13,7 +13,7 @@ import numpy as np
 from tagswarm.protocol.geometry import Pose2, se2_between, se2_compose
 from tagswarm.server.fusion import Fusion, FusionParams
 from tagswarm.server.placement import Candidate
-from tagswarm.server.recovery import Recovery
+from tagswarm.server.recovery import Recovery, View
 
 DT_NS = 100_000_000  # 10 Hz
 COV = np.diag([0.01**2, 0.01**2, 0.01**2])
@@ -345,22 +345,79 @@ def test_a_witness_far_surer_of_itself_than_of_the_suspect_is_trusted_without_a_
 
 
 def test_a_robot_turned_on_the_spot_has_its_consistent_rejected_views_admitted() -> None:
-    # robot 3 stands still, seen by everyone (heading sigma ~1 cm-views: a few mrad), and is turned 0.15 rad
-    # at 5 s without its wheels turning: every view of it contradicts its heading beyond the gate.  The
-    # views agree with each other, but 0.15 rad is not a significant move (reloc_min_turn_rad): no jump,
-    # they are admitted as robust factors, which pull the heading a little (the 5 s of views before the
-    # turn, tied through the standing robot's odometry, still outweigh them)
+    # robot 3 stands still, seen by everyone (heading sigma a few mrad), and is turned 0.15 rad at 5 s without
+    # its wheels turning: every view of it contradicts its heading beyond the gate.  The views agree with each
+    # other, but 0.15 rad is not a significant move (reloc_min_turn_rad): no jump; they are admitted as
+    # factors and the robot's odometry is loosened by the turn they call for, so the 5 s of views before the
+    # turn no longer hold its heading (admitted alone, they left 0.13 rad of it; not admitted, all of it)
     turned: Pose2 = (2.5, 0.0, math.pi + 0.15)
     got: dict[bool, float] = {}
     for admit in (True, False):
         fusion, truth, _ = _run(12, ALL_SEE_3, kidnap={3: (5.0, turned)}, params=FusionParams(reloc_admit=admit))
         assert fusion.take_relocalisations() == []
-        assert fusion.counters["rejected_gate"] > 100
-        assert (fusion.counters["admitted_consistent"] > 0) == admit
+        assert fusion.counters["rejected_gate"] > 10
+        assert (fusion.counters["admitted_consistent"] > 0) == admit == (fusion.counters["disturbances"] == 1)
         est = fusion.pose(3)
         assert est is not None
         got[admit] = abs(math.remainder(est[0][2] - truth[3][2], math.tau))
-    assert got[True] < got[False] - 0.01, got
+    assert got[True] < 0.01 and got[False] > 0.12, got
+
+
+def test_a_standing_robot_nudged_within_the_gate_follows_its_views_within_2_s() -> None:
+    # 15-20 cm passes the gate (its floor is 5 cm), so every view of the nudged robot is fused, yet the 5 s of
+    # views before the nudge, tied to it through odometry that never moved, held it 13-18 cm off for as long
+    # as they stay in the smoother's window.  The views beyond what the estimates can be wrong are evidence
+    # too; once they agree (the origin alone, or three witnesses) its odometry is loosened by the move
+    for sees in (ONLY_ORIGIN_SEES_3, ALL_SEE_3):
+        for push in (0.15, 0.20):
+            nudged: Pose2 = (2.5, push, math.pi)
+            fusion, _, history = _run(12, sees, kidnap={3: (5.0, nudged)})
+            assert fusion.take_relocalisations() == [] and fusion.counters["disturbances"] == 1, dict(fusion.counters)
+            back = _recovered_after(history, 5.0, tol=0.03)
+            assert back is not None and back < 2.0, (push, history[-1])
+            old, _, history = _run(12, sees, kidnap={3: (5.0, nudged)}, params=FusionParams(surprise_floor_m=0.0))
+            assert old.counters["disturbances"] == 0 and history[-1][1] > 0.6 * push, (push, history[-1])
+
+
+def test_a_nudged_robot_that_sees_the_origin_as_it_expected_keeps_the_evidence_of_its_nudge() -> None:
+    # robot 3 sees the origin 2.5 m away: its heading sigma levered by the range covers the 15-20 cm
+    # sideways nudge, so that view passes every test and counted as "seen where the map has it".  It voided
+    # the origin's views of the nudge, and their place, the robot's true one, became a decoy site: for the
+    # rest of the run any evidence putting it there would be dropped.  A view that cannot tell the two
+    # places apart rules out neither now
+    sees = {0: (1, 2, 3), 1: (0,), 2: (0,), 3: (0,)}
+    for push in (0.15, 0.20):
+        fusion, _, history = _run(12, sees, kidnap={3: (5.0, (2.5, push, math.pi))})
+        assert fusion.recovery.decoy_sites == {} and fusion.counters["reloc_evidence_void"] == 0, dict(fusion.counters)
+        back = _recovered_after(history, 5.0, tol=0.03)
+        assert back is not None and back < 2.0, (push, history[-1])
+
+
+def test_evidence_is_void_only_where_an_accepted_view_rules_it_out() -> None:
+    # robot 3 is estimated at (2.5, 0); evidence puts it at (2.8, 0).  A view from a robot sure of itself
+    # that puts it at (2.5, 0) rules the evidence out (void, and (2.8, 0) becomes a decoy site); one from a
+    # robot 40 cm unsure of where it puts it does not
+    def evidence_left(view_sigma_m: float) -> tuple[int, int]:
+        rec = Recovery(FusionParams(), origin_id=0, anchored_origin=True)
+        current = ((2.5, 0.0, 0.0), (0.0, 0.0, 0.0), 0.02**2)
+        for k in range(3):
+            rec.add(3, Candidate(k * DT_NS, (2.8, 0.0, 0.0), 2 * 0.02**2, (0, 3, (2.8, 0.0, 0.0), COV)),
+                    current=current, witness_var_m2=0.0)
+        place = ((2.5, 0.0, 0.0), view_sigma_m**2, (0.0, 0.0, 0.0))
+        rec.accepted(3, 1, 3 * DT_NS, (View(3, Candidate(3 * DT_NS, place[0], 2 * place[1], (1, 3, place[0], COV)),
+                                            place[2], place[0], place[1]),))
+        return len(rec.robot_ev.get(3, [])), len(rec.decoy_sites.get(3, []))
+
+    assert evidence_left(0.02) == (0, 1)
+    assert evidence_left(0.40) == (3, 0)
+
+
+def test_a_standing_robot_seen_as_usual_is_never_loosened() -> None:
+    for sees in (ONLY_ORIGIN_SEES_3, ALL_SEE_3):
+        for seed in range(3):
+            fusion, _, history = _run(12, sees, seed=seed)
+            assert fusion.counters["disturbances"] == 0, dict(fusion.counters)
+            assert max(e for _, e in history[20:]) < 0.03
 
 
 def _far_view_after_a_spin(long_by: float, seconds: float = 17.0) -> tuple[Fusion, Pose2]:

@@ -93,7 +93,7 @@ def read_scenario_dict(name_or_path: str) -> dict[str, Any]:
         if path.suffix == ".json":
             table: dict[str, Any] = msgspec.json.decode(path.read_bytes())
             return table
-        if path.suffix == ".toml" or path.exists():
+        if path.suffix == ".toml" or path.is_file():
             text = path.read_text()
         elif name_or_path in builtin_names():
             text = (resources.files("tagswarm.protocol") / "scenarios" / f"{name_or_path}.toml").read_text()

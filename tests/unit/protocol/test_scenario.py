@@ -33,6 +33,14 @@ def test_paper_is_a_builtin() -> None:
     assert load_scenario() == load_scenario("paper")
 
 
+def test_a_folder_named_like_a_builtin_does_not_hide_it(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    # `tagswarm up --scenario nudge --out nudge` twice: the first run's folder made the second exit 2
+    # ("cannot read scenario 'nudge': Is a directory")
+    (tmp_path / "paper").mkdir()
+    monkeypatch.chdir(tmp_path)
+    assert load_scenario("paper").name == "paper"
+
+
 def test_paper_scenario() -> None:
     s = load_scenario("paper")
     assert s.name == "paper"

@@ -37,7 +37,8 @@ Mangelson et al. 2018; Kimera-Multi) does for loop closures:
   wall, a spoofed stream) is not moved while more than a third as many
   observations keep agreeing with its estimate;
 - a robot cannot be in two places: evidence older than an accepted observation
-  of the suspect is void (it was seen where the map has it after that), and if
+  of the suspect is void (it was seen where the map has it after that) where that
+  observation's own placement of the suspect rules the evidence out, and if
   the voided evidence agreed on one place, that place is remembered as a *decoy
   site* of the suspect (a copy of its cube, a poster of its tag): later evidence
   that puts it there again is dropped for the rest of the run.  Measured on the

@@ -335,6 +335,7 @@ class Fusion:
         """A gated-out observation as evidence about both robots (see
         :mod:`tagswarm.server.recovery`); the verdict if it completes a consistent set."""
         var = {rid: float(self.robots[rid].cov[0, 0] + self.robots[rid].cov[1, 1]) / 2 for rid in (observer, target)}
+        self.recovery.disputed(observer, target, stamp_ns)
         for v in views(observer, target, stamp_ns, rel, cov, po, pg, oo, go, self.robots[observer].cov,
                        self.robots[target].cov):
             verdict = self.recovery.add(v.suspect, v.cand, current=(v.now, v.odom, var[v.suspect]),

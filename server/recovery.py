@@ -170,6 +170,9 @@ class Recovery:
     decoy_sites: dict[int, list[tuple[float, float]]] = field(default_factory=dict)
     # (stamp_ns, place) of each robot's accepted observations lately, alongside ``partners``
     seen_at: dict[int, deque[tuple[int, Place]]] = field(default_factory=dict)
+    # (stamp_ns, other robot) of each robot's observations lately that contradicted the map (gated out, or
+    # surprising), alongside ``partners``
+    disputes: dict[int, deque[tuple[int, int]]] = field(default_factory=dict)
     counters: Counter[str] = field(default_factory=Counter)  # the fusion's
 
     def accepted(self, a: int, b: int, stamp_ns: int, seen: tuple[View, ...] = ()) -> None:
@@ -185,6 +188,27 @@ class Recovery:
             place: Place = None if v is None else (v.cand.origin, v.cand.trace / 2, v.odom)
             self.seen_at.setdefault(x, deque(maxlen=256)).append((stamp_ns, place))
             self._void(x, stamp_ns, place)
+
+    def disputed(self, a: int, b: int, stamp_ns: int) -> None:
+        """An observation between robots ``a`` and ``b`` contradicted the map (gated out, or surprising)."""
+        for x, y in ((a, b), (b, a)):
+            self.disputes.setdefault(x, deque(maxlen=256)).append((stamp_ns, y))
+
+    def doubtful(self, witness: int, stamp_ns: int) -> bool:
+        """Whether ``witness`` disagrees lately with two or more robots and with nobody else agrees:
+        one move of its own explains all its contradictions, where believing it would move each of the
+        others.  Measured in a yard of 10 robots: a station-holding robot pushed 16 cm and turned 0.1
+        rad, sure of itself to 1 cm, re-localised the three robots it saw 0.36-0.43 m the wrong way
+        (each with its own repeated views), and stayed 16 cm off itself.  The origin robot holding the
+        map frame and landmarks are never in doubt."""
+        if witness == LANDMARK_WITNESS or (witness == self.origin_id and self.anchored_origin):
+            return False
+        horizon = stamp_ns - int(self.p.reloc_window_s * 1e9)
+        recent = [(t, o) for t, o in self.disputes.get(witness, ()) if horizon <= t <= stamp_ns]
+        if len({o for _, o in recent}) < 2:
+            return False
+        since = min(t for t, _ in recent)
+        return not any(since <= t <= stamp_ns for t, _ in self.partners.get(witness, ()))
 
     def _contradicts(self, place: Place, c: Candidate) -> bool:
         """Whether an accepted observation that put its robot at ``place`` rules out the evidence ``c``
@@ -238,6 +262,8 @@ class Recovery:
             return True
         if witness == self.origin_id and self.anchored_origin:
             return True
+        if self.doubtful(witness, stamp_ns):
+            return False
         if variances is not None and variances[0] < self.p.reloc_trust_sigma_ratio**2 * variances[1]:
             return True
         horizon = stamp_ns - int(self.p.reloc_trust_s * 1e9)
@@ -279,7 +305,12 @@ class Recovery:
         need = min(self.p.reloc_min, self.p.reloc_min_single)
         if len(ev) < need:
             return None
-        chosen = choose(ev, self.p)
+        # evidence a witness gave before it fell into doubt does not count while it is in doubt
+        doubt = {w for w in {witness_of(suspect, c) for c in ev} if self.doubtful(w, cand.stamp_ns)}
+        usable = [c for c in ev if witness_of(suspect, c) not in doubt] if doubt else ev
+        if len(usable) < need:
+            return None
+        chosen = choose(usable, self.p)
         if chosen is None:
             return None
         best, agree = chosen
@@ -318,6 +349,10 @@ class Recovery:
         self.partners.pop(rid, None)
         self.seen_at.pop(rid, None)
         self.where.pop(rid, None)
+        self.disputes.pop(rid, None)
+        for other, q in self.disputes.items():
+            # the contradictions with its old (wrong) estimate are explained
+            self.disputes[other] = deque(((t, o) for t, o in q if o != rid), maxlen=256)
         for store in (self.robot_ev,):
             for other, ev in list(store.items()):
                 kept = [c for c in ev if witness_of(other, c) != rid]

@@ -111,3 +111,20 @@ def test_a_depot_bay_dropped_at_random_ends_with_every_robot_within_10cm(tmp_pat
     late = {(rid, t): round(_error_at(run, rid, t), 3) for rid in range(8) for t in (9.0, 22.0)}
     assert max(late.values()) < 0.10, late  # (robot 6 patrols out of view in between: 10-18 cm)
     assert m["swarm"]["fused"]["time_localised"] >= 0.70
+
+
+def test_a_pushed_robot_sure_of_itself_is_put_right_and_moves_nobody_it_sees(tmp_path: Path) -> None:
+    # a user's scene as written (yard_as_written.toml): 10 robots at random among four pillars; robot 1 holds
+    # station, sure of itself to 5 mm, and is pushed 16 cm and 0.1 rad at 25 s.  It sees robots 4, 5 and 8, which
+    # nobody else sees then.  Trusting it, the server re-localised those three 0.36-0.43 m the wrong way and left
+    # robot 1 itself 16 cm off (and robot 8, driving on its wrong estimate, later ran into a pillar)
+    scene = Path(__file__).with_name("yard_as_written.toml")
+    run = _up(tmp_path / "run", "--scenario", str(scene), "--duration", "30")
+    m = json.loads((run / "metrics.json").read_text())
+    assert [(round(k["t_s"]), k["robot"]) for k in m["kidnaps"]] == [(25, 1)]
+    assert _error_at(run, 1, 25.2) > 0.10, "the push did not throw the estimate off"
+    assert all(r["robot"] == 1 for r in m["relocalisations"]), m["relocalisations"]  # nobody it sees is moved
+    errors = {rid: _final_error(run, rid) for rid in range(10)}
+    assert max(errors.values()) < 0.05, errors
+    seen = {(rid, t): round(_error_at(run, rid, t), 3) for rid in (4, 5, 8) for t in (26.0, 27.0, 28.0, 29.0)}
+    assert max(seen.values()) < 0.05, seen

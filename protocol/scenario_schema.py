@@ -319,7 +319,8 @@ class Agent(Spec, frozen=True, kw_only=True, forbid_unknown_fields=True):
     by rotating in place (the paper's active re-localisation).  ``look_around``:
     a robot holding station, other than the origin robot, first turns once on
     the spot (``search_max_sweep_rad`` at ``search_speed_rad_s``) so that
-    standing robots see each other both ways, then holds at its own heading.
+    standing robots see each other both ways, then turns on to its next fix (at
+    most to the heading of its last one) and holds there.
     ``search_sigma_m`` (> 0; off by default): a moving robot also searches as
     soon as its fused position's σ (the server's newest correction, larger
     axis) passes this, at least a second after its last fix.

@@ -75,12 +75,33 @@ def _hold(b: Behaviour, steps: int, placed_from: int = 0, fixes: tuple[int, ...]
 
 def test_a_station_keeper_first_looks_around_once_then_holds_at_its_heading() -> None:
     b = Behaviour(3, Mission(robot=3, kind="hold"), CFG, ROBOT)
-    commands, yaw = _hold(b, 200, fixes=(5, 30))  # fixes on the way do not stop the turn
+    commands, yaw = _hold(b, 200)  # nobody seen on the way
     turning = [k for k, (v, w) in enumerate(commands) if w != 0.0]
     assert turning[0] == 0 and turning == list(range(len(turning))) and 62 <= len(turning) <= 65
     assert all(commands[k] == (0.0, CFG.search_speed_rad_s) for k in turning)  # on the spot, search speed
     assert abs(yaw) < 0.15 and all(c == (0.0, 0.0) for c in commands[turning[-1] + 1:])
     assert b.look_arounds == 1 and b.searches == 0 and b.lost_events == 0 and b.mode != Mode.LOST
+
+
+def test_a_station_keeper_that_had_fixes_on_its_turn_ends_it_at_a_fix() -> None:
+    # a wheel-base error scales every turn: ending at a fix leaves no net rotation since it
+    b = Behaviour(3, Mission(robot=3, kind="hold"), CFG, ROBOT)
+    commands, yaw = _hold(b, 300, fixes=(5, 45))  # fixes on the way do not stop the whole turn
+    at_fix = math.remainder(45 * 0.1 * CFG.search_speed_rad_s, 2 * math.pi)  # the heading of the last fix
+    turning = [k for k, (v, w) in enumerate(commands) if w != 0.0]
+    assert turning == list(range(len(turning))) and 63 + 44 <= len(turning) <= 65 + 60  # on, never back
+    assert all(v == 0.0 and w > 0.0 for v, w in commands[:len(turning)])
+    assert abs(math.remainder(yaw - at_fix, 2 * math.pi)) < 0.02, (yaw, at_fix)
+    assert all(c == (0.0, 0.0) for c in commands[turning[-1] + 1:])
+    # a fix on the way on ends the turn there
+    b2 = Behaviour(3, Mission(robot=3, kind="hold"), CFG, ROBOT)
+    commands2, _ = _hold(b2, 300, fixes=(5, 45, 80))
+    turning2 = [k for k, (v, w) in enumerate(commands2) if w != 0.0]
+    assert turning2[-1] == 79 and all(c == (0.0, 0.0) for c in commands2[80:])
+    # a last fix right at the start of the turn: the sweep's overshoot passed it, no second turn
+    b3 = Behaviour(3, Mission(robot=3, kind="hold"), CFG, ROBOT)
+    commands3, _ = _hold(b3, 300, fixes=(0,))
+    assert len([c for c in commands3 if c[1] != 0.0]) <= 65
 
 
 def test_no_look_around_when_switched_off_without_a_server_or_after_a_goal() -> None:
@@ -122,8 +143,9 @@ def test_station_keeping_robot_never_placed_turns_around_once_then_holds() -> No
     assert all(c == (0.0, 0.0) for c in commands[:wait])
     turning = [k for k, (v, w) in enumerate(commands) if w != 0.0]
     assert all(commands[k][0] == 0.0 for k in turning) and turning[0] == wait
-    assert turning == list(range(wait, wait + len(turning))) and 62 <= len(turning) <= 65  # 6.3 rad at 0.1 rad
-    assert abs(yaw) < 0.15  # back at its own heading (within a step)
+    # 6.3 rad at 0.1 rad a step, then on to the heading of its fix (2 rad into the turn) the short way
+    assert turning == list(range(wait, wait + len(turning))) and 62 + 19 <= len(turning) <= 65 + 30
+    assert abs(yaw - 20 * 0.1) < 0.02
     assert all(c == (0.0, 0.0) for c in commands[turning[-1] + 1:]) and b.searches == 1 and b.lost_events == 0
 
 

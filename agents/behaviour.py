@@ -268,8 +268,8 @@ class Behaviour:
                 on = self._turn_on(odom_yaw)
                 if on is not None:
                     return 0.0, on
-                # the whole turn, back at its last fix's heading: hold station again (one not placed by now may
-                # still search)
+                # the whole turn, ended at a fix (or at its own heading without one): hold station again (one not
+                # placed by now may still search)
                 self.mode = Mode.ODOMETRY
             else:
                 self.mode = Mode.LOST

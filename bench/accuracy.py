@@ -96,7 +96,7 @@ def static_placement(seed: int, robots: int = 4) -> str:
 
 
 #: the static case with the robots' own first look around (agent.look_around: a whole turn on the spot at
-#: 0.6 rad/s, ~10.5 s, then back to the heading of the last fix, up to half a turn): their positions stay fixed
+#: 0.6 rad/s, ~10.5 s, then on to the next sighting, up to another turn): their positions stay fixed
 LOOK_AROUND_S = 20.0
 
 

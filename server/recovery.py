@@ -198,7 +198,7 @@ class Recovery:
         """Whether ``witness`` disagrees lately with two or more robots and with nobody else agrees:
         one move of its own explains all its contradictions, where believing it would move each of the
         others.  Measured in a yard of 10 robots: a station-holding robot pushed 16 cm and turned 0.1
-        rad, sure of itself to 1 cm, re-localised the three robots it saw 0.36-0.43 m the wrong way
+        rad, sure of itself to 5 mm, re-localised the three robots it saw 0.36-0.43 m the wrong way
         (each with its own repeated views), and stayed 16 cm off itself.  The origin robot holding the
         map frame and landmarks are never in doubt."""
         if witness == LANDMARK_WITNESS or (witness == self.origin_id and self.anchored_origin):

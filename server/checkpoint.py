@@ -10,7 +10,7 @@ side of the fusion: per-robot keyframe/odometry bookkeeping, queued events,
 placement candidates, edges, watermark and counters.
 
 :func:`restore` rebuilds a fusion from a snapshot by feeding the saved graph to a
-fresh ``IncrementalFixedLagSmoother`` (one batch update from the saved
+fresh :class:`~tagswarm.server.smoother.FixedLagSmoother` (one batch update from the saved
 linearisation point, at the same phase of iSAM2's relinearisation schedule).  Its
 Bayes tree and partial-relinearisation state are not carried over, so it is not
 always bit-identical to the smoother that was saved; the server therefore restores
@@ -47,6 +47,7 @@ from tagswarm.protocol.geometry import Pose2
 from tagswarm.server.fusion import Fusion, _Event
 from tagswarm.server.keyframes import PairView, Robot
 from tagswarm.server.placement import Candidate
+from tagswarm.server.smoother import FixedLagSmoother
 
 P3 = tuple[float, float, float]
 # odometry kept before the watermark beyond the placement window: odom_at tolerates 0.2 s
@@ -185,7 +186,7 @@ def _candidate_state(c: Candidate) -> CandidateState:
     return CandidateState(c.stamp_ns, _p3(c.origin), float(c.trace), "landmark", (), (*_p3(pose), *_flat(cov_map)))
 
 
-def _live_factors(smoother: gtsam.IncrementalFixedLagSmoother) -> gtsam.NonlinearFactorGraph:
+def _live_factors(smoother: FixedLagSmoother) -> gtsam.NonlinearFactorGraph:
     """The smoother's factors without the empty slots marginalisation leaves behind."""
     graph = smoother.getFactors()
     out = gtsam.NonlinearFactorGraph()
@@ -258,18 +259,16 @@ def _candidate(s: CandidateState) -> Candidate:
     return Candidate(s.stamp_ns, s.origin, s.trace, meas)
 
 
-def _smoother_input(state: FusionState) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values,
-                                                   gtsam.FixedLagSmootherKeyTimestampMap]:
+def _smoother_input(state: FusionState) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values, dict[int, float]]:
     graph, theta = gtsam.NonlinearFactorGraph(), gtsam.Values()
-    stamps = gtsam.FixedLagSmootherKeyTimestampMap()
+    stamps: dict[int, float] = {}
     if state.stamps:
         try:
             graph.deserialize(state.factors)
             theta.deserialize(state.theta)
         except Exception as exc:  # boost archive errors surface as assorted RuntimeErrors
             raise CheckpointError(f"checkpoint graph does not load: {exc}") from None
-        for key, t in state.stamps:
-            stamps.insert((key, t))
+        stamps = {int(key): float(t) for key, t in state.stamps}
     return graph, theta, stamps
 
 

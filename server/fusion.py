@@ -15,7 +15,7 @@ robot they are about (a pushed or kidnapped robot): it is taken out of the map
 and placed again from that set, on a new chain of keyframes (its odometry
 across the jump is void), and the event is queued in :attr:`Fusion.relocalisations`.
 
-Memory is bounded: an ``IncrementalFixedLagSmoother`` (iSAM2) marginalises
+Memory is bounded: a fixed-lag iSAM2 smoother (:mod:`tagswarm.server.smoother`) marginalises
 keyframes older than ``lag_s`` of simulated time.  The keyframe chains, what is staged
 for the smoother and the smoother itself live in :mod:`tagswarm.server.keyframes`; this
 module decides what goes in.
@@ -51,6 +51,7 @@ from tagswarm.server.noise import (
 )
 from tagswarm.server.placement import Candidate, Placement, choose
 from tagswarm.server.recovery import LANDMARK_WITNESS, Recovery, Verdict, consensus, views
+from tagswarm.server.smoother import FixedLagSmoother
 from tagswarm.server.stitch import Edge, stitch
 
 __all__ = ["CHI2_3DOF_999", "Cov", "Fusion", "FusionParams", "inverse_cov", "odom_increment_cov", "tangent_cov"]
@@ -113,7 +114,7 @@ class Fusion:
         return self.graph.robots
 
     @property
-    def smoother(self) -> gtsam.IncrementalFixedLagSmoother:
+    def smoother(self) -> FixedLagSmoother:
         return self.graph.smoother
 
     @property

@@ -27,6 +27,7 @@ import numpy as np
 
 from tagswarm.protocol.geometry import Pose2, se2_between, se2_compose
 from tagswarm.server.noise import Cov, FusionParams, odom_increment_cov
+from tagswarm.server.smoother import FixedLagSmoother
 
 log = logging.getLogger(__name__)
 # smallest variance a reset prior carries (m^2, rad^2): a placeholder or marginal covariance
@@ -101,15 +102,15 @@ class KeyframeGraph:
         self.smoother = self._new_smoother()
         self.factors = gtsam.NonlinearFactorGraph()
         self.values = gtsam.Values()
-        self.stamps = gtsam.FixedLagSmootherKeyTimestampMap()
+        self.stamps: dict[int, float] = {}
         self.next_cov_ns = 0
         self.updates = 0
 
-    def _new_smoother(self) -> gtsam.IncrementalFixedLagSmoother:
+    def _new_smoother(self) -> FixedLagSmoother:
         isam = gtsam.ISAM2Params()
         isam.setRelinearizeThreshold(0.01)
         isam.relinearizeSkip = 5
-        return gtsam.IncrementalFixedLagSmoother(self.p.lag_s, isam)
+        return FixedLagSmoother(self.p.lag_s, isam)
 
     def staged(self) -> bool:
         """Whether factors or values wait for the next update."""
@@ -175,7 +176,7 @@ class KeyframeGraph:
                                                     gtsam.noiseModel.Isotropic.Sigma(3, prior)))
             r.cov = np.eye(3) * prior**2
         self.values.insert(key, gtsam.Pose2(*guess))
-        self.stamps.insert((key, stamp_ns / 1e9))
+        self.stamps[key] = stamp_ns / 1e9
         r.kf_key, r.kf_stamp, r.kf_odom, r.estimate = key, stamp_ns, odom_pose, guess
         r.kf_slip_m = r.slip_m
         self.counters["keyframes"] += 1
@@ -208,7 +209,7 @@ class KeyframeGraph:
             self._reset(str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__)
         self.factors = gtsam.NonlinearFactorGraph()
         self.values = gtsam.Values()
-        self.stamps = gtsam.FixedLagSmootherKeyTimestampMap()
+        self.stamps = {}
         # only each robot's newest keyframe is needed; per-key retrieval avoids
         # materialising every variable of the window on every update
         with_cov = watermark_ns >= self.next_cov_ns
@@ -222,7 +223,7 @@ class KeyframeGraph:
             r.estimate = (p.x(), p.y(), p.theta())
             if with_cov:
                 try:
-                    r.cov = np.asarray(self.smoother.marginalCovariance(r.kf_key))
+                    r.cov = self.smoother.marginalCovariance(r.kf_key)
                 except RuntimeError:
                     pass
         if with_cov:
@@ -243,7 +244,7 @@ class KeyframeGraph:
                     "every robot's last estimate", why)
         self.smoother = self._new_smoother()
         factors, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
-        stamps = gtsam.FixedLagSmootherKeyTimestampMap()
+        stamps: dict[int, float] = {}
         for r in self.robots.values():
             if r.kf_key is None or r.estimate is None:
                 continue
@@ -253,7 +254,7 @@ class KeyframeGraph:
             factors.add(gtsam.PriorFactorPose2(r.kf_key, gtsam.Pose2(*r.estimate),
                                                gtsam.noiseModel.Gaussian.Covariance(cov)))
             values.insert(r.kf_key, gtsam.Pose2(*r.estimate))
-            stamps.insert((r.kf_key, r.kf_stamp / 1e9))
+            stamps[r.kf_key] = r.kf_stamp / 1e9
             r.cov = cov
         try:
             self.smoother.update(factors, values, stamps)

@@ -44,7 +44,7 @@ def _poison(fusion: Fusion) -> None:
     assert kf is not None
     bad = robot_key(1, 99, 0)
     fusion.graph.values.insert(bad, gtsam.Pose2(0.0, 0.0, 0.0))
-    fusion.graph.stamps.insert((bad, fusion.watermark_ns / 1e9))
+    fusion.graph.stamps[bad] = fusion.watermark_ns / 1e9
     fusion.graph.add(gtsam.BetweenFactorPose2(kf, bad, gtsam.Pose2(1.0, 0.0, 0.0),
                                               gtsam.noiseModel.Diagonal.Sigmas(np.array([1e-9, 1e9, 1e9]))))
 

@@ -24,8 +24,10 @@ import gtsam
 import numpy as np
 from numpy.typing import NDArray
 
+from tagswarm.protocol.errors import TagswarmError
 
-class SmootherError(RuntimeError):
+
+class SmootherError(TagswarmError, RuntimeError):
     """iSAM2 refused an update (an indeterminate system, a variable that is not a leaf)."""
 
 

@@ -110,7 +110,7 @@ class KeyframeGraph:
         isam = gtsam.ISAM2Params()
         isam.setRelinearizeThreshold(0.01)
         isam.relinearizeSkip = 5
-        return FixedLagSmoother(self.p.lag_s, isam)
+        return FixedLagSmoother(self.p.lag_s, isam, self.p.lag_batch_s)
 
     def staged(self) -> bool:
         """Whether factors or values wait for the next update."""

@@ -164,3 +164,18 @@ def test_a_refused_update_raises_the_smoothers_error() -> None:
     v.insert(0, gtsam.Pose2())
     with pytest.raises(SmootherError):
         ours.update(g, v, {0: 0.0})
+
+
+def test_in_batches_the_window_spans_the_lag_to_the_lag_plus_the_batch() -> None:
+    ours = FixedLagSmoother(1.0, gtsam.ISAM2Params(), batch_s=0.5)
+    spans = []
+    for g, v, stamps in _swarm_updates(seconds=4.0):
+        ours.update(g, v, stamps)
+        t = sorted(set(ours.timestamps().values()))
+        spans.append(round(t[-1] - t[0], 6))
+    # 10 Hz keyframes: the window grows to 1.5 s, then drops back to 1.0 s at once (0.9 s where the
+    # stamps' rounding puts the oldest kept one a hair past the lag, as in GTSAM's own comparison)
+    assert spans[:16] == [round(0.1 * k, 6) for k in range(16)]
+    assert spans[16] == 1.0 and spans.count(1.5) >= 3
+    assert all(0.9 <= s <= 1.5 for s in spans[16:])
+    assert len(ours.timestamps()) in range(4 * 10, 4 * 16 + 1)

@@ -83,10 +83,16 @@ class OdometryWait:
     waits for (pure bookkeeping; the node drains and sleeps).  A live robot is settled once
     its odometry stamped at or after the tick is in, or once its agent's ack of the tick
     (sent after that odometry, on the same session) has been here ``grace_s`` (wall seconds)
-    without it: then it is lost on the way, not late."""
+    without it: then it is lost on the way, not late.  A robot whose cameras rendered in this
+    tick (``with_frames``) is settled only once its ack is in as well: the agent publishes the
+    tick's observations after its odometry and before its ack, so an advance on the odometry
+    alone could leave an observation of the tick to arrive late, and the run would then depend
+    on how fast the network delivered it (``late_observations``)."""
 
-    def __init__(self, step: int, stamp_ns: int, grace_s: float, deadline: float) -> None:
+    def __init__(self, step: int, stamp_ns: int, grace_s: float, deadline: float,
+                 with_frames: Container[int] = frozenset()) -> None:
         self.step, self.stamp_ns, self.grace_s, self.deadline = step, stamp_ns, grace_s, deadline
+        self.with_frames = with_frames
         self._acked_at: dict[int, float] = {}  # robot -> when its ack of this tick was first seen here (wall)
         #: after :meth:`settled`: the earliest moment a grace runs out, else the deadline
         self.next_at = deadline
@@ -97,9 +103,13 @@ class OdometryWait:
         self.next_at = self.deadline
         done = True
         for r in alive:
+            ack = (self.step, self.stamp_ns) in acked[r]
             if latest_rx.get(r, -1) >= self.stamp_ns:
+                if ack or r not in self.with_frames:
+                    continue
+                done = False  # its odometry is in, the observations of its frames may not be yet
                 continue
-            if (self.step, self.stamp_ns) in acked[r]:
+            if ack:
                 until = self._acked_at.setdefault(r, now) + self.grace_s
                 if now >= until:
                     continue  # lost

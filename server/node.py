@@ -423,16 +423,19 @@ class ServerNode:
         return self.runs.world_left
 
     def _await_odometry(self, tick: m.Tick) -> None:
-        """Wait until every live robot's odometry of ``tick`` has arrived or is known to be
-        lost: its agent acknowledged ``tick`` and the odometry, published before that ack,
-        is still missing ``odometry_grace_s`` later (counted in ``odometry_lost``; fusion
+        """Wait until every live robot's odometry of ``tick`` has arrived (and, for a robot
+        whose cameras rendered in ``tick``, its agent's ack, which follows the observations of
+        those frames) or is known to be lost: its agent acknowledged ``tick`` and the odometry,
+        published before that ack, is still missing ``odometry_grace_s`` later (counted in ``odometry_lost``; fusion
         then merges that increment with the next, see :mod:`tagswarm.server.fusion`).  A robot
         whose agent does not answer at all is waited for up to ``clock.ack_timeout_s``
         (``odometry_wait_timeouts``), as the world waits for its ack, and after
         ``clock.ack_stall_after`` such waits in a row not at all until its odometry comes again
         (``odometry_stalls``; :class:`~tagswarm.server.intake.SilentRobots`)."""
+        with_frames = {int(pair.split("/", 1)[0]) for pair in tick.cameras_rendered
+                       if pair.split("/", 1)[0].isdigit()}
         wait = OdometryWait(tick.step, tick.stamp_ns, self.odometry_grace_s,
-                            time.monotonic() + self.s.clock.ack_timeout_s)
+                            time.monotonic() + self.s.clock.ack_timeout_s, with_frames)
         done = [False]
         armed = [wait.deadline]  # what the current wait runs until
         self.silent.release(self.latest_rx)

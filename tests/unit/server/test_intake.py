@@ -88,3 +88,22 @@ def test_an_ack_of_another_tick_excuses_nothing() -> None:
     wait = OdometryWait(step=4, stamp_ns=400, grace_s=0.0, deadline=10.0)
     assert not wait.settled(5.0, {0}, {0: 300}, acked)
     assert wait.lost({0}, {0: 300}, acked) == []
+
+
+def test_a_robot_with_frames_in_the_tick_is_waited_for_until_its_ack() -> None:
+    # its odometry comes first, the observations of its frames after it, its ack last: advancing on the
+    # odometry alone let an observation of the tick come late under load (a lockstep run then left its
+    # byte-identical path)
+    acked: dict[int, deque[tuple[int, int]]] = {0: deque(), 1: deque()}
+    wait = OdometryWait(step=4, stamp_ns=400, grace_s=0.03, deadline=10.0, with_frames={1})
+    latest = {0: 400, 1: 400}
+    assert not wait.settled(0.0, {0, 1}, latest, acked) and wait.next_at == 10.0
+    acked[0].append((4, 400))  # robot 0 had no frame this tick: its ack was never needed
+    assert not wait.settled(0.5, {0, 1}, latest, acked)
+    acked[1].append((3, 300))  # an ack of another tick does not do
+    assert not wait.settled(0.6, {0, 1}, latest, acked)
+    acked[1].append((4, 400))
+    assert wait.settled(0.7, {0, 1}, latest, acked) and wait.lost({0, 1}, latest, acked) == []
+    # without frames in the tick the odometry alone settles it, as before
+    assert OdometryWait(step=4, stamp_ns=400, grace_s=0.03, deadline=10.0).settled(0.0, {0, 1}, latest,
+                                                                                  {0: deque(), 1: deque()})

@@ -474,7 +474,7 @@ class AgentNode:
         correction of the step before, then odometry, frames, behaviour and the wheel command;
         False abandons the step."""
         self.time_ns = max(self.time_ns, tick.stamp_ns)
-        mine = {pair.split("/", 1)[1] for pair in tick.cameras_rendered if pair.split("/", 1)[0] == str(self.rid)}
+        mine = tick.cameras_of().get(self.rid, set())
 
         def frames_in() -> bool:
             self._take_frames()

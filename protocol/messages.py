@@ -64,6 +64,16 @@ class Tick(Msg, frozen=True, kw_only=True, tag="tick"):
     mode: Literal["realtime", "lockstep"]
     cameras_rendered: tuple[str, ...] = ()
 
+    def cameras_of(self) -> dict[int, set[str]]:
+        """``cameras_rendered`` by robot id: robot -> names of its cameras with an image of this
+        step (a malformed pair is skipped)."""
+        out: dict[int, set[str]] = {}
+        for pair in self.cameras_rendered:
+            rid, sep, cam = pair.partition("/")
+            if sep and rid.isdigit():
+                out.setdefault(int(rid), set()).add(cam)
+        return out
+
 
 class TickAck(Msg, frozen=True, kw_only=True, tag="tick_ack"):
     """A lockstep participant (``"agent/3"``, ``"server/0"``, ``"render/1"``) has

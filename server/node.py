@@ -432,10 +432,8 @@ class ServerNode:
         (``odometry_wait_timeouts``), as the world waits for its ack, and after
         ``clock.ack_stall_after`` such waits in a row not at all until its odometry comes again
         (``odometry_stalls``; :class:`~tagswarm.server.intake.SilentRobots`)."""
-        with_frames = {int(pair.split("/", 1)[0]) for pair in tick.cameras_rendered
-                       if pair.split("/", 1)[0].isdigit()}
         wait = OdometryWait(tick.step, tick.stamp_ns, self.odometry_grace_s,
-                            time.monotonic() + self.s.clock.ack_timeout_s, with_frames)
+                            time.monotonic() + self.s.clock.ack_timeout_s, set(tick.cameras_of()))
         done = [False]
         armed = [wait.deadline]  # what the current wait runs until
         self.silent.release(self.latest_rx)

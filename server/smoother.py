@@ -19,6 +19,7 @@ in batches, see :class:`FixedLagSmoother`, because reading the tree costs ~14 ms
 
 from __future__ import annotations
 
+from collections import deque
 from collections.abc import Iterable, Mapping
 
 import gtsam
@@ -128,9 +129,9 @@ def keys_to_reeliminate(tree: BayesTree, marginal: Iterable[int]) -> list[int]:
         if c in chosen or not needs(c):
             continue
         chosen.add(c)
-        queue = [ch for ch in tree.children.get(c, ()) if ch not in chosen and tree.parents(ch) & ms]
+        queue = deque(ch for ch in tree.children.get(c, ()) if ch not in chosen and tree.parents(ch) & ms)
         while queue:
-            d = queue.pop(0)
+            d = queue.popleft()
             if not all_marginal_below(d):
                 chosen.add(d)
                 queue.extend(ch for ch in tree.children.get(d, ()) if ch not in chosen)

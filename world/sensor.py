@@ -14,6 +14,7 @@ from __future__ import annotations
 import functools
 import math
 import zlib
+from collections.abc import Sequence
 from typing import Any, Final
 
 import cv2
@@ -57,11 +58,14 @@ def camera_twist(t_wc_prev: Mat, t_wc_now: Mat, dt_s: float) -> NDArray[np.float
     if dt_s <= 0:
         return None
     r_now_t = t_wc_now[:3, :3].T  # rigid inverse: the previous camera in the current one
-    w = -np.asarray(cv2.Rodrigues(r_now_t @ t_wc_prev[:3, :3])[0], np.float64).ravel() / dt_s
-    v = -(r_now_t @ (t_wc_prev[:3, 3] - t_wc_now[:3, 3])) / dt_s
-    if np.linalg.norm(v) > MAX_SPEED_M_S or np.linalg.norm(w) > MAX_TURN_RAD_S:
+    twist = np.empty(6)
+    twist[3:] = cv2.Rodrigues(r_now_t @ t_wc_prev[:3, :3])[0].ravel()
+    twist[:3] = r_now_t @ (t_wc_prev[:3, 3] - t_wc_now[:3, 3])
+    twist /= -dt_s
+    vx, vy, vz, wx, wy, wz = twist.tolist()  # plain floats: a frame's time goes to numpy's per-call cost
+    if vx * vx + vy * vy + vz * vz > MAX_SPEED_M_S ** 2 or wx * wx + wy * wy + wz * wz > MAX_TURN_RAD_S ** 2:
         return None
-    return np.concatenate([v, w])
+    return twist
 
 
 #: the image motion is computed on a grid this many pixels apart and interpolated (it is smooth but
@@ -176,6 +180,87 @@ def _flow_grid(map_x: F32, map_y: F32, K: Mat, depth_shape: tuple[int, ...]) -> 
     return idx, xn, yn
 
 
+class _StreakGains:
+    """A lens's first-order motion field on the :data:`FLOW_GRID_PX` grid (output px per unit of
+    twist times time) and the largest squared normalised radius ``r2_max``: the rotation's columns
+    (w_x, w_y, w_z), the translation's worst-point gains (v_x, v_y, v_z per unit of 1/depth), and
+    the worst-point gain of each rotation axis seen so far (a level robot's camera always turns
+    about one axis, so this holds one or two entries)."""
+
+    def __init__(self, map_x: F32, map_y: F32, K: Mat) -> None:
+        g = FLOW_GRID_PX
+        x = (map_x[::g, ::g].astype(np.float64) - K[0, 2]) / K[0, 0]
+        y = (map_y[::g, ::g].astype(np.float64) - K[1, 2]) / K[1, 1]
+        a, b, c, e = (np.asarray(m, np.float64) for m in _inverse_map_jacobian(map_x, map_y, g))
+        fx, fy = float(K[0, 0]), float(K[1, 1])
+
+        def out(du: NDArray[np.float64], dv: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+            return a * du + b * dv, c * du + e * dv
+
+        # the motion field's columns in render px (points move opposite to the camera; signs do not matter)
+        self.rotation = (out(fx * x * y, fy * (1 + y * y)), out(-fx * (1 + x * x), -fy * x * y), out(fx * y, -fy * x))
+        translation = (out(np.full_like(x, -fx), np.zeros_like(x)), out(np.zeros_like(x), np.full_like(x, -fy)),
+                       out(fx * x, fy * y))
+        self.translation = tuple(float(np.sqrt((su * su + sv * sv).max())) for su, sv in translation)
+        self.r2_max = float((x * x + y * y).max())
+        self.axes: dict[tuple[float, float, float], float] = {}
+
+    def rotation_gain(self, wx: float, wy: float, wz: float) -> float:
+        """The worst grid point's output-pixel motion per radian about the axis (wx, wy, wz) (not 0)."""
+        n = math.sqrt(wx * wx + wy * wy + wz * wz)
+        unit = (wx / n, wy / n, wz / n)
+        if max(unit, key=abs) < 0:
+            unit = (-unit[0], -unit[1], -unit[2])  # the field is odd in w: one entry per axis
+        key = (round(unit[0], 3), round(unit[1], 3), round(unit[2], 3))
+        gain = self.axes.get(key)
+        if gain is None:
+            # the axis rounded to 1e-3 moves a gain by < 0.2 % (|A| ~ f (1 + r^2)): covered by the margin
+            (ax, ay), (bx, by), (cx, cy) = self.rotation
+            su = unit[0] * ax + unit[1] * bx + unit[2] * cx
+            sv = unit[0] * ay + unit[1] * by + unit[2] * cy
+            gain = float(np.sqrt((su * su + sv * sv).max()))
+            if len(self.axes) < 64:
+                self.axes[key] = gain
+        return gain
+
+
+_GAINS: dict[tuple[int, int], tuple[F32, Mat, _StreakGains]] = {}
+
+
+def streak_bound(map_x: F32, map_y: F32, K: Mat, twist: Sequence[float], tau_s: float,
+                 depth_min_m: float | None) -> float:
+    """An upper bound of the streak :func:`exposure_maps` measures (output px, over the whole
+    exposure, ``tau_s`` its half) for a camera moving with ``twist`` (optical frame; v, w) whose
+    nearest grid sample is ``depth_min_m`` away (None: no translation).  The first-order motion
+    field is linear in the twist: the rotation's worst grid point about the twist's own axis,
+    plus each translation component's worst grid point at the nearest depth; the finite motion's
+    second-order terms are covered by a margin, and a motion too large for it gives inf."""
+    key = (id(map_x), id(K))
+    hit = _GAINS.get(key)
+    if hit is None or hit[0] is not map_x or hit[1] is not K:
+        if len(_GAINS) > 64:
+            _GAINS.clear()
+        # map and intrinsics are kept: their ids cannot be reused meanwhile (intrinsics are a plan's own array)
+        hit = _GAINS[key] = (map_x, K, _StreakGains(map_x, map_y, K))
+    gains = hit[2]
+    vx, vy, vz, wx, wy, wz = (float(c) * tau_s for c in twist)
+    if depth_min_m is None:
+        if vx or vy or vz:
+            return math.inf
+        inv_z = 0.0
+    else:
+        inv_z = 1.0 / max(depth_min_m, 1e-3)
+    theta = math.sqrt(wx * wx + wy * wy + wz * wz)
+    tx, ty, tz = gains.translation
+    first = (theta * gains.rotation_gain(wx, wy, wz) if theta > 0 else 0.0) + (
+        tx * abs(vx) + ty * abs(vy) + tz * abs(vz)) * inv_z
+    nonlinear = (theta * (1.0 + gains.r2_max)
+                 + math.sqrt(vx * vx + vy * vy + vz * vz) * inv_z * math.sqrt(1.0 + gains.r2_max))
+    if nonlinear > 0.2:
+        return math.inf
+    return 2.0 * first * (1.0 + 2.0 * nonlinear) + 0.02
+
+
 def _fixed_maps(map_x: F32, map_y: F32) -> tuple[Any, Any]:
     """``cv2.remap``'s fixed-point form of float maps (cached per map)."""
     hit = _FIXED.get(id(map_x))
@@ -235,14 +320,27 @@ def exposure_maps(map_x: F32, map_y: F32, depth_m: NDArray[Any], K: Mat, twist: 
     :data:`SAMPLE_SPACING_PX` output pixels apart (bilinear sampling fills between them), at least
     2, at most :data:`MAX_BLUR_SAMPLES`; None for a streak under 1 output pixel.  With ``near_far``
     (m), ``depth_m`` is the render's OpenGL depth buffer, linearised only where the grid samples it."""
-    if twist is None or exposure_s <= 0 or not np.any(twist):
+    if twist is None or exposure_s <= 0:
+        return None
+    components = twist.tolist()
+    if not any(components):
         return None
     g = FLOW_GRID_PX
     depth_at, xn, yn = _flow_grid(map_x, map_y, K, depth_m.shape)
     fx, fy = np.float32(K[0, 0]), np.float32(K[1, 1])
-    depth = depth_m.ravel().take(depth_at)
-    if near_far is not None:
-        depth = linear_depth(depth, *near_far)
+    raw = depth_m.ravel().take(depth_at) if any(components[:3]) else None
+    nearest = None
+    if raw is not None:  # an OpenGL depth buffer grows with the depth: linearise its least value only
+        nearest = float(raw.min())
+        if near_far is not None:
+            near, far = near_far
+            nearest = far * near / (far - (far - near) * nearest)
+    if streak_bound(map_x, map_y, K, components, exposure_s / 2.0, nearest) < 1.0:
+        return None  # most frames: the exact streak below costs several times this bound
+    if raw is None:
+        depth = np.ones_like(xn)  # no translation: the flow does not depend on depth
+    else:
+        depth = linear_depth(raw, *near_far) if near_far is not None else raw
     dx, dy = blur_flow(xn, yn, depth, twist, exposure_s / 2.0)
     du, dv = dx * fx, dy * fy
     # the streak in OUTPUT pixels decides the sub-exposures (the lens may sample the render sparser or

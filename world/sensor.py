@@ -460,6 +460,13 @@ class NoiseBank:
         return self.samples[off:off + n].reshape(shape)
 
 
+@functools.lru_cache(maxsize=16)
+def _noise_sigma(electrons_per_dn: float, read2: float) -> F32:
+    """The noise sigma (DN) of each whole DN of signal (256,): shot noise and read noise (variance ``read2``)."""
+    e = electrons_per_dn
+    return np.sqrt(np.arange(256, dtype=np.float32) * np.float32(1.0 / e if e else 0.0) + np.float32(read2))
+
+
 def develop(img: NDArray[Any], cfg: CameraSensor, rng: np.random.Generator, gain: F32 | None = None,
             toned: tuple[F32, float] | None = None, bank: NoiseBank | None = None) -> NDArray[np.uint8]:
     """The 8-bit frame of a light image ``img`` (H, W, DN; float or 8-bit): vignetting ``gain``, contrast about
@@ -474,9 +481,8 @@ def develop(img: NDArray[Any], cfg: CameraSensor, rng: np.random.Generator, gain
     if cfg.electrons_per_dn or read2:
         # shot noise as its Gaussian limit (>= 20 electrons per DN is far beyond where Poisson differs),
         # one draw with read noise; sigma looked up per whole DN of the signal (cv2.LUT: ~3x numpy's gather)
-        e = float(cfg.electrons_per_dn or 0.0)
-        sigma = np.sqrt(np.arange(256, dtype=np.float32) * np.float32(1.0 / e if e else 0.0) + np.float32(read2))
-        noise: F32 = np.asarray(cv2.LUT(out.astype(np.uint8), sigma), np.float32)
+        noise: F32 = np.asarray(cv2.LUT(out.astype(np.uint8), _noise_sigma(float(cfg.electrons_per_dn or 0.0), read2)),
+                                np.float32)
         noise *= normals(rng, out.shape) if bank is None else bank.draw(rng, out.shape)
         out += noise
     # rounding to nearest (ties to even, as numpy's rint) and saturation to 0..255 in one pass

@@ -176,19 +176,24 @@ the true initial pose, so its error is pure drift).
   kidnap to the robot's first re-localisation event at or after it; ``null`` if
   none)}``.
 - ``warnings``: human-readable notes about missing or unusable inputs, sources
-  the recorder lost, kidnaps not applied, and robots whose own controller failed
-  or was slow (``controller_errors`` / ``controller_slow`` in ``run.json``).
+  the recorder lost, kidnaps not applied, robots whose own controller failed
+  or was slow (``controller_errors`` / ``controller_slow`` in ``run.json``), and
+  an origin robot that saw nobody and was seen only from afar at the start
+  (:mod:`tagswarm.evaluation.anchoring`).
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
+from tagswarm.evaluation.anchoring import anchoring_note
 from tagswarm.evaluation.localised import LOCALISED_HOLD_S, LOCALISED_M
 from tagswarm.evaluation.pairwise import (
     DISTANCE_BINS_M,
@@ -285,6 +290,11 @@ def evaluate(run: RunData) -> Evaluation:
     events = recovery_metrics(run, tracks, robots_out, swarm, KINDS, warnings)
     silent = silent_sources(run.info, warnings)
     warnings.extend(controller_trouble(run.info.get("counters")))
+    origin = run.info.get("origin_id")
+    if isinstance(origin, int):
+        note = anchoring_note(run.observations, origin, _truth_range(run), landmarks=_landmarks(run.info))
+        if note is not None:
+            warnings.append(note)
 
     dist = error_vs_distance(run, tracks)
     metrics: dict[str, Any] = {
@@ -308,6 +318,23 @@ def evaluate(run: RunData) -> Evaluation:
         "warnings": warnings,
     }
     return Evaluation(run=run, tracks=tracks, alignment=alignment, distance=dist, metrics=_finite(metrics))
+
+
+def _truth_range(run: RunData) -> Callable[[int, int, float], float | None]:
+    """The true distance (m) between two robots at a time (s), None where a truth is missing."""
+
+    def at(robot: int, t_s: float) -> NDArray[np.float64] | None:
+        tr = run.truth.get(robot)
+        if tr is None or len(tr.timestamps) == 0:
+            return None
+        i = int(np.clip(np.searchsorted(tr.timestamps, t_s), 0, len(tr.timestamps) - 1))
+        return np.asarray(tr.positions_xyz[i, :2], float)
+
+    def distance(a: int, b: int, t_s: float) -> float | None:
+        pa, pb = at(a, t_s), at(b, t_s)
+        return None if pa is None or pb is None else float(np.hypot(*(pa - pb)))
+
+    return distance
 
 
 def _landmarks(info: dict[str, Any]) -> int:

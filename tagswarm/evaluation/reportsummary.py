@@ -14,6 +14,7 @@ from typing import Any
 
 from rich import box
 from rich.console import Console
+from rich.markup import escape
 from rich.table import Table
 
 LIST_MAX = 12
@@ -144,5 +145,5 @@ def print_summary(metrics: dict[str, Any], run_dir: Path, console: Console | Non
               f"real-time factor {_m(c['real_time_factor'], 2)}, frames rendered {_int(c['frames_rendered'])}",
               highlight=False)
     for w in metrics["warnings"]:
-        con.print(f"[yellow]warning:[/yellow] {w}", highlight=False)
+        con.print(f"[yellow]warning:[/yellow] {escape(w)}", highlight=False)  # a note may hold [brackets]
     con.print(f"wrote {run_dir / 'metrics.json'} and {run_dir / 'plots'}/", highlight=False)

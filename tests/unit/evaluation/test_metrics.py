@@ -407,3 +407,15 @@ def test_missing_csvs_and_truth_are_warnings(tmp_path: Path) -> None:
     assert "robot 1: no truth trajectory" in text
     assert m["robots"]["1"]["odom"]["ate_unaligned"] is None
     assert m["robots"]["0"]["odom"]["ate_unaligned"]["count"] == 200
+
+
+def test_a_blind_origin_seen_only_from_afar_is_a_warning_with_the_true_range(tmp_path: Path) -> None:
+    t = np.arange(200) / 10.0
+    truth = {0: (t, static(0, 0, t)), 1: (t, static(3.0, 0, t)), 2: (t, static(3.0, 1.0, t))}
+    obs = [(i * 100_000_000, 1, "robot", 0) for i in range(50)] + [(1_000_000_000, 1, "robot", 2)]
+    m = compute_metrics(make_run(tmp_path / "far", truth, observations=obs))
+    (note,) = [w for w in m["warnings"] if "origin robot 0" in w]
+    assert "robot 1 (50 views at 3.0 m)" in note
+    # the same run but the origin saw robot 1 once at the start: no warning
+    m = compute_metrics(make_run(tmp_path / "sees", truth, observations=[*obs, (500_000_000, 0, "robot", 1)]))
+    assert not [w for w in m["warnings"] if "origin robot" in w]

@@ -460,6 +460,24 @@ class NoiseBank:
         return self.samples[off:off + n].reshape(shape)
 
 
+_IN_RANGE: dict[int, tuple[F32, float, bool]] = {}
+
+
+def _stays_in_range(scale: F32, offset: float) -> bool:
+    """Whether ``light * scale + offset`` stays within 0..255 for every light in 0..255 (a blur's
+    average of 8-bit samples included), so clipping it is a no-op (cached per scale image)."""
+    hit = _IN_RANGE.get(id(scale))
+    if hit is not None and hit[0] is scale and hit[1] == offset:
+        return hit[2]
+    lo, hi = float(scale.min()), float(scale.max())
+    # float32 rounding of the product and the sum stays far inside the half-DN margin asked for
+    ok = lo >= 0.0 and offset >= 0.0 and 255.0 * hi + offset <= 254.5
+    if len(_IN_RANGE) > 64:
+        _IN_RANGE.clear()
+    _IN_RANGE[id(scale)] = (scale, offset, ok)  # the image is kept: its id cannot be reused meanwhile
+    return ok
+
+
 @functools.lru_cache(maxsize=16)
 def _noise_sigma(electrons_per_dn: float, read2: float) -> F32:
     """The noise sigma (DN) of each whole DN of signal (256,): shot noise and read noise (variance ``read2``)."""
@@ -476,7 +494,8 @@ def develop(img: NDArray[Any], cfg: CameraSensor, rng: np.random.Generator, gain
     scale, offset = toned if toned is not None else tone(cfg, gain, img.shape)  # type: ignore[arg-type]
     out = np.asarray(cv2.multiply(img, scale, dtype=cv2.CV_32F), np.float32)  # type: ignore[call-overload]
     out += np.float32(offset)
-    np.clip(out, 0.0, 255.0, out=out)
+    if not _stays_in_range(scale, offset):
+        np.clip(out, 0.0, 255.0, out=out)
     read2 = float(cfg.read_noise_dn or 0.0) ** 2
     if cfg.electrons_per_dn or read2:
         # shot noise as its Gaussian limit (>= 20 electrons per DN is far beyond where Poisson differs),

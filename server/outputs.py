@@ -1,7 +1,8 @@
 """What the map server publishes, built from its fusion (pure code: state in, messages out;
 :mod:`tagswarm.server.node` numbers and sends them).
 
-Poses are in the map frame (metres, radians); covariances are the fusion's, 3x3 row-major in
+Poses are in the map frame (metres, radians); covariances are the fusion's with the second-order
+term of a loose heading added (:func:`~tagswarm.server.noise.reported_cov`), 3x3 row-major in
 the robot's own axes (see :class:`~tagswarm.protocol.messages.Correction`); times are
 simulation nanoseconds.
 """
@@ -15,6 +16,7 @@ from tagswarm.protocol import messages as m
 from tagswarm.protocol.geometry import wrap_angle
 from tagswarm.server.estimator import Estimator
 from tagswarm.server.fusion import RelocEvent
+from tagswarm.server.noise import reported_cov
 
 #: an observation edge stays in the map this long after it was last seen (simulation ns)
 EDGE_MEMORY_NS = 5_000_000_000
@@ -34,7 +36,8 @@ def global_map(fusion: Estimator, robot_ids: Iterable[int], origin_id: int, time
         est = fusion.pose(rid)
         if est is None:
             continue
-        (x, y, yaw), cov = est
+        (x, y, yaw), graph_cov = est
+        cov = reported_cov(graph_cov)
         entries.append(m.MapEntry(robot_id=rid, x_m=x, y_m=y, yaw_rad=yaw,
                                   cov=tuple(float(v) for v in cov.ravel()),
                                   last_seen_ns=max(latest_rx.get(rid, 0), 0), alive=rid in alive))
@@ -49,7 +52,8 @@ def correction(fusion: Estimator, rid: int, time_ns: int, seq: int) -> m.Correct
     if est is None or mo is None:
         return m.Correction(seq=seq, stamp_ns=time_ns, robot_id=rid, map_odom_x_m=0.0, map_odom_y_m=0.0,
                             map_odom_yaw_rad=0.0, x_m=0.0, y_m=0.0, yaw_rad=0.0, cov=(0.0,) * 9, localised=False)
-    (x, y, yaw), cov = est
+    (x, y, yaw), graph_cov = est
+    cov = reported_cov(graph_cov)
     return m.Correction(seq=seq, stamp_ns=time_ns, robot_id=rid, map_odom_x_m=mo[0], map_odom_y_m=mo[1],
                         map_odom_yaw_rad=mo[2], x_m=x, y_m=y, yaw_rad=yaw, cov=tuple(float(v) for v in cov.ravel()),
                         last_fix_ns=fusion.last_fix_ns(rid))

@@ -10,7 +10,7 @@ from tagswarm.protocol.bus import BusConfig
 from tagswarm.protocol.scenario import load_scenario
 from tagswarm.server.config import ServerConfig
 from tagswarm.server.node import make_fusion
-from tagswarm.server.noise import FusionParams, floored_obs_cov, relative_cov, tangent_cov
+from tagswarm.server.noise import FusionParams, floored_obs_cov, relative_cov, reported_cov, tangent_cov
 
 
 def _config(*overrides: str) -> ServerConfig:
@@ -59,3 +59,39 @@ def test_relative_cov_matches_sampled_relative_poses_and_levers_the_heading_by_t
     # the sideways spread of a far target is mostly the observer's heading: about range * sigma_yaw
     rng_m = math.hypot(rel.x(), rel.y())
     assert np.trace(model[:2, :2]) > 0.8 * (0.05 * rng_m) ** 2 > 10 * np.trace((cov_a + cov_b)[:2, :2])
+
+
+def _pivoted(sigma_phi: float, r_m: float, n: int = 20000) -> tuple[np.ndarray, np.ndarray]:
+    """Errors (n, 2) of a robot r_m ahead of a pivot whose heading error is N(0, sigma_phi^2), in the
+    robot's axes (x towards the pivot's far side, y tangential), and the graph's linearised (3, 3)
+    covariance of it (tangential sigma r * sigma_phi, 2 cm otherwise, the heading's sigma_phi)."""
+    rng = np.random.default_rng(4)
+    phi = rng.normal(0.0, sigma_phi, n)
+    err = np.column_stack([r_m * (np.cos(phi) - 1.0) + rng.normal(0, 0.02, n),
+                           r_m * np.sin(phi) + rng.normal(0, 0.02, n)])
+    cov = np.diag([0.02**2, (r_m * sigma_phi) ** 2 + 0.02**2, sigma_phi**2])
+    return err, cov
+
+
+def _nees(err: np.ndarray, cov: np.ndarray) -> float:
+    p = np.linalg.inv(cov[:2, :2])
+    return float(np.mean(np.einsum("ni,ij,nj->n", err, p, err)) / 2.0)
+
+
+def test_the_reported_covariance_holds_a_loose_headings_arc_and_leaves_a_firm_one_alone() -> None:
+    """A robot 5 m from a pivot whose heading is 17 deg unsure lies on an arc: the linearised
+    covariance calls its errors ~20x too unlikely (the arc's bow towards the pivot, across a 2 cm
+    axis); the reported one is consistent (NEES ~1).  At 1 deg the two are the same to 1 %."""
+    err, cov = _pivoted(math.radians(17.0), 5.0)
+    assert _nees(err, cov) > 10.0
+    rep = reported_cov(cov)
+    assert 0.6 < _nees(err, rep) < 1.4
+    assert rep[1, 1] == cov[1, 1] and rep[2, 2] == cov[2, 2]  # the arc's tangent and the heading as they were
+    firm_err, firm = _pivoted(math.radians(1.0), 5.0)
+    assert np.allclose(reported_cov(firm), firm, rtol=1e-2, atol=0.0)
+    assert 0.8 < _nees(firm_err, reported_cov(firm)) < 1.2
+    # a rotated frame gets the same term along its own minor axis
+    c, s = math.cos(0.7), math.sin(0.7)
+    rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    assert np.allclose(reported_cov(rot @ cov @ rot.T), rot @ rep @ rot.T, atol=1e-12)
+    assert np.array_equal(reported_cov(np.zeros((3, 3))), np.zeros((3, 3)))

@@ -224,7 +224,7 @@ class _StreakGains:
         return gain
 
 
-_GAINS: dict[tuple[int, int], tuple[F32, Mat, _StreakGains]] = {}
+_GAINS: dict[tuple[int, bytes], tuple[F32, _StreakGains]] = {}
 
 
 def streak_bound(map_x: F32, map_y: F32, K: Mat, twist: Sequence[float], tau_s: float,
@@ -235,14 +235,13 @@ def streak_bound(map_x: F32, map_y: F32, K: Mat, twist: Sequence[float], tau_s: 
     field is linear in the twist: the rotation's worst grid point about the twist's own axis,
     plus each translation component's worst grid point at the nearest depth; the finite motion's
     second-order terms are covered by a margin, and a motion too large for it gives inf."""
-    key = (id(map_x), id(K))
+    key = (id(map_x), np.asarray(K, np.float64).tobytes())
     hit = _GAINS.get(key)
-    if hit is None or hit[0] is not map_x or hit[1] is not K:
+    if hit is None or hit[0] is not map_x:
         if len(_GAINS) > 64:
             _GAINS.clear()
-        # map and intrinsics are kept: their ids cannot be reused meanwhile (intrinsics are a plan's own array)
-        hit = _GAINS[key] = (map_x, K, _StreakGains(map_x, map_y, K))
-    gains = hit[2]
+        hit = _GAINS[key] = (map_x, _StreakGains(map_x, map_y, K))  # the map is kept: its id cannot be reused
+    gains = hit[1]
     vx, vy, vz, wx, wy, wz = (float(c) * tau_s for c in twist)
     if depth_min_m is None:
         if vx or vy or vz:

@@ -105,12 +105,20 @@ def reported_cov(cov: Cov) -> Cov:
     the position block's minor axis (s_phi^2 capped at 1 rad^2, where the arc is no longer short).
     Negligible once the heading is known to a few degrees."""
     out = np.array(cov, float).reshape(3, 3)
+    if not np.all(np.isfinite(out)):
+        return out
     var_phi = min(max(float(out[2, 2]), 0.0), 1.0)
     vals, vecs = np.linalg.eigh(out[:2, :2])
-    if not (np.all(np.isfinite(vals)) and vals[1] > 0.0) or var_phi == 0.0:
+    if not vals[1] > 0.0 or var_phi == 0.0:
         return out
-    minor = vecs[:, 0]
-    out[:2, :2] += 0.75 * float(vals[1]) * var_phi * np.outer(minor, minor)
+    extra = 0.75 * float(vals[1]) * var_phi
+    if vals[1] - vals[0] <= extra:
+        # a round ellipse has no tangent: the bow may point anywhere, and the minor axis would jump
+        # between directions for a rounding's difference
+        out[:2, :2] += extra * np.eye(2)
+    else:
+        minor = vecs[:, 0]
+        out[:2, :2] += extra * np.outer(minor, minor)
     return out
 
 

@@ -203,6 +203,14 @@ class _StreakGains:
                        out(fx * x, fy * y))
         self.translation = tuple(float(np.sqrt((su * su + sv * sv).max())) for su, sv in translation)
         self.r2_max = float((x * x + y * y).max())
+        # the largest stretch of a render displacement into the output (the inverse Jacobian's operator
+        # norm) times the focal length: what turns a normalised-coordinate error into output pixels
+        # the inverse Jacobian's worst condition number: a map that nearly folds (a strong barrel lens's
+        # corners) stretches a small change of the flow's direction into a large one of the streak
+        sq, det = a * a + b * b + c * c + e * e, np.abs(a * e - b * c)
+        root = np.sqrt(np.maximum(sq * sq - 4.0 * det * det, 0.0))
+        big, small = np.sqrt((sq + root) / 2.0), np.sqrt(np.maximum(sq - root, 0.0) / 2.0)
+        self.condition = float((big / np.maximum(small, 1e-12)).max())
         self.axes: dict[tuple[float, float, float], float] = {}
 
     def rotation_gain(self, wx: float, wy: float, wz: float) -> float:
@@ -225,6 +233,9 @@ class _StreakGains:
 
 
 _GAINS: dict[tuple[int, bytes], tuple[F32, _StreakGains]] = {}
+#: a lens map whose inverse Jacobian is worse conditioned than this gets no streak bound (the exact
+#: streak every frame): its second-order terms are no longer a small share of the first-order one
+MAX_BOUND_CONDITION: Final = 10.0
 
 
 def streak_bound(map_x: F32, map_y: F32, K: Mat, twist: Sequence[float], tau_s: float,
@@ -234,7 +245,9 @@ def streak_bound(map_x: F32, map_y: F32, K: Mat, twist: Sequence[float], tau_s: 
     nearest grid sample is ``depth_min_m`` away (None: no translation).  The first-order motion
     field is linear in the twist: the rotation's worst grid point about the twist's own axis,
     plus each translation component's worst grid point at the nearest depth; the finite motion's
-    second-order terms are covered by a margin, and a motion too large for it gives inf."""
+    second-order terms are covered by a margin (checked against the exact streak for lenses of 60 to
+    120 deg, tests/unit/world/test_sensor.py), and a motion too large for it, or a lens map that nearly
+    folds (a strong barrel lens's corners, where the margin does not hold), gives inf."""
     key = (id(map_x), np.asarray(K, np.float64).tobytes())
     hit = _GAINS.get(key)
     if hit is None or hit[0] is not map_x:
@@ -253,9 +266,12 @@ def streak_bound(map_x: F32, map_y: F32, K: Mat, twist: Sequence[float], tau_s: 
     tx, ty, tz = gains.translation
     first = (theta * gains.rotation_gain(wx, wy, wz) if theta > 0 else 0.0) + (
         tx * abs(vx) + ty * abs(vy) + tz * abs(vz)) * inv_z
+    # the first-order motion in normalised coordinates is at most f1; the exact one differs from it by
+    # less than 0.35 f1^2 for f1 <= 0.2 (checked over random motions; 1 f1^2 is used) plus float32
+    # rounding (~1e-7), a difference the inverse Jacobian may stretch (a distorting lens's corners)
     nonlinear = (theta * (1.0 + gains.r2_max)
                  + math.sqrt(vx * vx + vy * vy + vz * vz) * inv_z * math.sqrt(1.0 + gains.r2_max))
-    if nonlinear > 0.2:
+    if nonlinear > 0.2 or gains.condition > MAX_BOUND_CONDITION:
         return math.inf
     return 2.0 * first * (1.0 + 2.0 * nonlinear) + 0.02
 

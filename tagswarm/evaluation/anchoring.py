@@ -47,12 +47,12 @@ def anchoring_note(obs: Observations, origin: int, range_at: Callable[[int, int,
         pick = of_origin & (obs.observer == observer)
         ranges = [r for t in obs.stamp_s[pick]
                   if (r := range_at(observer, origin, float(t))) is not None and math.isfinite(r)]
-        if not ranges:
-            return None  # no truth to judge by
-        views.append((observer, int(np.sum(pick)), float(np.median(ranges))))
-    if min(r for _, _, r in views) < FAR_VIEW_M:
+        if ranges:  # an observer without a truth to judge by is left out
+            views.append((observer, int(np.sum(pick)), float(np.median(ranges))))
+    if not views or min(r for _, _, r in views) < FAR_VIEW_M:
         return None
-    seen = ", ".join(f"robot {o} ({n} views at {r:.1f} m)" for o, n, r in sorted(views, key=lambda v: -v[1])[:3])
+    seen = ", ".join(f"robot {o} ({n} view{'s' if n != 1 else ''} at {r:.1f} m)"
+                     for o, n, r in sorted(views, key=lambda v: -v[1])[:3])
     return (f"the origin robot {origin} saw no robot in the first {window_s:.0f} s{later} and was seen only from "
             f"afar: {seen}. The map's heading hangs on those views of its cube, whose yaw is uncertain by about "
             "10 deg at 3 m, and 1 deg of it puts a robot 5 m away 9 cm off; give the origin a view of the swarm "

@@ -22,7 +22,7 @@ def test_a_blind_origin_seen_only_from_afar_gets_advice_naming_its_observers() -
     obs = _obs([(0.1 * k, 9, True, 0) for k in range(30)] + [(0.5, 2, True, 0), (3.0, 9, True, 4)])
     note = anchoring_note(obs, 0, _range(3.4))
     assert note is not None and "origin robot 0" in note and "nor later" in note
-    assert note.index("robot 9 (30 views at 3.4 m)") < note.index("robot 2 (1 views at 3.4 m)")
+    assert note.index("robot 9 (30 views at 3.4 m)") < note.index("robot 2 (1 view at 3.4 m)")
     assert "landmarks" in note
 
 

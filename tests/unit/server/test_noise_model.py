@@ -95,3 +95,14 @@ def test_the_reported_covariance_holds_a_loose_headings_arc_and_leaves_a_firm_on
     rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
     assert np.allclose(reported_cov(rot @ cov @ rot.T), rot @ rep @ rot.T, atol=1e-12)
     assert np.array_equal(reported_cov(np.zeros((3, 3))), np.zeros((3, 3)))
+
+
+def test_the_reported_covariance_of_a_round_or_broken_ellipse() -> None:
+    """A round position ellipse gets the term on both axes (no direction to prefer, and a rounding's
+    difference must not swing it); a non-finite covariance is passed on as it is."""
+    round_cov = np.diag([0.04, 0.04, 0.09])
+    nudged = np.diag([0.04, 0.04 + 1e-12, 0.09])
+    assert np.allclose(reported_cov(round_cov), reported_cov(nudged), atol=1e-9)
+    assert np.allclose(reported_cov(round_cov)[:2, :2], np.diag([0.04 + 0.0027, 0.04 + 0.0027]))
+    bad = np.diag([0.04, 0.01, math.nan])
+    assert np.array_equal(reported_cov(bad), bad, equal_nan=True)

@@ -186,9 +186,9 @@ class FixedLagSmoother:
         for k, t in (stamps or {}).items():
             self._stamps[int(k)] = float(t)
         now = max(self._stamps.values(), default=0.0)
-        oldest = min(self._stamps.values(), default=0.0)
-        marginal = sorted(k for k, t in self._stamps.items() if t < now - self.lag_s) \
-            if oldest < now - self.lag_s - self.batch_s else []
+        marginal: list[int] = []
+        if min(self._stamps.values(), default=0.0) < now - self.lag_s - self.batch_s:  # a batch is due
+            marginal = sorted(k for k, t in self._stamps.items() if t < now - self.lag_s)
         up = gtsam.ISAM2UpdateParams()
         if marginal:
             # eliminate the marginal variables first (group 0), the rest after, so they end up leaves

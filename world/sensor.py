@@ -255,6 +255,8 @@ def streak_bound(map_x: F32, map_y: F32, K: Mat, twist: Sequence[float], tau_s: 
             _GAINS.clear()
         hit = _GAINS[key] = (map_x, _StreakGains(map_x, map_y, K))  # the map is kept: its id cannot be reused
     gains = hit[1]
+    if gains.condition > MAX_BOUND_CONDITION:
+        return math.inf
     vx, vy, vz, wx, wy, wz = (float(c) * tau_s for c in twist)
     if depth_min_m is None:
         if vx or vy or vz:
@@ -271,7 +273,7 @@ def streak_bound(map_x: F32, map_y: F32, K: Mat, twist: Sequence[float], tau_s: 
     # rounding (~1e-7), a difference the inverse Jacobian may stretch (a distorting lens's corners)
     nonlinear = (theta * (1.0 + gains.r2_max)
                  + math.sqrt(vx * vx + vy * vy + vz * vz) * inv_z * math.sqrt(1.0 + gains.r2_max))
-    if nonlinear > 0.2 or gains.condition > MAX_BOUND_CONDITION:
+    if nonlinear > 0.2:
         return math.inf
     return 2.0 * first * (1.0 + 2.0 * nonlinear) + 0.02
 

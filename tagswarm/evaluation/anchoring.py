@@ -21,6 +21,9 @@ from tagswarm.evaluation.runfolder import Observations
 ANCHOR_WINDOW_S = 10.0
 #: views of the origin from this far (median per observer, m) leave its heading loose
 FAR_VIEW_M = 2.5
+#: what helps, in either note
+REMEDY = ("give the origin a view of the swarm (face it towards the others, or move it into the open), "
+          "or add wall landmarks ([[landmarks]])")
 
 
 def anchoring_note(obs: Observations, origin: int, range_at: Callable[[int, int, float], float | None],
@@ -40,8 +43,7 @@ def anchoring_note(obs: Observations, origin: int, range_at: Callable[[int, int,
     later = "" if own_total else " (nor later in the run)"
     if not np.any(of_origin):
         return (f"the origin robot {origin} saw no robot in the first {window_s:.0f} s{later} and nobody saw it: "
-                "the map could not place anyone then; give the origin a view of the swarm (face it towards the "
-                "others, or move it into the open), or add wall landmarks ([[landmarks]])")
+                f"the map could not place anyone then; {REMEDY}")
     views: list[tuple[int, int, float]] = []  # (observer, count, median range m)
     for observer in sorted({int(o) for o in obs.observer[of_origin]}):
         pick = of_origin & (obs.observer == observer)
@@ -55,5 +57,4 @@ def anchoring_note(obs: Observations, origin: int, range_at: Callable[[int, int,
                      for o, n, r in sorted(views, key=lambda v: -v[1])[:3])
     return (f"the origin robot {origin} saw no robot in the first {window_s:.0f} s{later} and was seen only from "
             f"afar: {seen}. The map's heading hangs on those views of its cube, whose yaw is uncertain by about "
-            "10 deg at 3 m, and 1 deg of it puts a robot 5 m away 9 cm off; give the origin a view of the swarm "
-            "(face it towards the others, or move it into the open), or add wall landmarks ([[landmarks]])")
+            f"10 deg at 3 m, and 1 deg of it puts a robot 5 m away 9 cm off; {REMEDY}")

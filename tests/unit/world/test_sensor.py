@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import hashlib
 import math
+from typing import Any
 
 import numpy as np
 import pytest
@@ -119,9 +120,15 @@ def test_noise_bank_statistics() -> None:
     assert abs(float(out.std()) - math.sqrt(100 / 20 + 1.5**2)) < 0.1
 
 
-def _turning_exposure(overrides: list[str], exposure_s: float,
-                      tol_px: float | None = None) -> tuple[object, np.ndarray, np.ndarray]:
-    """(exposure maps, blurred frame, sharp frame) of robot 0 of the paper scene turning at 1.2 rad/s."""
+def _camera(hfov_deg: float, width: int = 320) -> str:
+    """The override giving robots one front camera of this field of view and width (4:3)."""
+    return f"robot.cameras=[{{name='front', width={width}, height={width * 3 // 4}, hfov_deg={hfov_deg}}}]"
+
+
+def _turned_render(overrides: list[str], turn_rad: float) -> tuple[Any, Any, np.ndarray, np.ndarray, np.ndarray,
+                                                                     np.ndarray]:
+    """(render plan, camera, pinhole render, metric depth (render size), T_world_cam before and now) of
+    robot 0 of the paper scene (realistic camera) after turning ``turn_rad`` on the spot."""
     from tagswarm.world import sensor
 
     s = load_scenario("paper", ["camera.preset=realistic", *overrides])
@@ -131,9 +138,17 @@ def _turning_exposure(overrides: list[str], exposure_s: float,
             r.set_pose(rid, (0.5 * rid, 0.4 * (rid - 1.5), 0), (0, 0, 0, 1))
         p = r.plan(cam)
         mount = r._mount[cam.name]
-        t_wc, prev = se2_matrix(-1.5, 0, 0) @ mount, se2_matrix(-1.5, 0, -0.12) @ mount
+        t_wc, prev = se2_matrix(-1.5, 0, 0) @ mount, se2_matrix(-1.5, 0, -turn_rad) @ mount
         gray, zbuf = r._shoot(p.render_cam, t_wc, True)
-    depth = sensor.linear_depth(zbuf, cam.near_m, cam.far_m)
+    return p, cam, gray, sensor.linear_depth(zbuf, cam.near_m, cam.far_m), prev, t_wc
+
+
+def _turning_exposure(overrides: list[str], exposure_s: float,
+                      tol_px: float | None = None) -> tuple[object, np.ndarray, np.ndarray]:
+    """(exposure maps, blurred frame, sharp frame) of robot 0 of the paper scene turning at 1.2 rad/s."""
+    from tagswarm.world import sensor
+
+    p, _, gray, depth, prev, t_wc = _turned_render(overrides, 0.12)
     twist = sensor.camera_twist(prev, t_wc, 0.1)
     kept = sensor.UNIFORM_STREAK_TOL_PX
     if tol_px is not None:
@@ -162,7 +177,7 @@ def test_a_uniform_streak_is_one_filter_close_to_the_sub_exposures() -> None:
 def test_sub_exposures_count_output_pixels() -> None:
     """A 320x240 120 deg fisheye turning at 1.2 rad/s for 4 ms streaks ~0.7 output px (its pinhole
     render, twice the image's size, would call it ~1.5 px): no blur; 20 ms is a blur."""
-    fisheye = "robot.cameras=[{name='front', width=320, height=240, hfov_deg=120.0}]"
+    fisheye = _camera(120.0)
     assert _turning_exposure([fisheye], 0.004)[0] is None
     assert _turning_exposure([fisheye], 0.020)[0] is not None
 
@@ -171,7 +186,7 @@ def test_a_streak_uniform_per_tile_is_a_filter_per_tile_close_to_the_sub_exposur
     """A turn at 640x480: the streak grows towards the image's sides by more than the tolerance, but
     within each tile it does not, so the blur is a filter per tile, as close to resampling the render
     per sub-exposure as the one-filter blur is."""
-    cam = "robot.cameras=[{name='front', width=640, height=480, hfov_deg=60.0}]"
+    cam = _camera(60.0, 640)
     maps, fast, sharp = _turning_exposure([cam], 0.004)
     assert maps is not None and maps.kernel is None  # type: ignore[attr-defined]
     tiles = maps.tiles  # type: ignore[attr-defined]
@@ -240,18 +255,7 @@ def test_the_streak_bound_never_undercuts_the_streak_and_is_tight_for_a_turn(len
     120 deg fisheye's lens maps, and within 30 % of it for a level robot turning on the spot."""
     from tagswarm.world import sensor
 
-    cam = "robot.cameras=[{name='front', width=320, height=240, hfov_deg=" + (
-        "60.0}]" if lens == "pinhole" else "120.0}]")
-    s = load_scenario("paper", ["camera.preset=realistic", cam])
-    c = s.robot.cameras[0]
-    with Renderer(s) as r:
-        for rid in s.robot_ids:
-            r.set_pose(rid, (0.5 * rid, 0.4 * (rid - 1.5), 0), (0, 0, 0, 1))
-        p = r.plan(c)
-        mount = r._mount[c.name]
-        t_wc, prev = se2_matrix(-1.5, 0, 0) @ mount, se2_matrix(-1.5, 0, -0.04) @ mount
-        _, zbuf = r._shoot(p.render_cam, t_wc, True)
-    depth = sensor.linear_depth(zbuf, c.near_m, c.far_m)
+    p, _, _, depth, prev, t_wc = _turned_render([_camera(60.0 if lens == "pinhole" else 120.0)], 0.04)
     mx, my = p.sample_maps()
     k = p.K_render
     idx, _, _ = sensor._flow_grid(mx, my, k, depth.shape)
@@ -282,10 +286,7 @@ def test_a_streak_bound_just_under_a_pixel_never_hides_a_blur(hfov: str) -> None
     from tagswarm.world import sensor
 
     def lens(h: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        s = load_scenario("paper", ["camera.preset=realistic",
-                                    "robot.cameras=[{name='front', width=320, height=240, hfov_deg=" + h + "}]"])
-        with Renderer(s) as r:
-            p = r.plan(s.robot.cameras[0])
+        p = _turned_render([_camera(float(h))], 0.0)[0]
         mx, my = p.sample_maps()
         return mx, my, p.K_render
 

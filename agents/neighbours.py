@@ -1,4 +1,5 @@
-"""The other robots as obstacles, from the server's global map (pure code, no I/O).
+"""The other robots as obstacles, from the server's global map and, for a robot the map does not
+have yet, from this agent's own sightings (pure code, no I/O).
 
 The server publishes its :class:`~tagswarm.protocol.messages.GlobalMap` at a low rate
 (``map_rate_hz``, 2 Hz by default), so each robot's entry is extrapolated to
@@ -35,6 +36,9 @@ SIGMA_WIDEN_MAX_M = 0.15  # ... at most
 AGE_WIDEN = 0.25  # ... and by this share of the distance extrapolated (velocity error)
 #: a sighting further than this beyond a robot's circle is one the map contradicts (a copy of its cube)
 SIGHTING_GATE_M = 0.5
+#: a robot this agent saw itself but the map does not have (not placed yet) stays an obstacle, at rest
+#: where it was seen, this long (s): else a robot drives into a neighbour nobody has placed
+SIGHTED_KEEP_S = 3.0
 
 
 @dataclass(frozen=True)
@@ -59,6 +63,13 @@ class NeighbourTracker:
     tracks: dict[int, _Track] = field(default_factory=dict)
     adopted_ns: int = -1
     maps_adopted: int = 0
+    sighted: dict[int, tuple[int, float, float]] = field(default_factory=dict)  # robot -> (stamp, x, y)
+
+    def saw(self, robot_id: int, x_m: float, y_m: float, stamp_ns: int) -> None:
+        """Our own camera put robot ``robot_id`` at (x_m, y_m) (map frame, through our pose) at
+        ``stamp_ns``: an obstacle even while the map does not have it (see :data:`SIGHTED_KEEP_S`)."""
+        if robot_id != self.robot_id:
+            self.sighted[robot_id] = (stamp_ns, x_m, y_m)
 
     def offer(self, stamp_ns: int, entries: Sequence[MapEntry]) -> None:
         """A received map; older than the one in use, or a repeat, is ignored."""
@@ -128,4 +139,8 @@ class NeighbourTracker:
         while self.pending and (usable_until_ns is None or self.pending[0][0] <= usable_until_ns):
             stamp, entries = self.pending.pop(0)
             self._adopt(stamp, entries)
-        return tuple(self._predict(rid, tr, now_ns) for rid, tr in sorted(self.tracks.items()))
+        keep_ns = int(SIGHTED_KEEP_S * 1e9)
+        self.sighted = {r: v for r, v in self.sighted.items() if now_ns - v[0] <= keep_ns and r not in self.tracks}
+        mapped = [self._predict(rid, tr, now_ns) for rid, tr in self.tracks.items()]
+        seen = [Neighbour(r, x, y, 0.0, 0.0, self.footprint_m) for r, (_, x, y) in self.sighted.items()]
+        return tuple(sorted(mapped + seen, key=lambda n: n.robot_id))

@@ -344,11 +344,11 @@ class AgentNode:
         return {} if me is None or sigma is None else self.neighbours.expected(me, stamp_ns, sigma)
 
     def _off_map(self, est: PoseEstimate) -> tuple[float, float] | None:
-        """Where (map frame) a sighting puts its robot if our map has that robot far from there."""
-        me = self.map_pose
-        if est.target_kind != "robot" or me is None:
+        """Where (map frame) a sighting puts its robot if our map has it far from there (an obstacle anyway)."""
+        if est.target_kind != "robot" or (me := self.map_pose) is None:
             return None
         x, y, _ = se2_compose(me, (est.x_m, est.y_m, est.yaw_rad))
+        self.neighbours.saw(est.target_id, x, y, self.time_ns)
         if not self.neighbours.contradicts(est.target_id, x, y, self.time_ns):
             return None
         self.counters["sightings_off_map"] += 1

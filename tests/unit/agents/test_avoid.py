@@ -34,7 +34,9 @@ class World:
 
     def __init__(self, robots: dict[int, tuple[Pose2, Mission, tuple[float, float] | None]],
                  boxes: tuple[Box, ...] = (), cfg: Agent = CFG, exact: bool = False,
-                 arena_to_map: Pose2 = (0.0, 0.0, 0.0), goal_tolerance_m: float = 0.1) -> None:
+                 arena_to_map: Pose2 = (0.0, 0.0, 0.0), goal_tolerance_m: float = 0.1,
+                 unmapped: tuple[int, ...] = (), sight_m: float = 0.0) -> None:
+        self.unmapped, self.sight_m = unmapped, sight_m  # robots the map leaves out; camera range (0: none)
         self.beh: dict[int, Behaviour] = {}
         self.pose: dict[int, Pose2] = {}
         self.trackers = {rid: NeighbourTracker(rid, FOOT, 0.5) for rid in robots}
@@ -59,10 +61,16 @@ class World:
             if self.t >= self.next_map - 1e-9:
                 cov = (1e-4, 0.0, 0.0, 0.0, 1e-4, 0.0, 0.0, 0.0, 1e-4)
                 entries = [m.MapEntry(robot_id=r, x_m=p[0], y_m=p[1], yaw_rad=p[2], cov=cov, last_seen_ns=0, alive=True)
-                           for r, p in sorted(self.pose.items())]
+                           for r, p in sorted(self.pose.items()) if r not in self.unmapped]
                 for tracker in self.trackers.values():
                     tracker.offer(round(self.t * 1e9), entries)
                 self.next_map += MAP_PERIOD_S
+            for rid, tracker in self.trackers.items():  # a 60 deg camera ahead sees the others in range
+                me = self.pose[rid]
+                for o, p in self.pose.items():
+                    bearing = math.remainder(math.atan2(p[1] - me[1], p[0] - me[0]) - me[2], math.tau)
+                    if o != rid and math.dist(me[:2], p[:2]) < self.sight_m and abs(bearing) < math.radians(30):
+                        tracker.saw(o, p[0], p[1], round(self.t * 1e9))
             cmds = {rid: b.cycle(t_s=self.t, map_pose=self.pose[rid], odom_yaw=self.pose[rid][2], moved=True, fix=True,
                                  neighbours=self._neighbours(rid)) for rid, b in self.beh.items()}
             for rid, (v, w) in cmds.items():
@@ -110,6 +118,32 @@ def test_patrol_goes_around_a_robot_holding_station_on_its_line() -> None:
     assert w.min_dist >= CLEAR - 0.02, w.min_dist
     passing = [abs(p[1]) for p in w.paths[1] if abs(p[0] - 1.5) < 0.1]
     assert passing and min(passing) >= CLEAR - 0.02  # it went round, not through
+
+
+def test_a_robot_the_map_does_not_have_yet_is_avoided_once_seen() -> None:
+    """A holding robot nobody has placed is not in the map: a patrol through it drives into it unless
+    the patroller's own sightings make it an obstacle (then it goes round with the clearance)."""
+    patrol = Mission(robot=1, kind="patrol", waypoints=((0.0, 0.0), (3.0, 0.0)))
+    robots = {0: ((1.5, 0.0, 0.3), hold(0), None), 1: ((0.0, 0.0, 0.0), patrol, None)}
+    blind = World(robots, unmapped=(0,)).run(20.0)
+    assert blind.min_dist < 0.05  # the kinematic world lets it drive through
+    seeing = World(robots, unmapped=(0,), sight_m=2.0).run(40.0)
+    assert max(p[0] for p in seeing.paths[1]) > 2.85  # it still got past
+    assert seeing.min_dist >= CLEAR - 0.02, seeing.min_dist
+
+
+def test_a_sighting_is_an_obstacle_only_while_fresh_and_while_the_map_lacks_the_robot() -> None:
+    t = NeighbourTracker(1, FOOT, 0.5)
+    t.saw(3, 1.0, 0.5, 0)
+    t.saw(1, 9.0, 9.0, 0)  # itself: never
+    (n,) = t.neighbours(1_000_000_000)
+    assert (n.robot_id, n.x_m, n.y_m, n.vx_m_s, n.radius_m) == (3, 1.0, 0.5, 0.0, FOOT)
+    assert t.neighbours(3_500_000_000) == ()  # 3.5 s after: forgotten
+    t.saw(3, 1.0, 0.5, 4_000_000_000)
+    t.offer(4_000_000_000, [m.MapEntry(robot_id=3, x_m=2.0, y_m=0.0, yaw_rad=0.0, cov=(0.0,) * 9, last_seen_ns=0,
+                                       alive=True)])
+    (n,) = t.neighbours(4_100_000_000)
+    assert (n.x_m, n.y_m) == (2.0, 0.0)  # the map's, once it has the robot
 
 
 def test_waypoint_on_a_holding_robot_counts_as_reached_at_the_clearance() -> None:

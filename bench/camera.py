@@ -42,18 +42,9 @@ import numpy as np  # noqa: E402
 
 from tagswarm.protocol.geometry import se2_matrix  # noqa: E402
 from tagswarm.protocol.scenario import load_scenario  # noqa: E402
+from tagswarm.world.blur import Exposures, camera_twist, expose, exposure_maps  # noqa: E402
 from tagswarm.world.render import Renderer  # noqa: E402
-from tagswarm.world.sensor import (  # noqa: E402
-    Exposures,
-    NoiseBank,
-    camera_twist,
-    develop,
-    expose,
-    exposure_maps,
-    frame_rng,
-    tone,
-    vignetting_gain,
-)
+from tagswarm.world.sensor import NoiseBank, develop, frame_key, tone, vignetting_gain  # noqa: E402
 
 CAMERAS = {
     "320x240 60deg brown_conrady": "robot.cameras=[{name='front', width=320, height=240, hfov_deg=60.0}]",
@@ -124,7 +115,7 @@ def camera_row(name: str, override: str, frames: int) -> dict[str, Any]:
             stages["blur"].append((w, c))
 
             def dev(img: Any = blurred, k: int = k) -> Any:
-                return develop(img, cfg, frame_rng(s.seed, 0, cam.name, k), toned=toned, bank=bank)
+                return develop(img, cfg, toned=toned, bank=bank, key=frame_key(s.seed, 0, cam.name, k))
 
             w, c, _ = _time(dev)
             stages["develop"].append((w, c))

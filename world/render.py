@@ -29,19 +29,11 @@ from tagswarm.protocol.messages import CameraImage, Pose3
 from tagswarm.protocol.scenario import Camera, Scenario
 from tagswarm.world import assets
 from tagswarm.world._pybullet import pb
+from tagswarm.world.blur import camera_twist, expose, exposure_maps
 from tagswarm.world.camera import mount_transform, vfov_deg
 from tagswarm.world.decoys import build_decoys, robot_visual
 from tagswarm.world.lens import Lens, RenderPlan, lens_for, plan
-from tagswarm.world.sensor import (
-    NoiseBank,
-    camera_twist,
-    develop,
-    expose,
-    exposure_maps,
-    frame_rng,
-    tone,
-    vignetting_gain,
-)
+from tagswarm.world.sensor import NoiseBank, develop, frame_key, tone, vignetting_gain
 
 WALL_RGBA = (0.55, 0.55, 0.6, 1.0)
 OBSTACLE_RGBA = (0.45, 0.35, 0.3, 1.0)
@@ -228,8 +220,8 @@ class Renderer:
         bank = self._banks.get(cam.name)
         if bank is None:
             bank = self._banks[cam.name] = NoiseBank(self.scenario.seed, cam.name, cam.width * cam.height)
-        rng = frame_rng(self.scenario.seed, robot_id, cam.name, step)
-        return develop(img, self._sensor, rng, toned=toned, bank=bank)
+        key = frame_key(self.scenario.seed, robot_id, cam.name, step)
+        return develop(img, self._sensor, toned=toned, bank=bank, key=key)
 
     def close(self) -> None:
         """Disconnect the pybullet client."""

@@ -74,7 +74,8 @@ def camera_twist(t_wc_prev: Mat, t_wc_now: Mat, dt_s: float) -> NDArray[np.float
     vy = (a01 * dx + a11 * dy + a21 * dz) * inv
     vz = (a02 * dx + a12 * dy + a22 * dz) * inv
     wx, wy, wz = wx * inv, wy * inv, wz * inv
-    if vx * vx + vy * vy + vz * vz > MAX_SPEED_M_S ** 2 or wx * wx + wy * wy + wz * wz > MAX_TURN_RAD_S ** 2:
+    # written so that a NaN (a broken pose) is a jump too
+    if not (vx * vx + vy * vy + vz * vz <= MAX_SPEED_M_S ** 2 and wx * wx + wy * wy + wz * wz <= MAX_TURN_RAD_S ** 2):
         return None
     return np.array([vx, vy, vz, wx, wy, wz])
 
@@ -257,7 +258,7 @@ def streak_bound(map_x: F32, map_y: F32, K: Mat, twist: Sequence[float], tau_s: 
     field is linear in the twist: the rotation's worst grid point about the twist's own axis,
     plus each translation component's worst grid point at the nearest depth; the finite motion's
     second-order terms are covered by a margin (checked against the exact streak for lenses of 60 to
-    120 deg, tests/unit/world/test_sensor.py), and a motion too large for it, or a lens map that nearly
+    120 deg, tests/unit/world/test_blur.py), and a motion too large for it, or a lens map that nearly
     folds (a strong barrel lens's corners, where the margin does not hold), gives inf."""
     key = (id(map_x), np.asarray(K, np.float64).tobytes())
     hit = _GAINS.get(key)

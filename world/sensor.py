@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import functools
 import math
+import operator
 import zlib
 from typing import Any, Final
 
@@ -50,7 +51,7 @@ def frame_key(seed: int, robot_id: int, camera: str, step: int) -> int:
     did the same at ~0.1 ms a frame right after a render (measured: 15 % of a fisheye's camera model)."""
     x = 0
     for v in (seed, robot_id, zlib.crc32(camera.encode()), step):
-        x = _mix64(((x ^ (v & _MASK64)) + 0x9E3779B97F4A7C15) & _MASK64)
+        x = _mix64(((x ^ (operator.index(v) & _MASK64)) + 0x9E3779B97F4A7C15) & _MASK64)
     return x
 
 
@@ -79,8 +80,8 @@ def normals(rng: np.random.Generator, shape: tuple[int, ...]) -> F32:
 
 
 class NoiseBank:
-    """Standard normal samples for one camera's frames, drawn once (seeded): a frame takes
-    :data:`BANK_FRAMES` frames' worth at a random offset (its own seeded generator), because
+    """Standard normal samples for one camera's frames, :data:`BANK_FRAMES` frames' worth drawn once
+    (seeded): a frame takes one frame's worth at an offset given by its :func:`frame_key`, because
     drawing a frame's ~10^5 fresh normals costs about as much as rendering it.  Each pixel's
     noise is still N(0, 1) and independent of its neighbours; two frames' noise fields are the
     same sequence at offsets a random distance apart, which no detector can exploit."""
@@ -92,7 +93,7 @@ class NoiseBank:
     def draw(self, key: int, shape: tuple[int, ...]) -> F32:
         """A frame's noise (``shape``) at the offset chosen by its 64-bit ``key`` (:func:`frame_key`)."""
         n = math.prod(shape)
-        off = (key & _MASK64) * (len(self.samples) - n + 1) >> 64
+        off = (int(key) & _MASK64) * (len(self.samples) - n + 1) >> 64
         return self.samples[off:off + n].reshape(shape)
 
 
@@ -122,7 +123,8 @@ def _noise_sigma(electrons_per_dn: float, read2: float) -> F32:
 
 
 def develop(img: NDArray[Any], cfg: CameraSensor, rng: np.random.Generator | None = None, gain: F32 | None = None,
-            toned: tuple[F32, float] | None = None, bank: NoiseBank | None = None, key: int = 0) -> NDArray[np.uint8]:
+            toned: tuple[F32, float] | None = None, bank: NoiseBank | None = None,
+            key: int | None = None) -> NDArray[np.uint8]:
     """The 8-bit frame of a light image ``img`` (H, W, DN; float or 8-bit): vignetting ``gain``, contrast about
     mid-grey and brightness (or their precomputed :func:`tone`), shot noise (variance signal /
     ``electrons_per_dn``, DN^2) and read noise (Gaussian, DN), rounded and clipped.  ``cfg`` is
@@ -140,6 +142,8 @@ def develop(img: NDArray[Any], cfg: CameraSensor, rng: np.random.Generator | Non
         noise: F32 = np.asarray(cv2.LUT(out.astype(np.uint8), _noise_sigma(float(cfg.electrons_per_dn or 0.0), read2)),
                                 np.float32)
         if bank is not None:
+            if key is None:  # offset 0 for every frame would repeat one noise field
+                raise ValueError("develop: a noise bank needs the frame's key (frame_key)")
             noise *= bank.draw(key, out.shape)
         elif rng is not None:
             noise *= normals(rng, out.shape)

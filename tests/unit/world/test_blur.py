@@ -231,7 +231,6 @@ def test_a_streak_bound_just_under_a_pixel_never_hides_a_blur(hfov: str) -> None
     assert worst > 0.8  # the bound is close enough to spare frames
 
 
-
 def _pose(rotvec: list[float], t: list[float]) -> np.ndarray:
     m = np.eye(4)
     m[:3, :3] = cv2.Rodrigues(np.asarray(rotvec, float))[0]
@@ -239,7 +238,7 @@ def _pose(rotvec: list[float], t: list[float]) -> np.ndarray:
     return m
 
 
-@pytest.mark.parametrize("angle", [1e-7, 1e-4, 0.02, 0.5, 2.9, 3.05])
+@pytest.mark.parametrize("angle", [0.0, 1e-7, 1e-4, 0.02, 0.5, 2.9, 3.05])
 def test_camera_twist_is_the_motion_in_the_current_camera_frame(angle: float) -> None:
     """Rotation rate to 1e-9 relative down to 1e-7 rad a step (OpenCV's Rodrigues returned zero below
     ~1e-5 rad), the velocity in the camera's current frame, and None for a jump."""
@@ -252,8 +251,20 @@ def test_camera_twist_is_the_motion_in_the_current_camera_frame(angle: float) ->
         prev = now @ _pose(list(axis), list(step))  # the previous camera, in the current camera's frame
         twist = camera_twist(prev, now, 0.5)
         assert twist is not None
-        np.testing.assert_allclose(twist[3:], -axis / 0.5, rtol=1e-9, atol=1e-15)
+        np.testing.assert_allclose(twist[3:], -axis / 0.5, rtol=1e-8, atol=1e-15)
         np.testing.assert_allclose(twist[:3], -step / 0.5, rtol=1e-9, atol=1e-12)
     assert camera_twist(now, _pose([0.0, 0.0, 0.0], [0.0, 0.0, 5.0]) @ now, 0.1) is None  # 50 m/s: a teleport
     assert camera_twist(now, now, 0.0) is None
+    broken = now.copy()
+    broken[0, 3] = math.nan
+    assert camera_twist(now, broken, 0.1) is None  # a NaN pose is no motion to blur with
 
+
+def test_camera_twist_of_a_half_turn_is_that_rotation() -> None:
+    """At exactly pi the axis' sign is free: the twist must rotate the camera the same way."""
+    for axis in ([0.0, 0.0, 1.0], [0.0, 1.0, 1.0], [1.0, -2.0, 0.5]):
+        n = np.asarray(axis) / np.linalg.norm(axis)
+        now = _pose([0.3, -0.2, 0.1], [0.0, 0.0, 0.0])
+        twist = camera_twist(now @ _pose(list(math.pi * n), [0.0, 0.0, 0.0]), now, 1.0)
+        assert twist is not None
+        np.testing.assert_allclose(cv2.Rodrigues(-twist[3:])[0], cv2.Rodrigues(math.pi * n)[0], atol=1e-7)

@@ -58,14 +58,10 @@ def camera_twist(t_wc_prev: Mat, t_wc_now: Mat, dt_s: float) -> NDArray[np.float
     cos_t = max(-1.0, min(1.0, 0.5 * (r00 + r11 + r22 - 1.0)))
     theta = math.acos(cos_t)
     sx, sy, sz = r21 - r12, r02 - r20, r10 - r01  # 2 sin(theta) times the axis
-    if theta < 1e-4:
-        k = 0.5 * (1.0 + theta * theta / 6.0)  # theta / (2 sin theta) to second order
-    elif theta < 3.0:
-        k = 0.5 * theta / math.sin(theta)
-    else:  # near a half turn the skew part loses the axis: the rotation is far beyond a frame's motion anyway
+    if theta >= 3.0:  # near a half turn the skew part loses the axis: far beyond a frame's motion anyway
         wx, wy, wz = cv2.Rodrigues(t_wc_now[:3, :3].T @ t_wc_prev[:3, :3])[0].ravel().tolist()
-        k = 0.0
-    if k:
+    else:  # theta / (2 sin theta), to second order where the division loses precision
+        k = 0.5 * (1.0 + theta * theta / 6.0) if theta < 1e-4 else 0.5 * theta / math.sin(theta)
         wx, wy, wz = k * sx, k * sy, k * sz
     # v = -R_now^T (p_prev - p_now) / dt: the camera's velocity in its current frame
     dx, dy, dz = b03 - a03, b13 - a13, b23 - a23

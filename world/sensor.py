@@ -4,9 +4,8 @@
 Intensities are 8-bit digital numbers (DN): the lens image is 8-bit, a motion blur's
 average is float32, and :func:`develop` works in float32 until it rounds and clips.
 Randomness comes only from (scenario seed, robot, camera, tick): :func:`frame_key` picks a
-frame's place in its camera's :class:`NoiseBank` (:func:`frame_rng` draws fresh noise without
-a bank), so a lockstep run repeats its images byte for byte whatever else draws random
-numbers.  Images are (H, W) in the camera's output pixels.
+frame's place in its camera's :class:`NoiseBank`, so a lockstep run repeats its images byte
+for byte whatever else draws random numbers.  Images are (H, W) in the camera's output pixels.
 """
 
 from __future__ import annotations
@@ -30,11 +29,6 @@ _BANK_STREAM: Final = 0xBA4C
 F32 = NDArray[np.float32]
 
 
-def frame_rng(seed: int, robot_id: int, camera: str, step: int) -> np.random.Generator:
-    """The random generator of one frame: a function of (seed, robot, camera, tick) only."""
-    return np.random.default_rng([seed, robot_id, zlib.crc32(camera.encode()), step])
-
-
 _MASK64: Final = (1 << 64) - 1
 
 
@@ -47,8 +41,8 @@ def _mix64(x: int) -> int:
 
 def frame_key(seed: int, robot_id: int, camera: str, step: int) -> int:
     """A uniform 64-bit key of one frame: a function of (seed, robot, camera, tick) only.  It picks
-    the frame's noise in its :class:`NoiseBank`; a numpy generator per frame (:func:`frame_rng`)
-    did the same at ~0.1 ms a frame right after a render (measured: 15 % of a fisheye's camera model)."""
+    the frame's noise in its :class:`NoiseBank`; a numpy generator per frame did the same at ~0.1 ms
+    a frame right after a render (measured: 15 % of a fisheye's camera model)."""
     x = 0
     for v in (seed, robot_id, zlib.crc32(camera.encode()), step):
         x = _mix64(((x ^ (operator.index(v) & _MASK64)) + 0x9E3779B97F4A7C15) & _MASK64)
@@ -72,11 +66,6 @@ def tone(cfg: CameraSensor, gain: F32 | None, shape: tuple[int, int]) -> tuple[F
     scale = np.full(shape, contrast, np.float32) if gain is None else np.asarray(gain * np.float32(contrast),
                                                                                   np.float32)
     return scale, 128.0 * (1.0 - contrast) + (cfg.brightness_dn or 0.0)
-
-
-def normals(rng: np.random.Generator, shape: tuple[int, ...]) -> F32:
-    """Fresh standard normal samples."""
-    return rng.standard_normal(shape, dtype=np.float32)
 
 
 class NoiseBank:
@@ -122,14 +111,12 @@ def _noise_sigma(electrons_per_dn: float, read2: float) -> F32:
     return np.sqrt(np.arange(256, dtype=np.float32) * np.float32(1.0 / e if e else 0.0) + np.float32(read2))
 
 
-def develop(img: NDArray[Any], cfg: CameraSensor, rng: np.random.Generator | None = None, gain: F32 | None = None,
-            toned: tuple[F32, float] | None = None, bank: NoiseBank | None = None,
-            key: int | None = None) -> NDArray[np.uint8]:
+def develop(img: NDArray[Any], cfg: CameraSensor, gain: F32 | None = None, toned: tuple[F32, float] | None = None,
+            bank: NoiseBank | None = None, key: int | None = None) -> NDArray[np.uint8]:
     """The 8-bit frame of a light image ``img`` (H, W, DN; float or 8-bit): vignetting ``gain``, contrast about
     mid-grey and brightness (or their precomputed :func:`tone`), shot noise (variance signal /
     ``electrons_per_dn``, DN^2) and read noise (Gaussian, DN), rounded and clipped.  ``cfg`` is
-    a resolved ``[camera]`` section.  The noise is ``bank``'s at ``key`` (:func:`frame_key`) or, without
-    a bank, fresh from ``rng``."""
+    a resolved ``[camera]`` section.  The noise is ``bank``'s at ``key`` (:func:`frame_key`)."""
     scale, offset = toned if toned is not None else tone(cfg, gain, img.shape)  # type: ignore[arg-type]
     out = np.asarray(cv2.multiply(img, scale, dtype=cv2.CV_32F), np.float32)  # type: ignore[call-overload]
     out += np.float32(offset)
@@ -141,14 +128,9 @@ def develop(img: NDArray[Any], cfg: CameraSensor, rng: np.random.Generator | Non
         # one draw with read noise; sigma looked up per whole DN of the signal (cv2.LUT: ~3x numpy's gather)
         noise: F32 = np.asarray(cv2.LUT(out.astype(np.uint8), _noise_sigma(float(cfg.electrons_per_dn or 0.0), read2)),
                                 np.float32)
-        if bank is not None:
-            if key is None:  # offset 0 for every frame would repeat one noise field
-                raise ValueError("develop: a noise bank needs the frame's key (frame_key)")
-            noise *= bank.draw(key, out.shape)
-        elif rng is not None:
-            noise *= normals(rng, out.shape)
-        else:
-            raise ValueError("develop: noise is configured but neither a bank nor a generator was given")
+        if bank is None or key is None:  # offset 0 for every frame would repeat one noise field
+            raise ValueError("develop: noise needs the camera's noise bank and the frame's key (frame_key)")
+        noise *= bank.draw(key, out.shape)
         out += noise
     # rounding to nearest (ties to even, as numpy's rint) and saturation to 0..255 in one pass
     return np.asarray(cv2.add(out, 0.0, dtype=cv2.CV_8U), np.uint8)  # type: ignore[call-overload]

@@ -12,7 +12,7 @@ import pytest
 from tagswarm.protocol.geometry import se2_matrix
 from tagswarm.protocol.scenario import CameraSensor, load_scenario
 from tagswarm.world.render import Renderer, image_message
-from tagswarm.world.sensor import NoiseBank, develop, frame_key, frame_rng, vignetting_gain
+from tagswarm.world.sensor import NoiseBank, develop, frame_key, vignetting_gain
 
 #: sha256 of the frame below, rendered by the code before lenses existed (commit 0c8436c)
 IDEAL_SHA256 = "50cd5db4606262aa6eb5e1ead9cf1ed970e299cee13617f5fdbf6111a42eab20"
@@ -44,7 +44,8 @@ def test_ideal_preset_is_byte_identical_to_before() -> None:
 def test_flat_patch_noise_matches_config(level: float, read: float, e_per_dn: float) -> None:
     cfg = CameraSensor(read_noise_dn=read, electrons_per_dn=e_per_dn).resolved()
     patch = np.full((200, 200), level, np.float32)
-    out = develop(patch, cfg, frame_rng(3, 1, "front", 7)).astype(np.float64)
+    bank = NoiseBank(3, "front", patch.size)
+    out = develop(patch, cfg, bank=bank, key=frame_key(3, 1, "front", 7)).astype(np.float64)
     want = math.sqrt((level / e_per_dn if e_per_dn else 0.0) + read**2)
     assert abs(out.mean() - level) < 0.1
     assert abs(out.std() - want) / want < 0.05, (out.std(), want)
@@ -54,7 +55,7 @@ def test_contrast_brightness_and_vignetting() -> None:
     cfg = CameraSensor(contrast=0.5, brightness_dn=10.0, vignetting=0.4).resolved()
     k = np.array([[100.0, 0, 49.5], [0, 100.0, 39.5], [0, 0, 1]])
     gain = vignetting_gain(100, 80, k, 0.4)
-    out = develop(np.full((80, 100), 200.0, np.float32), cfg, frame_rng(0, 0, "f", 0), gain).astype(float)
+    out = develop(np.full((80, 100), 200.0, np.float32), cfg, gain).astype(float)
     assert out[40, 50] == pytest.approx((200 * gain[40, 50] - 128) * 0.5 + 138, abs=0.51)
     assert out[0, 0] == pytest.approx((200 * 0.6 - 128) * 0.5 + 138, abs=0.51)
 

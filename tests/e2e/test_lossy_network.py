@@ -108,8 +108,10 @@ def test_losses_are_reported_as_sequence_gaps_matching_the_drops(runs, name: str
     odom_dropped = sent - server["accepted_odometry"]
     assert server.get("odometry_late", 0) == 0, server
     assert 0.5 * share * sent <= odom_dropped <= 1.6 * share * sent, (odom_dropped, sent)
-    # every one is reported: found lost at its tick (the agent's ack came, the odometry did not) ...
-    assert server["odometry_lost"] == odom_dropped, server
+    # every one is reported: found lost at its tick (the agent's ack came, the odometry did not), but for a
+    # drop in a robot's last tick, whose ack the run's end may cut off (seen once in ~10 runs: 721 of 722) ...
+    assert odom_dropped - len(robots) <= server["odometry_lost"] <= odom_dropped, (server["odometry_lost"],
+                                                                                   odom_dropped)
     odom_gaps = {rid: server.get(f"seq_gaps_odometry_robot{rid}", 0) for rid in robots}
     assert all(g > 0 for g in odom_gaps.values()), odom_gaps
     # ... and as sequence gaps per robot (all but each robot's trailing drops)

@@ -334,7 +334,8 @@ def _tiles(su: F32, sv: F32, g: int, n: int, shape: tuple[int, int]) -> list[tup
 
 
 def exposure_maps(map_x: F32, map_y: F32, depth_m: NDArray[Any], K: Mat, twist: NDArray[np.float64] | None,
-                  exposure_s: float, near_far: tuple[float, float] | None = None) -> Exposures | None:
+                  exposure_s: float, near_far: tuple[float, float] | None = None,
+                  resample: bool = False) -> Exposures | None:
     """Sampling maps of the sub-exposures of one frame: the output pixel q of sub-exposure i shows
     the pinhole render (intrinsics ``K``, depth ``depth_m``) at ``map(q) - a_i flow(map(q))``,
     with ``map`` the lens's maps into the render (float (H, W); the pixel grid for a pinhole),
@@ -344,7 +345,8 @@ def exposure_maps(map_x: F32, map_y: F32, depth_m: NDArray[Any], K: Mat, twist: 
     frame's, so occlusions changing within the exposure are ignored.  Sub-exposures at most
     :data:`SAMPLE_SPACING_PX` output pixels apart (bilinear sampling fills between them), at least
     2, at most :data:`MAX_BLUR_SAMPLES`; None for a streak under 1 output pixel.  With ``near_far``
-    (m), ``depth_m`` is the render's OpenGL depth buffer, linearised only where the grid samples it."""
+    (m), ``depth_m`` is the render's OpenGL depth buffer, linearised only where the grid samples it.
+    ``resample``: every pixel by its sub-exposures, never a filter (a lens's fovea, see world/lens.py)."""
     if twist is None or exposure_s <= 0:
         return None
     components = twist.tolist()
@@ -379,14 +381,14 @@ def exposure_maps(map_x: F32, map_y: F32, depth_m: NDArray[Any], K: Mat, twist: 
     out = Exposures()
     out.lens_maps = (map_x, map_y)
     u0, u1, v0, v1 = float(su.min()), float(su.max()), float(sv.min()), float(sv.max())
-    if max(u1 - u0, v1 - v0) <= 2.0 * UNIFORM_STREAK_TOL_PX:
+    if max(u1 - u0, v1 - v0) <= 2.0 * UNIFORM_STREAK_TOL_PX and not resample:
         # a turn seen through a narrow lens: one small filter instead of n resamplings of the render
         out.kernel = streak_kernel((u0 + u1) / 2.0, (v0 + v1) / 2.0, n)
         return out
     h, w = map_x.shape
     # else per tile (a wide or distorting lens, a large image): a filter where the streak is uniform
     # within it, the sub-exposures' maps only where it is not (a depth edge under translation)
-    tiles = _tiles(su, sv, g, n, (h, w)) if min(su.shape) > 1 else []
+    tiles = _tiles(su, sv, g, n, (h, w)) if min(su.shape) > 1 and not resample else []
     if tiles and all(k is not None for _, _, k in tiles):
         out.tiles = tiles
         return out

@@ -13,9 +13,15 @@ conventions and pixel convention (pixel centres at integer coordinates):
   puts ``hfov_deg`` across the image width (r = f * theta).
 
 The pinhole render keeps the output's focal length at the image centre (no loss of
-detail where the lens magnifies most) unless that would cost more than
-:data:`MAX_RENDER_PIXELS_RATIO` times the output's pixels, then its focal length
-shrinks to fit.  Frames: the camera's optical frame (z forward, x right, y down).
+detail where the lens magnifies most) while that costs at most
+:data:`SINGLE_RENDER_RATIO` times the output's pixels.  A wider lens (a 120 deg
+fisheye needs ~12x in one pinhole, most of it spent oversampling the corners) gets
+two renders along the same axis: a *fovea*, a narrow pinhole at the lens's own
+focal length for the centre, and a wide one at a smaller focal length for the rest,
+chosen together for the fewest pixels (each render also costs
+:data:`RENDER_FIXED_PX` pixels' worth) such that outside the fovea the wide render
+still samples :data:`MIN_SAMPLING` render px per output px in its sparsest direction.
+Frames: the camera's optical frame (z forward, x right, y down).
 """
 
 from __future__ import annotations
@@ -33,10 +39,19 @@ from tagswarm.protocol.scenario import Camera
 from tagswarm.protocol.scenario_schema import lens_of
 from tagswarm.world.camera import intrinsics
 
-#: the pinhole render may have at most this many times the output image's pixels
-MAX_RENDER_PIXELS_RATIO: Final = 4.0
+#: one pinhole render at the lens's focal length while it has at most this many times the output's pixels
+SINGLE_RENDER_RATIO: Final = 4.0
+#: a lens's renders have at most this many times the output's pixels in all (beyond, they sample sparser)
+MAX_RENDER_PIXELS_RATIO: Final = 16.0
+#: outside the fovea the wide render samples at least this many render px per output px in every direction
+#: (one capped render of a 120 deg fisheye sampled its centre at 0.58 and decoded a 16 cm tag ahead to 1 m only)
+MIN_SAMPLING: Final = 0.7
+#: what a render costs beyond its pixels, in pixels' worth (TinyRenderer here: ~0.04 us/px, ~1 ms per call)
+RENDER_FIXED_PX: Final = 25_000
 #: margin (px) of the render beyond the outermost sampled position (bilinear needs a neighbour)
 RENDER_MARGIN_PX: Final = 2
+#: margin (px) of the fovea beyond its part of the image: the motion blur's sub-exposures sample around it
+FOVEA_MARGIN_PX: Final = 8
 LensModel = Literal["pinhole", "brown_conrady", "fisheye"]
 _UNDISTORT_CRITERIA: Final = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-10)
 
@@ -103,17 +118,48 @@ def undistort(pixels: NDArray[np.float64], model: str, K: NDArray[np.float64], D
 
 
 @dataclass
+class Fovea:
+    """The narrow pinhole ``render_cam`` (intrinsics ``K_render``) that renders the centre of a wide
+    lens at its own focal length: the output pixels ``mask`` (bool, of the box ``rows`` x ``cols``)
+    sample it (``float_maps``, float, of the box's shape, for motion blur).  The lens's two renders
+    are resampled at once from an *atlas*: the wide render at its top left, the fovea's right of it
+    from column ``col0``."""
+
+    render_cam: Camera
+    K_render: NDArray[np.float64]
+    rows: slice
+    cols: slice
+    mask: NDArray[np.bool_] = field(repr=False)
+    float_maps: tuple[NDArray[np.float32], NDArray[np.float32]] = field(repr=False)
+    col0: int = 0
+    wide_rows: int = 0
+    atlas_shape: tuple[int, int] = (0, 0)
+
+    def atlas(self, dtype: Any = np.uint8) -> NDArray[Any]:
+        """An uninitialised atlas (what neither render covers is never sampled)."""
+        return np.empty(self.atlas_shape, dtype)
+
+    def wide_part(self, atlas: NDArray[Any]) -> NDArray[Any]:
+        """The wide render's place in ``atlas`` (a view)."""
+        return atlas[: self.wide_rows, : self.col0]
+
+    def part(self, atlas: NDArray[Any]) -> NDArray[Any]:
+        """The fovea's place in ``atlas`` (a view)."""
+        return atlas[: self.render_cam.height, self.col0: self.col0 + self.render_cam.width]
+
+@dataclass
 class RenderPlan:
     """How to render one camera: the pinhole ``render_cam`` (a Camera of the render's size and
     field of view, same mount) and the ``cv2.remap`` maps from it to the lens's image
     (None for a pinhole lens: the render is the image; fixed point, and ``float_maps`` the
-    same in float for motion blur)."""
+    same in float for motion blur); a wide lens's centre also comes from its ``fovea``."""
 
     lens: Lens
     render_cam: Camera
     K_render: NDArray[np.float64]
     maps: tuple[Any, Any] | None = field(default=None, repr=False)
     float_maps: tuple[NDArray[np.float32], NDArray[np.float32]] | None = field(default=None, repr=False)
+    fovea: Fovea | None = None
 
     def sample_maps(self) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
         """Where each output pixel samples the render (float (H, W) maps; the pixel grid for a pinhole)."""
@@ -123,10 +169,21 @@ class RenderPlan:
             self.float_maps = (gu, gv)
         return self.float_maps
 
-    def apply(self, render: NDArray[Any], interpolation: int = cv2.INTER_LINEAR) -> NDArray[Any]:
-        """The lens's image of a pinhole ``render`` (H_r, W_r) of :attr:`render_cam`."""
+    def apply(self, render: NDArray[Any], fovea: NDArray[Any] | None = None,
+              interpolation: int = cv2.INTER_LINEAR) -> NDArray[Any]:
+        """The lens's image of a pinhole ``render`` (H_r, W_r) of :attr:`render_cam` and, when the
+        plan has a fovea, of ``fovea``, the render of its :attr:`Fovea.render_cam` (or ``render``
+        is the atlas holding both, :meth:`Fovea.atlas`: no copy)."""
         if self.maps is None:
             return render
+        fv = self.fovea
+        if fv is not None and render.shape[:2] != fv.atlas_shape:
+            if fovea is None:
+                raise ValueError(f"camera {self.render_cam.name!r}: the plan has a fovea, its render is needed")
+            atlas = fv.atlas(render.dtype)
+            fv.wide_part(atlas)[...] = render
+            fv.part(atlas)[...] = fovea
+            render = atlas
         return cv2.remap(render, self.maps[0], self.maps[1], interpolation, borderMode=cv2.BORDER_REPLICATE)
 
 
@@ -141,18 +198,91 @@ def plan(cam: Camera, preset: str) -> RenderPlan:
     if not np.isfinite(xy).all():
         raise ValueError(f"camera {cam.name!r}: the {lens.model} lens does not invert over the image")
     f = float(lens.K[0, 0])
+    xy_img = xy.reshape(cam.height, cam.width, 2)
     ax, ay = float(np.abs(xy[:, 0]).max()), float(np.abs(xy[:, 1]).max())
     # the pybullet frustum is symmetric: an even size about the centre, room for bilinear neighbours
-    ratio = (2 * ax * f) * (2 * ay * f) / (cam.width * cam.height)
-    if ratio > MAX_RENDER_PIXELS_RATIO:
-        f /= math.sqrt(ratio / MAX_RENDER_PIXELS_RATIO)
-    w = 2 * math.ceil(ax * f + RENDER_MARGIN_PX)
-    h = 2 * math.ceil(ay * f + RENDER_MARGIN_PX)
+    npx = cam.width * cam.height
+    if (2 * ax * f) * (2 * ay * f) <= SINGLE_RENDER_RATIO * npx:
+        fw, t = f, 0.0
+    else:
+        fw, t = _choose_renders(xy_img, f, (ax, ay), npx)
+    render_cam, k_r = _pinhole(cam, fw, ax, ay, RENDER_MARGIN_PX)
+    map_x = (k_r[0, 0] * xy[:, 0] + k_r[0, 2]).reshape(cam.height, cam.width).astype(np.float32)
+    map_y = (k_r[1, 1] * xy[:, 1] + k_r[1, 2]).reshape(cam.height, cam.width).astype(np.float32)
+    fovea = None
+    atlas_x, atlas_y = map_x, map_y
+    if t > 0:
+        fovea = _fovea(cam, xy_img, f, min(t, ax), min(t, ay), render_cam)
+        atlas_x, atlas_y = map_x.copy(), map_y.copy()
+        fmx, fmy = fovea.float_maps
+        np.copyto(atlas_x[fovea.rows, fovea.cols], fmx + np.float32(fovea.col0), where=fovea.mask)
+        np.copyto(atlas_y[fovea.rows, fovea.cols], fmy, where=fovea.mask)
+    fixed = cv2.convertMaps(atlas_x, atlas_y, cv2.CV_16SC2)  # fixed point: ~2x faster remap, 1/32 px steps
+    return RenderPlan(lens, render_cam, k_r, (fixed[0], fixed[1]), (map_x, map_y), fovea)
+
+
+def _pinhole(cam: Camera, f: float, ax: float, ay: float, margin: int) -> tuple[Camera, NDArray[np.float64]]:
+    """A pinhole render of ``cam``'s mount at focal length ``f`` (px) covering normalised |x| <= ax,
+    |y| <= ay with ``margin`` px to spare, and its intrinsics (3, 3)."""
+    w = 2 * math.ceil(ax * f + margin)
+    h = 2 * math.ceil(ay * f + margin)
     render_cam = msgspec.structs.replace(cam, width=w, height=h,
                                          hfov_deg=math.degrees(2.0 * math.atan(w / (2.0 * f))))
     fx, fy, cx, cy = intrinsics(render_cam)
-    k_r = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
-    map_x = (fx * xy[:, 0] + cx).reshape(cam.height, cam.width).astype(np.float32)
-    map_y = (fy * xy[:, 1] + cy).reshape(cam.height, cam.width).astype(np.float32)
-    fixed = cv2.convertMaps(map_x, map_y, cv2.CV_16SC2)  # fixed point: ~2x faster remap, 1/32 px steps
-    return RenderPlan(lens, render_cam, k_r, (fixed[0], fixed[1]), (map_x, map_y))
+    return render_cam, np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+
+
+def sparsest_sampling(xy: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Per output pixel of the undistorted normalised coordinates ``xy`` (H, W, 2): the smaller
+    singular value of d(xy)/d(u, v), i.e. how far (normalised units) one output pixel reaches in
+    the direction the image is sparsest; a pinhole of focal f samples it at f times that."""
+    (a, c), (b, d) = np.moveaxis(np.gradient(xy, axis=1), -1, 0), np.moveaxis(np.gradient(xy, axis=0), -1, 0)
+    s = a * a + b * b + c * c + d * d  # a 2x2 matrix's singular values in closed form (an SVD per pixel is 10x slower)
+    det = a * d - b * c
+    return np.asarray(np.sqrt(np.maximum(s - np.sqrt(np.maximum(s * s - 4.0 * det * det, 0.0)), 0.0) / 2.0),
+                      np.float64)
+
+
+def _choose_renders(xy: NDArray[np.float64], f: float, extent: tuple[float, float],
+                    npx: int) -> tuple[float, float]:
+    """The wide render's focal length (px) and the fovea's half-width t (normalised, max(|x|, |y|) <= t;
+    0 for none) with the fewest pixels in all such that the wide render samples every output pixel
+    outside the fovea at >= :data:`MIN_SAMPLING` (a single render shrunk to fit
+    :data:`MAX_RENDER_PIXELS_RATIO` when nothing does)."""
+    ax, ay = extent
+    sparse = sparsest_sampling(xy).ravel()
+    cheb = np.maximum(np.abs(xy[..., 0]), np.abs(xy[..., 1])).ravel()
+    order = np.argsort(sparse)
+    reach = np.maximum.accumulate(cheb[order])  # the fovea needed when the k sparsest pixels are too sparse
+    sorted_sparse = sparse[order]
+    best: tuple[float, float, float] | None = None
+    for s in np.linspace(0.1, 1.0, 91):
+        fw = f * float(s)
+        k = int(np.searchsorted(sorted_sparse, MIN_SAMPLING / fw))
+        t = float(reach[k - 1]) if k else 0.0
+        tx, ty = min(t, ax), min(t, ay)
+        cost = (2 * ax * fw) * (2 * ay * fw) + RENDER_FIXED_PX
+        if k:
+            cost += (2 * tx * f + 2 * FOVEA_MARGIN_PX) * (2 * ty * f + 2 * FOVEA_MARGIN_PX) + RENDER_FIXED_PX
+        if cost <= MAX_RENDER_PIXELS_RATIO * npx and (best is None or cost < best[0]):
+            best = (cost, fw, t)
+    if best is None:
+        return f * math.sqrt(MAX_RENDER_PIXELS_RATIO * npx / ((2 * ax * f) * (2 * ay * f))), 0.0
+    return best[1], best[2]
+
+
+def _fovea(cam: Camera, xy: NDArray[np.float64], f: float, tx: float, ty: float, wide: Camera) -> Fovea:
+    """The fovea of a lens (undistorted normalised ``xy`` (H, W, 2)) covering |x| <= tx, |y| <= ty,
+    right of the ``wide`` render in their atlas."""
+    render_cam, k_f = _pinhole(msgspec.structs.replace(cam, name=f"{cam.name}/fovea"), f, tx, ty, FOVEA_MARGIN_PX)
+    inside = (np.abs(xy[..., 0]) <= tx) & (np.abs(xy[..., 1]) <= ty)
+    rows_any, cols_any = np.flatnonzero(inside.any(axis=1)), np.flatnonzero(inside.any(axis=0))
+    rows = slice(int(rows_any[0]), int(rows_any[-1]) + 1)
+    cols = slice(int(cols_any[0]), int(cols_any[-1]) + 1)
+    box = xy[rows, cols]
+    # the box's corners outside the fovea are not used: kept in range so the fixed-point maps do not wrap
+    map_x = np.clip(k_f[0, 0] * box[..., 0] + k_f[0, 2], -1.0, render_cam.width).astype(np.float32)
+    map_y = np.clip(k_f[1, 1] * box[..., 1] + k_f[1, 2], -1.0, render_cam.height).astype(np.float32)
+    shape = (max(wide.height, render_cam.height), wide.width + render_cam.width)
+    return Fovea(render_cam, k_f, rows, cols, np.ascontiguousarray(inside[rows, cols]), (map_x, map_y),
+                 col0=wide.width, atlas_shape=shape, wide_rows=wide.height)

@@ -29,10 +29,10 @@ from tagswarm.protocol.messages import CameraImage, Pose3
 from tagswarm.protocol.scenario import Camera, Scenario
 from tagswarm.world import assets
 from tagswarm.world._pybullet import pb
-from tagswarm.world.blur import camera_twist, expose, exposure_maps
+from tagswarm.world.blur import Exposures, camera_twist, expose, exposure_maps
 from tagswarm.world.camera import mount_transform, vfov_deg
 from tagswarm.world.decoys import build_decoys, robot_visual
-from tagswarm.world.lens import Lens, RenderPlan, lens_for, plan
+from tagswarm.world.lens import Fovea, Lens, RenderPlan, lens_for, plan
 from tagswarm.world.sensor import NoiseBank, develop, frame_key, tone, vignetting_gain
 
 WALL_RGBA = (0.55, 0.55, 0.6, 1.0)
@@ -41,6 +41,7 @@ CHASSIS_RGBA = (0.15, 0.3, 0.6, 1.0)
 FLOOR_RGBA = (0.7, 0.7, 0.7, 1.0)
 SEGMENT_M = 1.0  # longest side of the pieces static boxes are drawn in (see Renderer._box)
 MAX_SHAPES_PER_BODY = 16  # pybullet's limit for createVisualShapeArray
+Shot = tuple[NDArray[np.uint8], NDArray[Any] | None]  # a pinhole render (H, W) and its depth buffer, if asked
 
 
 class Renderer:
@@ -143,8 +144,11 @@ class Renderer:
             p = self._plans[cam.name] = plan(cam, self.scenario.camera.preset)
         return p
 
-    def _shoot(self, cam: Camera, t_wc: Mat, depth: bool) -> tuple[NDArray[np.uint8], NDArray[Any] | None]:
-        """Grayscale pinhole render (H, W) of ``cam`` at T_world_cam ``t_wc``, and its depth buffer if asked."""
+    def _shoot(self, cam: Camera, t_wc: Mat, depth: bool, count: bool = True,
+               out: NDArray[np.uint8] | None = None) -> tuple[NDArray[np.uint8], NDArray[Any] | None]:
+        """Grayscale pinhole render (H, W) of ``cam`` at T_world_cam ``t_wc`` (written into ``out`` if
+        given), and its depth buffer if asked (``count``: a camera frame in :attr:`frames_rendered`,
+        not a lens's fovea)."""
         eye = t_wc[:3, 3]
         fwd, down = t_wc[:3, 2], t_wc[:3, 1]
         view = pb.computeViewMatrix(eye.tolist(), (eye + fwd).tolist(), (-down).tolist(), physicsClientId=self.cid)
@@ -153,8 +157,8 @@ class Renderer:
             shadow=int(self.scenario.render.shadows), renderer=pb.ER_TINY_RENDERER,
             flags=pb.ER_NO_SEGMENTATION_MASK, physicsClientId=self.cid)
         img = np.asarray(rgba, dtype=np.uint8).reshape(cam.height, cam.width, 4)
-        self.frames_rendered += 1
-        gray = np.asarray(cv2.cvtColor(img, cv2.COLOR_RGBA2GRAY), np.uint8)  # ITU-R 601 luma
+        self.frames_rendered += count
+        gray = np.asarray(cv2.cvtColor(img, cv2.COLOR_RGBA2GRAY, dst=out), np.uint8)  # ITU-R 601 luma
         return gray, (np.asarray(zbuf, np.float32).reshape(cam.height, cam.width) if depth else None)
 
     def render(self, robot_id: int, cam: Camera, base_pose: Mat) -> NDArray[np.uint8]:
@@ -167,14 +171,22 @@ class Renderer:
         if p.maps is None and not self._effects:
             return self._shoot(cam, t_wc, False)[0]
         need_depth = self._effects and bool(self._sensor.exposure_ms)
-        gray, zbuf = self._shoot(p.render_cam, t_wc, need_depth)
-        lensed = np.asarray(p.apply(gray), np.uint8)
+        fovea = None
+        if p.fovea is None:
+            gray, zbuf = self._shoot(p.render_cam, t_wc, need_depth)
+            lensed = np.asarray(p.apply(gray), np.uint8)
+        else:  # both renders into one atlas, resampled at once
+            atlas = p.fovea.atlas()
+            gray, zbuf = self._shoot(p.render_cam, t_wc, need_depth, out=p.fovea.wide_part(atlas))
+            fovea = self._shoot(p.fovea.render_cam, t_wc, need_depth, count=False, out=p.fovea.part(atlas))
+            lensed = np.asarray(p.apply(atlas), np.uint8)
         if not self._effects:
             return lensed
         # the 8-bit lens image is developed as it is unless a blur resamples the render: its rounding
         # (0.29 DN rms) is a tenth of the realistic preset's noise and spares a float copy of the render
         frame = lensed.view(Exposure)
-        frame.develop_fn = functools.partial(self._develop, robot_id, cam, gray, lensed, zbuf, base_pose.copy())
+        frame.develop_fn = functools.partial(self._develop, robot_id, cam, (gray, zbuf), lensed, fovea,
+                                             base_pose.copy())
         return frame
 
     def _twist(self, robot_id: int, cam: Camera, base_pose: Mat, stamp_ns: int) -> NDArray[np.float64] | None:
@@ -200,18 +212,23 @@ class Renderer:
         if cur is None or cur[0][0] < stamp_ns:
             self._track[robot_id] = ((stamp_ns, pose), None if cur is None else cur[0])
 
-    def _develop(self, robot_id: int, cam: Camera, gray: NDArray[np.uint8], lensed: NDArray[np.uint8],
-                 zbuf: NDArray[Any] | None, base_pose: Mat, step: int, stamp_ns: int) -> NDArray[np.uint8]:
-        """The finished frame: motion blur on the pinhole render ``gray`` (depth buffer ``zbuf``), or
-        its noise-free ``lensed`` image when there is none, then vignetting, contrast/brightness and
-        noise seeded by (scenario seed, robot, camera, tick)."""
+    def _develop(self, robot_id: int, cam: Camera, shot: Shot, lensed: NDArray[np.uint8], fovea: Shot | None,
+                 base_pose: Mat, step: int, stamp_ns: int) -> NDArray[np.uint8]:
+        """The finished frame: motion blur on the pinhole render ``shot`` (image, depth buffer) and the
+        lens's ``fovea`` render, or their noise-free ``lensed`` image when there is none, then
+        vignetting, contrast/brightness and noise seeded by (scenario seed, robot, camera, tick)."""
         p = self.plan(cam)
         twist = self._twist(robot_id, cam, base_pose, stamp_ns)
+        gray, zbuf = shot
+        exposure_s = float(self._sensor.exposure_ms or 0.0) * 1e-3
         maps = None if zbuf is None or twist is None else exposure_maps(
-            *p.sample_maps(), zbuf, p.K_render, twist, float(self._sensor.exposure_ms or 0.0) * 1e-3,
-            near_far=(cam.near_m, cam.far_m))
+            *p.sample_maps(), zbuf, p.K_render, twist, exposure_s, near_far=(cam.near_m, cam.far_m))
         # the blur's sub-exposures sample the render through the lens directly: one resampling in all
-        img = lensed if maps is None else expose(gray, maps, lensed)
+        img: NDArray[Any] = lensed
+        if maps is not None:
+            img = blurred = expose(gray, maps, lensed)
+            if p.fovea is not None and fovea is not None and twist is not None:
+                img = self._blur_fovea(p.fovea, maps, blurred, lensed, fovea, twist, exposure_s, cam)
         toned = self._tone.get(cam.name)
         if toned is None:
             v = self._sensor.vignetting or 0.0
@@ -222,6 +239,29 @@ class Renderer:
             bank = self._banks[cam.name] = NoiseBank(self.scenario.seed, cam.name, cam.width * cam.height)
         key = frame_key(self.scenario.seed, robot_id, cam.name, step)
         return develop(img, self._sensor, toned=toned, bank=bank, key=key)
+
+    @staticmethod
+    def _blur_fovea(fv: Fovea, maps: Exposures, img: NDArray[np.float32], lensed: NDArray[np.uint8], fovea: Shot,
+                    twist: NDArray[np.float64], exposure_s: float, cam: Camera) -> NDArray[np.float32]:
+        """``img``, the blurred frame, with its fovea's pixels that the wide render's sub-exposures
+        made (a filter over ``lensed`` is right as it is) made again from the fovea's own render."""
+        where = fv.mask
+        if maps.kernel is not None or (maps.tiles is not None and all(k is not None for _, _, k in maps.tiles)):
+            return img
+        if maps.tiles is not None:  # only the tiles the sub-exposures made
+            made = np.zeros_like(where)
+            r0, c0 = fv.rows.start, fv.cols.start
+            for rows, cols, k in maps.tiles:
+                if k is None:
+                    made[max(rows.start - r0, 0):max(rows.stop - r0, 0),
+                         max(cols.start - c0, 0):max(cols.stop - c0, 0)] = True
+            where = where & made
+        gray_f, zbuf_f = fovea
+        fmaps = None if zbuf_f is None else exposure_maps(*fv.float_maps, zbuf_f, fv.K_render, twist, exposure_s,
+                                                           near_far=(cam.near_m, cam.far_m), resample=True)
+        centre = lensed[fv.rows, fv.cols] if fmaps is None else expose(gray_f, fmaps)
+        np.copyto(img[fv.rows, fv.cols], centre, where=where)
+        return img
 
     def close(self) -> None:
         """Disconnect the pybullet client."""

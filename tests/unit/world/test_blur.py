@@ -47,9 +47,10 @@ def _camera(hfov_deg: float, width: int = 320) -> str:
 
 
 def _turned_render(overrides: list[str], turn_rad: float) -> tuple[Any, Any, np.ndarray, np.ndarray, np.ndarray,
-                                                                     np.ndarray]:
-    """(render plan, camera, pinhole render, metric depth (render size), T_world_cam before and now) of
-    robot 0 of the paper scene (realistic camera) after turning ``turn_rad`` on the spot."""
+                                                                     np.ndarray, np.ndarray | None]:
+    """(render plan, camera, pinhole render, metric depth (render size), T_world_cam before and now, the
+    lens's fovea render or None) of robot 0 of the paper scene (realistic camera) after turning
+    ``turn_rad`` on the spot."""
 
     s = load_scenario("paper", ["camera.preset=realistic", *overrides])
     cam = s.robot.cameras[0]
@@ -60,14 +61,15 @@ def _turned_render(overrides: list[str], turn_rad: float) -> tuple[Any, Any, np.
         mount = r._mount[cam.name]
         t_wc, prev = se2_matrix(-1.5, 0, 0) @ mount, se2_matrix(-1.5, 0, -turn_rad) @ mount
         gray, zbuf = r._shoot(p.render_cam, t_wc, True)
-    return p, cam, gray, blur.linear_depth(zbuf, cam.near_m, cam.far_m), prev, t_wc
+        fovea = None if p.fovea is None else r._shoot(p.fovea.render_cam, t_wc, False)[0]
+    return p, cam, gray, blur.linear_depth(zbuf, cam.near_m, cam.far_m), prev, t_wc, fovea
 
 
 def _turning_exposure(overrides: list[str], exposure_s: float,
                       tol_px: float | None = None) -> tuple[object, np.ndarray, np.ndarray]:
     """(exposure maps, blurred frame, sharp frame) of robot 0 of the paper scene turning at 1.2 rad/s."""
 
-    p, _, gray, depth, prev, t_wc = _turned_render(overrides, 0.12)
+    p, _, gray, depth, prev, t_wc, fovea = _turned_render(overrides, 0.12)
     twist = blur.camera_twist(prev, t_wc, 0.1)
     kept = blur.UNIFORM_STREAK_TOL_PX
     if tol_px is not None:
@@ -77,7 +79,8 @@ def _turning_exposure(overrides: list[str], exposure_s: float,
     finally:
         blur.UNIFORM_STREAK_TOL_PX = kept
     g = gray.astype(np.float32)
-    return maps, (p.apply(g) if maps is None else blur.expose(g, maps)), p.apply(g)
+    f = None if fovea is None else fovea.astype(np.float32)
+    return maps, (p.apply(g, f) if maps is None else blur.expose(g, maps)), p.apply(g, f)
 
 
 def test_a_uniform_streak_is_one_filter_close_to_the_sub_exposures() -> None:
@@ -171,7 +174,7 @@ def test_the_streak_bound_never_undercuts_the_streak_and_is_tight_for_a_turn(len
     (else a frame that should blur would not), for random motions of a 60 deg pinhole and the
     120 deg fisheye's lens maps, and within 30 % of it for a level robot turning on the spot."""
 
-    p, _, _, depth, prev, t_wc = _turned_render([_camera(60.0 if lens == "pinhole" else 120.0)], 0.04)
+    p, _, _, depth, prev, t_wc, _ = _turned_render([_camera(60.0 if lens == "pinhole" else 120.0)], 0.04)
     mx, my = p.sample_maps()
     k = p.K_render
     idx, _, _ = blur._flow_grid(mx, my, k, depth.shape)

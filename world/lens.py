@@ -51,7 +51,8 @@ RENDER_FIXED_PX: Final = 25_000
 #: margin (px) of the render beyond the outermost sampled position (bilinear needs a neighbour)
 RENDER_MARGIN_PX: Final = 2
 #: margin (px) of the fovea beyond its part of the image: the motion blur's sub-exposures sample around it
-FOVEA_MARGIN_PX: Final = 8
+#: (half a streak: a 120 deg fisheye's 320x240 image turning at 4 rad/s for 30 ms; beyond, the edge repeats)
+FOVEA_MARGIN_PX: Final = 16
 LensModel = Literal["pinhole", "brown_conrady", "fisheye"]
 _UNDISTORT_CRITERIA: Final = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-10)
 
@@ -247,8 +248,8 @@ def _choose_renders(xy: NDArray[np.float64], f: float, extent: tuple[float, floa
                     npx: int) -> tuple[float, float]:
     """The wide render's focal length (px) and the fovea's half-width t (normalised, max(|x|, |y|) <= t;
     0 for none) with the fewest pixels in all such that the wide render samples every output pixel
-    outside the fovea at >= :data:`MIN_SAMPLING` (a single render shrunk to fit
-    :data:`MAX_RENDER_PIXELS_RATIO` when nothing does)."""
+    outside the fovea at >= :data:`MIN_SAMPLING` within :data:`MAX_RENDER_PIXELS_RATIO` (when nothing
+    does, one render shrunk to :data:`SINGLE_RENDER_RATIO`)."""
     ax, ay = extent
     sparse = sparsest_sampling(xy).ravel()
     cheb = np.maximum(np.abs(xy[..., 0]), np.abs(xy[..., 1])).ravel()
@@ -266,8 +267,8 @@ def _choose_renders(xy: NDArray[np.float64], f: float, extent: tuple[float, floa
             cost += (2 * tx * f + 2 * FOVEA_MARGIN_PX) * (2 * ty * f + 2 * FOVEA_MARGIN_PX) + RENDER_FIXED_PX
         if cost <= MAX_RENDER_PIXELS_RATIO * npx and (best is None or cost < best[0]):
             best = (cost, fw, t)
-    if best is None:
-        return f * math.sqrt(MAX_RENDER_PIXELS_RATIO * npx / ((2 * ax * f) * (2 * ay * f))), 0.0
+    if best is None:  # as before fovea renders: one render at the single-render cap
+        return f * math.sqrt(SINGLE_RENDER_RATIO * npx / ((2 * ax * f) * (2 * ay * f))), 0.0
     return best[1], best[2]
 
 
@@ -280,9 +281,10 @@ def _fovea(cam: Camera, xy: NDArray[np.float64], f: float, tx: float, ty: float,
     rows = slice(int(rows_any[0]), int(rows_any[-1]) + 1)
     cols = slice(int(cols_any[0]), int(cols_any[-1]) + 1)
     box = xy[rows, cols]
-    # the box's corners outside the fovea are not used: kept in range so the fixed-point maps do not wrap
-    map_x = np.clip(k_f[0, 0] * box[..., 0] + k_f[0, 2], -1.0, render_cam.width).astype(np.float32)
-    map_y = np.clip(k_f[1, 1] * box[..., 1] + k_f[1, 2], -1.0, render_cam.height).astype(np.float32)
+    # the box's corners outside the fovea fall outside its render (the atlas takes the mask only); not
+    # clipped, or the maps would fold there and the blur would measure an endless streak across the fold
+    map_x = (k_f[0, 0] * box[..., 0] + k_f[0, 2]).astype(np.float32)
+    map_y = (k_f[1, 1] * box[..., 1] + k_f[1, 2]).astype(np.float32)
     shape = (max(wide.height, render_cam.height), wide.width + render_cam.width)
     return Fovea(render_cam, k_f, rows, cols, np.ascontiguousarray(inside[rows, cols]), (map_x, map_y),
                  col0=wide.width, atlas_shape=shape, wide_rows=wide.height)

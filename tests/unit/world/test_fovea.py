@@ -14,6 +14,7 @@ import pytest
 from tagswarm.agents.detect import make_detector
 from tagswarm.protocol.geometry import se2_matrix
 from tagswarm.protocol.scenario import load_scenario
+from tagswarm.world import blur
 from tagswarm.world import lens as lens_mod
 from tagswarm.world.render import Renderer, image_message
 
@@ -108,3 +109,29 @@ def test_a_cube_ahead_decodes_at_one_and_a_half_metres() -> None:
         img = _frames(s, [(0, 0, 0)], (1.5, 0.0, math.pi + dyaw), [k])[0]
         hits += any(11 <= d.tag_id <= 16 for d in det.detect(img.astype(np.uint8)))
     assert hits >= 3
+
+
+@pytest.mark.parametrize(("slide_m", "turn_rad"), [(0.033, 0.0), (0.0, 0.04), (0.0, 0.0033)])
+def test_the_fovea_blurs_with_as_many_sub_exposures_as_the_wide_render(slide_m: float, turn_rad: float) -> None:
+    """The fovea's maps (its box's corners lie outside its render) measure the same streak as the wide
+    render's: as many sub-exposures, and none for a streak under a pixel (a slow turn)."""
+    s = _scenario("camera.exposure_ms=20")
+    cam = s.robot.cameras[0]
+    with Renderer(s) as r:
+        r.set_pose(1, (0.8, 0.05, 0), pb.getQuaternionFromEuler((0, 0, math.pi + 0.3)))
+        p = r.plan(cam)
+        assert p.fovea is not None
+        mount = r._mount[cam.name]
+        prev, now = se2_matrix(0, 0, 0) @ mount, se2_matrix(0, slide_m, turn_rad) @ mount
+        _, zbuf = r._shoot(p.render_cam, now, True)
+        _, zbuf_f = r._shoot(p.fovea.render_cam, now, True, count=False)
+    twist = blur.camera_twist(prev, now, 1 / 30)
+    wide = blur.exposure_maps(*p.sample_maps(), zbuf, p.K_render, twist, 0.02, near_far=(cam.near_m, cam.far_m),
+                              resample=True)
+    fovea = blur.exposure_maps(*p.fovea.float_maps, zbuf_f, p.fovea.K_render, twist, 0.02,
+                               near_far=(cam.near_m, cam.far_m), resample=True)
+    if turn_rad == 0.0033:
+        assert wide is None and fovea is None
+    else:
+        assert wide is not None and fovea is not None
+        assert 2 <= len(fovea) <= len(wide) < blur.MAX_BLUR_SAMPLES

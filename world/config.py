@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import functools
 import math
 import os
 from collections.abc import Mapping, Sequence
@@ -10,8 +11,9 @@ from collections.abc import Mapping, Sequence
 import msgspec
 
 from tagswarm.protocol.bus import BusConfig
-from tagswarm.protocol.scenario import Scenario
+from tagswarm.protocol.scenario import Camera, Scenario
 from tagswarm.runtime.config import ConfigError, Invocation, OneLineParser, add_common_args
+from tagswarm.world.lens import plan
 
 AUTO_WORKERS = -1  # render.workers: let the world choose (auto_render_workers)
 # TinyRenderer's cost per pixel of a camera frame on the 2-core development machine: 5.3 ms for
@@ -22,11 +24,24 @@ IN_PROCESS_MAX_CORES = 0.25  # rendering this much still leaves the world's own 
 PER_WORKER_CORES = 0.3  # a worker busier than this skips requests at the bursts of staggered cameras
 
 
+EFFECTS_LOAD = 1.2  # the realistic camera's model (remap, blur, noise) after its renders: ~0.2 of them
+
+
+@functools.lru_cache(maxsize=64)
+def render_pixels(cam: Camera, preset: str) -> int:
+    """Pixels pybullet renders for one frame of ``cam``: the image's, or a lens's wider pinhole
+    render and a wide lens's fovea (world/lens.py: a 320x240 120 deg fisheye renders 5.1x its pixels)."""
+    p = plan(cam, preset)
+    fovea = 0 if p.fovea is None else p.fovea.render_cam.width * p.fovea.render_cam.height
+    return p.render_cam.width * p.render_cam.height + fovea
+
+
 def render_load(scenario: Scenario) -> float:
-    """Cores that rendering the scenario's cameras takes at real time (an estimate: pixels per
-    second x :data:`RENDER_S_PER_PIXEL`, twice that with the realistic camera's effects)."""
-    pixels_per_s = len(scenario.robot_ids) * sum(c.width * c.height * c.rate_hz for c in scenario.robot.cameras)
-    return pixels_per_s * RENDER_S_PER_PIXEL * (2.0 if scenario.camera.has_effects else 1.0)
+    """Cores that rendering the scenario's cameras takes at real time (an estimate: rendered pixels
+    per second x :data:`RENDER_S_PER_PIXEL`, times :data:`EFFECTS_LOAD` with the realistic camera's effects)."""
+    preset = scenario.camera.preset
+    pixels_per_s = len(scenario.robot_ids) * sum(render_pixels(c, preset) * c.rate_hz for c in scenario.robot.cameras)
+    return pixels_per_s * RENDER_S_PER_PIXEL * (EFFECTS_LOAD if scenario.camera.has_effects else 1.0)
 
 
 def usable_cores() -> int:

@@ -5,7 +5,14 @@ from __future__ import annotations
 import pytest
 
 from tagswarm.protocol.scenario import Scenario, load_scenario
-from tagswarm.world.config import AUTO_WORKERS, auto_render_workers, build_config, render_load, resolve_render_workers
+from tagswarm.world.config import (
+    AUTO_WORKERS,
+    RENDER_S_PER_PIXEL,
+    auto_render_workers,
+    build_config,
+    render_load,
+    resolve_render_workers,
+)
 
 
 def hall(robots: int, *more: str) -> Scenario:
@@ -55,3 +62,14 @@ def test_without_spawned_workers_automatic_means_in_process() -> None:
     # workers started by hand (compose) must be told their number: auto would wait for workers nobody starts
     c = build_config(["--scenario", "hall", "--robots", "16", "--clock", "realtime", "--no-spawn-workers"], {})
     assert c.scenario.render.workers == 0
+
+
+def test_a_lens_counts_the_pixels_it_renders() -> None:
+    """A 120 deg fisheye renders a wide pinhole and a fovea, ~5x its image's pixels: the load says so
+    (it once counted the image's own pixels, a third of what a rig's world then had to render)."""
+    pin = hall(8, 'robot.cameras=[{name="front", width=320, height=240, hfov_deg=60}]', "camera.preset=realistic")
+    fish = hall(8, 'robot.cameras=[{name="front", width=320, height=240, hfov_deg=120}]', "camera.preset=realistic")
+    ideal = hall(8, 'robot.cameras=[{name="front", width=320, height=240, hfov_deg=60}]')
+    assert render_load(ideal) == pytest.approx(8 * 320 * 240 * 10 * RENDER_S_PER_PIXEL)
+    assert 1.2 < render_load(pin) / render_load(ideal) < 2.0  # a Brown-Conrady lens's wider render, the model
+    assert render_load(fish) / render_load(ideal) > 5.0

@@ -135,3 +135,39 @@ def test_the_fovea_blurs_with_as_many_sub_exposures_as_the_wide_render(slide_m: 
     else:
         assert wide is not None and fovea is not None
         assert 2 <= len(fovea) <= len(wide) < blur.MAX_BLUR_SAMPLES
+
+
+@pytest.mark.parametrize("case", range(12))
+def test_any_valid_wide_lens_gets_a_plan_that_keeps_its_promise(case: int) -> None:
+    """Random fisheyes the scenario accepts (90-128 deg, 4:3, 16:9 or square, small k1..k4): the maps are
+    finite and inside their renders, every output pixel is sampled at >= MIN_SAMPLING by the render it
+    comes from, and the renders stay within the pixel budget."""
+    rng = np.random.default_rng(case)
+    w = int(rng.choice([160, 320, 480, 640]))
+    h = int(w * rng.choice([0.75, 0.5625, 1.0])) // 2 * 2
+    hfov = float(rng.uniform(90.0, 128.0) if h / w < 1 else rng.uniform(90.0, 110.0))
+    coeffs = [float(rng.uniform(-0.03, 0.03)), float(rng.uniform(-0.005, 0.005)), 0.0, 0.0]
+    s = load_scenario("paper", [f'robot.cameras=[{{name="c", width={w}, height={h}, hfov_deg={hfov}, lens="fisheye", '
+                                f'distortion={coeffs}}}]', "camera.preset=realistic"])
+    p = lens_mod.plan(s.robot.cameras[0], s.camera.preset)
+    mx, my = p.sample_maps()
+    assert np.isfinite(mx).all() and np.isfinite(my).all()
+    assert mx.min() >= 0 and mx.max() <= p.render_cam.width - 1
+    assert my.min() >= 0 and my.max() <= p.render_cam.height - 1
+    u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
+    xy = lens_mod.undistort(np.stack([u.ravel(), v.ravel()], 1), p.lens.model, p.lens.K, p.lens.D).reshape(h, w, 2)
+    sparse = lens_mod.sparsest_sampling(xy)
+    sampled = p.K_render[0, 0] * sparse
+    pixels = p.render_cam.width * p.render_cam.height
+    if p.fovea is not None:
+        fv = p.fovea
+        box = (fv.rows, fv.cols)
+        sampled[box] = np.where(fv.mask, fv.K_render[0, 0] * sparse[box], sampled[box])
+        fx = fv.float_maps[0][fv.mask]
+        assert fx.min() >= 0 and fx.max() <= fv.render_cam.width - 1
+        pixels += fv.render_cam.width * fv.render_cam.height
+    if p.fovea is not None or pixels > lens_mod.SINGLE_RENDER_RATIO * w * h * 1.05:
+        assert sampled.min() >= lens_mod.MIN_SAMPLING - 1e-6
+    else:  # one render at the lens's focal length samples the centre at 1
+        assert p.K_render[0, 0] == pytest.approx(p.lens.K[0, 0]) or sampled.min() >= lens_mod.MIN_SAMPLING - 1e-6
+    assert pixels <= lens_mod.MAX_RENDER_PIXELS_RATIO * w * h * 1.1

@@ -13,7 +13,7 @@ import msgspec
 from tagswarm.protocol.bus import BusConfig
 from tagswarm.protocol.scenario import Camera, Scenario
 from tagswarm.runtime.config import ConfigError, Invocation, OneLineParser, add_common_args
-from tagswarm.world.lens import plan
+from tagswarm.world.lens import RenderPlan, plan
 
 AUTO_WORKERS = -1  # render.workers: let the world choose (auto_render_workers)
 # TinyRenderer's cost per pixel of a camera frame on the 2-core development machine: 5.3 ms for
@@ -28,10 +28,15 @@ EFFECTS_LOAD = 1.2  # the realistic camera's model (remap, blur, noise) after it
 
 
 @functools.lru_cache(maxsize=64)
+def lens_plan(cam: Camera, preset: str) -> RenderPlan:
+    """:func:`~tagswarm.world.lens.plan` of ``cam``, made once per process (10-100 ms for a lens)."""
+    return plan(cam, preset)
+
+
 def render_pixels(cam: Camera, preset: str) -> int:
     """Pixels pybullet renders for one frame of ``cam``: the image's, or a lens's wider pinhole
     render and a wide lens's fovea (world/lens.py: a 320x240 120 deg fisheye renders 5.1x its pixels)."""
-    p = plan(cam, preset)
+    p = lens_plan(cam, preset)
     fovea = 0 if p.fovea is None else p.fovea.render_cam.width * p.fovea.render_cam.height
     return p.render_cam.width * p.render_cam.height + fovea
 

@@ -40,7 +40,14 @@ from tagswarm.protocol.keys import Keys
 from tagswarm.protocol.scenario import Camera
 from tagswarm.runtime import streams
 from tagswarm.runtime.process import install_stop_signals, run_main, setup_logging
-from tagswarm.world.config import WorldConfig, build_config, render_load, resolve_render_workers
+from tagswarm.world.config import (
+    WorldConfig,
+    build_config,
+    lens_plan,
+    render_load,
+    render_pixels,
+    resolve_render_workers,
+)
 from tagswarm.world.interventions import Schedule
 from tagswarm.world.lockstep import AckTracker
 from tagswarm.world.render import Renderer, image_message, pose_matrix
@@ -98,6 +105,15 @@ class WorldNode:
                  "~%.2f core of rendering)", self.instance, len(s.robot_ids), s.clock.mode, self.tick_hz,
                  len(s.robot.cameras), "in-process" if self.renderer else f"in {s.render.workers} worker(s)",
                  render_load(s))
+        for cam in s.robot.cameras:
+            p = lens_plan(cam, s.camera.preset)
+            if p.maps is not None:  # a lens: say what it renders, the cost users see
+                fv = p.fovea
+                log.info("camera %s: %s lens %gdeg, rendered as %dx%d%s (%.1fx its %dx%d pixels)", cam.name,
+                         p.lens.model, cam.hfov_deg, p.render_cam.width, p.render_cam.height,
+                         "" if fv is None else f" + a {fv.render_cam.width}x{fv.render_cam.height} fovea at full "
+                         "resolution", render_pixels(cam, s.camera.preset) / (cam.width * cam.height),
+                         cam.width, cam.height)
 
     # ------------------------------------------------------------------ helpers
     def _publish(self, key: str, msg: m.Msg, *, drop: bool = False) -> None:

@@ -5,7 +5,8 @@ the other robots in view.  Stages, each timed on the same inputs and interleaved
 all see the same machine load (median over ``--frames``; wall and process CPU time):
 
 - ``render``: pybullet's ``getCameraImage`` of the ideal pinhole (what an ideal frame costs);
-- ``wide_render``: that of the wider pinhole a lens needs, with its depth buffer (blur needs it);
+- ``wide_render``: that of the wider pinhole a lens needs, with its depth buffer (blur needs it), and a
+  wide lens's fovea (world/lens.py);
 - ``lens``: the fixed-point ``cv2.remap`` of the render into the 8-bit lens image (every frame);
 - ``blur``: the camera's twist, the sub-exposures' maps and the blur (a filter per uniform tile
   of the lens image, the render resampled per sub-exposure elsewhere; nothing under 1 px);
@@ -98,9 +99,17 @@ def camera_row(name: str, override: str, frames: int) -> dict[str, Any]:
             t_wc = pose @ mount
             w, c, _ = _time(lambda t_wc=t_wc: ri._shoot(cam, t_wc, False))
             stages["render"].append((w, c))
-            w, c, (gray, zbuf) = _time(lambda t_wc=t_wc: rr._shoot(p.render_cam, t_wc, True))
+            def shoot(t_wc: Any = t_wc) -> Any:  # a wide lens renders its fovea too, into one atlas
+                if p.fovea is None:
+                    return rr._shoot(p.render_cam, t_wc, True), None
+                atlas = p.fovea.atlas()
+                shot = rr._shoot(p.render_cam, t_wc, True, out=p.fovea.wide_part(atlas))
+                rr._shoot(p.fovea.render_cam, t_wc, False, count=False, out=p.fovea.part(atlas))
+                return shot, atlas
+
+            w, c, ((gray, zbuf), atlas) = _time(shoot)
             stages["wide_render"].append((w, c))
-            w, c, lensed = _time(lambda gray=gray: p.apply(gray))
+            w, c, lensed = _time(lambda gray=gray, atlas=atlas: p.apply(gray if atlas is None else atlas))
             stages["lens"].append((w, c))
 
             def blur(gray: Any = gray, zbuf: Any = zbuf, t_wc: Any = t_wc, prev: Any = prev,
@@ -125,6 +134,7 @@ def camera_row(name: str, override: str, frames: int) -> dict[str, Any]:
     model_w = med["lens"][0] + med["blur"][0] + med["develop"][0]
     model_c = med["lens"][1] + med["blur"][1] + med["develop"][1]
     return {"camera": name, "render_size": [p.render_cam.width, p.render_cam.height],
+            "fovea_size": None if p.fovea is None else [p.fovea.render_cam.width, p.fovea.render_cam.height],
             "blur_path": Counter(paths[2:]).most_common(1)[0][0] if paths[2:] else None,
             "wall_ms": {k: round(v[0], 3) for k, v in med.items()},
             "cpu_ms": {k: round(v[1], 3) for k, v in med.items()},

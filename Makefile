@@ -21,8 +21,10 @@ bench: setup
 bench-quick: setup
 	$(PY) bench/all.py --quick --jobs 2
 
-# component benchmarks: render workers, detection + pose, fusion update cost
+# component benchmarks: render workers, detection + pose, fusion update cost, the journal, lens range
 bench-components: setup
 	$(PY) bench/render.py
 	$(PY) bench/detect.py
 	$(PY) bench/fusion.py
+	$(PY) bench/journal.py
+	$(PY) bench/lens_range.py

@@ -148,6 +148,7 @@ class Fovea:
         """The fovea's place in ``atlas`` (a view)."""
         return atlas[: self.render_cam.height, self.col0: self.col0 + self.render_cam.width]
 
+
 @dataclass
 class RenderPlan:
     """How to render one camera: the pinhole ``render_cam`` (a Camera of the render's size and

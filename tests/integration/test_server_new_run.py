@@ -60,6 +60,7 @@ class Rig:
             agents.declare_token(self.keys.alive(f"agent/{rid}"))
         self.corr = agents.subscribe(self.keys.correction(1))
         self.node = ServerNode(build_config(argv, {}), server_bus)
+        self._reached: list[Bus] = []
         assert server_bus.wait_for(lambda: self._presence() == {0, 1}, 10), "agent tokens never seen"
 
     def _presence(self) -> set[int]:
@@ -81,7 +82,22 @@ class Rig:
 
         assert self.node.bus.wait_for(queued, 10), "inputs never arrived"
 
+    def reach(self, world: Bus) -> None:
+        """Wait until ``world``'s session knows the server's tick subscription: a tick put before that is
+        dropped.  Probe ticks are drained unread (the node never steps on one); one session's puts
+        arrive in order, so once the last one sent is in, none is still on its way."""
+        for probe in range(100):
+            self.put(world, self.keys.tick(), m.Tick(seq=probe, stamp_ns=0, run_id="probe", step=0, dt_ns=DT,
+                                                     mode="lockstep"))
+            self.node.bus.wait_for(lambda: len(self.node.tick_in) > 0, 0.1)
+            if probe in [codec.decode(m.Tick, it.value).seq for it in self.node.tick_in.drain()]:
+                return
+        raise AssertionError("the world's probe ticks never reached the server")
+
     def tick(self, world: Bus, run_id: str, k: int) -> None:
+        if world not in self._reached:
+            self.reach(world)
+            self._reached.append(world)
         self.put(world, self.keys.tick(), _tick(run_id, k))
         assert self.node.bus.wait_for(lambda: len(self.node.tick_in) > 0, 10), "tick never arrived"
         assert self.node.step()

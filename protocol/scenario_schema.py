@@ -400,12 +400,23 @@ class Server(Spec, frozen=True, kw_only=True, forbid_unknown_fields=True):
     error at one viewpoint, which repeated sightings do not average out).  The defaults
     favour accuracy; ``odom_wheel_sigma = 0.01``, ``odom_scale_sigma = 0.01`` and
     ``obs_sigma_floor_m = 0.02`` bring the hall's, the crowd's and the corridor's fused NEES
-    into [0.5, 2] at some cost in accuracy (README, "Scenes nobody tuned for")."""
+    into [0.5, 2] at some cost in accuracy (README, "Scenes nobody tuned for").
+
+    The graph vouches for a placed robot (its correction says ``localised``, its agent steers on
+    it, its fused trajectory is recorded) only while its fused position is surer than
+    ``claim_sigma_m`` (m, standard deviation along the reported covariance's worst axis) and its
+    estimate is not in dispute (two or more of its latest observations contradicted the map and
+    none agreed since: a robot carried away is seen elsewhere from the first frame, but the
+    evidence that moves it takes a second).  Until then it is in the map, fused and shown with its
+    covariance, but reported unlocalised.  A robot placed through a chain of far views starts with
+    a heading several degrees unsure and a position decimetres to a metre unsure.  0 vouches for
+    every robot as soon as it is placed."""
 
     method: Literal["graph", "stitch"] = "graph"
     odom_wheel_sigma: NonNeg | None = None
     odom_scale_sigma: NonNeg = 0.02
     obs_sigma_floor_m: NonNeg = 0.0
+    claim_sigma_m: NonNeg = 0.5
 
 
 class Event(Spec, frozen=True, kw_only=True, forbid_unknown_fields=True):

@@ -509,6 +509,11 @@ class Fusion:
             return None
         return cur, self.robots[rid].cov
 
+    def in_dispute(self, rid: int) -> bool:
+        """Whether ``rid``'s estimate is in question now: its latest observations contradict it and
+        none agreed since (:meth:`tagswarm.server.recovery.Recovery.in_dispute`)."""
+        return self.recovery.in_dispute(rid, self.watermark_ns)
+
     def map_to_odom(self, rid: int) -> Pose2 | None:
         """The ``map -> odom_rid`` correction: fused keyframe pose ⊕ (its odometry pose)⁻¹."""
         r = self.robots[rid]

@@ -88,6 +88,8 @@ class ServerNode:
         self.roster = set(s.robot_ids)
         self.method = s.server.method
         self.fusion: Estimator = make_estimator(config)
+        # the paper's stitching has no honest covariance to judge by: it claims what it places
+        self._claim_sigma_m = s.server.claim_sigma_m if self.method == "graph" else 0.0
         self.rejects = streams.RejectCounter(log)
         self.gaps = streams.GapCounter()  # messages lost on the way, per sender (lossy networks)
         self.counters: Counter[str] = Counter()
@@ -334,7 +336,7 @@ class ServerNode:
         every tick, as the agents wait for them)."""
         for rid in sorted(self.roster):
             key = self.keys.correction(rid)
-            msg = outputs.correction(self.fusion, rid, self.time_ns, self.seq.peek(key))
+            msg = outputs.correction(self.fusion, rid, self.time_ns, self.seq.peek(key), self._claim_sigma_m)
             if not (msg.localised or all_robots):
                 continue
             if not self.lockstep and not outputs.correction_due(self._sent.get(rid), msg):

@@ -12,11 +12,13 @@ from __future__ import annotations
 import math
 from collections.abc import Iterable, Mapping
 
+import numpy as np
+
 from tagswarm.protocol import messages as m
 from tagswarm.protocol.geometry import wrap_angle
 from tagswarm.server.estimator import Estimator
 from tagswarm.server.fusion import RelocEvent
-from tagswarm.server.noise import reported_cov
+from tagswarm.server.noise import Cov, reported_cov
 
 #: an observation edge stays in the map this long after it was last seen (simulation ns)
 EDGE_MEMORY_NS = 5_000_000_000
@@ -45,15 +47,32 @@ def global_map(fusion: Estimator, robot_ids: Iterable[int], origin_id: int, time
     return m.GlobalMap(seq=seq, stamp_ns=time_ns, origin_id=origin_id, robots=tuple(entries), edges=edges)
 
 
-def correction(fusion: Estimator, rid: int, time_ns: int, seq: int) -> m.Correction:
+def position_sigma_m(cov: Cov) -> float:
+    """Standard deviation (m) of a reported (3, 3) pose covariance's position along its worst axis
+    (inf if it is not finite)."""
+    c = np.asarray(cov, float).reshape(3, 3)[:2, :2]
+    if not np.all(np.isfinite(c)):
+        return math.inf
+    return math.sqrt(max(float(np.linalg.eigvalsh(c)[1]), 0.0))
+
+
+def claimed(fusion: Estimator, rid: int, cov: Cov, claim_sigma_m: float) -> bool:
+    """Whether the server vouches for placed robot ``rid``'s pose (reported covariance ``cov``):
+    its position is surer than ``claim_sigma_m`` (:func:`position_sigma_m`) and its estimate is not
+    in dispute (:meth:`~tagswarm.server.estimator.Estimator.in_dispute`); 0 vouches for every
+    placed robot."""
+    return claim_sigma_m <= 0 or (position_sigma_m(cov) < claim_sigma_m and not fusion.in_dispute(rid))
+
+
+def correction(fusion: Estimator, rid: int, time_ns: int, seq: int, claim_sigma_m: float = 0.0) -> m.Correction:
     """Robot ``rid``'s ``map -> odom`` correction and fused pose now; ``localised=False`` (every
-    pose field zero) while the fusion cannot place it."""
+    pose field zero) while the fusion cannot place it or does not vouch for it (:func:`claimed`)."""
     est, mo = fusion.pose(rid), fusion.map_to_odom(rid)
-    if est is None or mo is None:
+    cov = None if est is None else reported_cov(est[1])
+    if est is None or mo is None or cov is None or not claimed(fusion, rid, cov, claim_sigma_m):
         return m.Correction(seq=seq, stamp_ns=time_ns, robot_id=rid, map_odom_x_m=0.0, map_odom_y_m=0.0,
                             map_odom_yaw_rad=0.0, x_m=0.0, y_m=0.0, yaw_rad=0.0, cov=(0.0,) * 9, localised=False)
-    (x, y, yaw), graph_cov = est
-    cov = reported_cov(graph_cov)
+    x, y, yaw = est[0]
     return m.Correction(seq=seq, stamp_ns=time_ns, robot_id=rid, map_odom_x_m=mo[0], map_odom_y_m=mo[1],
                         map_odom_yaw_rad=mo[2], x_m=x, y_m=y, yaw_rad=yaw, cov=tuple(float(v) for v in cov.ravel()),
                         last_fix_ns=fusion.last_fix_ns(rid))

@@ -210,6 +210,22 @@ class Recovery:
         since = min(t for t, _ in recent)
         return not any(since <= t <= stamp_ns for t, _ in self.partners.get(witness, ()))
 
+    def in_dispute(self, rid: int, stamp_ns: int) -> bool:
+        """Whether two or more of ``rid``'s observations within ``reloc_window_s`` before ``stamp_ns``
+        contradicted the map (gated out, or surprising) and none passed the gate since the first of them:
+        its estimate is in question until the evidence is judged (a re-localisation, a loosened
+        odometry) or an observation agrees with it again.  Measured in the kidnap scene: the map kept a
+        robot carried 1 m where it had been for the 1.1 s the evidence needs, views of it rejected from
+        the first frame.  The origin robot holding the map frame never is."""
+        if rid == self.origin_id and self.anchored_origin:
+            return False
+        horizon = stamp_ns - int(self.p.reloc_window_s * 1e9)
+        recent = [t for t, _ in self.disputes.get(rid, ()) if horizon <= t <= stamp_ns]
+        if len(recent) < 2:
+            return False
+        since = min(recent)
+        return not any(since <= t <= stamp_ns for t, _ in self.partners.get(rid, ()))
+
     def _contradicts(self, place: Place, c: Candidate) -> bool:
         """Whether an accepted observation that put its robot at ``place`` rules out the evidence ``c``
         (both carried to the robot's odometry pose of that observation).  A view that cannot tell the

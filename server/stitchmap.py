@@ -326,6 +326,10 @@ class StitchMap:
             return None
         return self._carry(rid, r.anchor, r.poses[-1])
 
+    def in_dispute(self, rid: int) -> bool:
+        """Never: the paper's stitching has no gate, so nothing contradicts it."""
+        return False
+
     def map_to_odom(self, rid: int) -> Pose2 | None:
         """The ``map -> odom_rid`` correction: anchor pose ⊕ (its odometry pose)⁻¹."""
         a = self.robots[rid].anchor

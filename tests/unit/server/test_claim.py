@@ -1,0 +1,91 @@
+"""A placed robot is claimed (its correction says localised) only while the fused position is
+surer than ``[server] claim_sigma_m`` (server/outputs.py: correction, position_sigma_m)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from tagswarm.server.fusion import Fusion, FusionParams
+from tagswarm.server.outputs import correction, position_sigma_m
+
+# a far cube seen face-on: its bearing and range are good to centimetres, its yaw to 14 degrees
+FAR = np.diag([0.035**2, 0.02**2, math.radians(14.0) ** 2])
+REL = (4.0, 0.0, math.pi)  # robot 1 stands 4 m ahead of the origin, facing it (and sees it the same way)
+
+
+def _run(origin_sees_it: bool) -> Fusion:
+    """Robot 1 sees the origin robot 4 m away for 1 s; with ``origin_sees_it`` the origin sees
+    robot 1 back from then on, whose bearing pins robot 1's position."""
+    fusion = Fusion(FusionParams(), 0, (0, 1))
+    for k in range(120):
+        t = round(k * 1e9 / 30)
+        fusion.add_odometry(0, t, (0.0, 0.0, 0.0), 0.0)
+        fusion.add_odometry(1, t, (0.0, 0.0, 0.0), 0.0)
+        if k % 3 == 0 and k < 30:
+            fusion.add_observation(1, 0, t, REL, FAR)  # type: ignore[arg-type]
+        if k % 3 == 0 and k >= 30 and origin_sees_it:
+            fusion.add_observation(0, 1, t, REL, FAR)  # type: ignore[arg-type]
+        fusion.advance(t)
+    return fusion
+
+
+def test_position_sigma_is_the_worst_axis() -> None:
+    assert position_sigma_m(np.diag([0.04, 0.01, 1.0])) == 0.2
+    assert position_sigma_m(np.array([[0.02, 0.01, 0], [0.01, 0.02, 0], [0, 0, 0]])) == math.sqrt(0.03)
+    assert position_sigma_m(np.diag([np.nan, 0.01, 0.0])) == math.inf
+
+
+def test_a_robot_placed_from_one_far_view_is_in_the_map_but_not_claimed() -> None:
+    fusion = _run(origin_sees_it=False)
+    est = fusion.pose(1)
+    assert est is not None  # placed: its own view put it on a 4 m arc around the origin
+    sigma = position_sigma_m(est[1])
+    assert sigma > 0.5, sigma  # the arc: 4 m x 14 degrees
+    assert not correction(fusion, 1, fusion.watermark_ns, 0, claim_sigma_m=0.5).localised
+    claimed = correction(fusion, 1, fusion.watermark_ns, 0, claim_sigma_m=0.0)
+    assert claimed.localised and abs(claimed.x_m - 4.0) < 0.3
+    assert correction(fusion, 0, fusion.watermark_ns, 0, claim_sigma_m=0.5).localised  # the origin
+
+
+def test_the_bearing_of_a_view_back_makes_it_claimed() -> None:
+    fusion = _run(origin_sees_it=True)
+    est = fusion.pose(1)
+    assert est is not None and position_sigma_m(est[1]) < 0.1, est
+    c = correction(fusion, 1, fusion.watermark_ns, 0, claim_sigma_m=0.5)
+    assert c.localised and math.hypot(c.x_m - 4.0, c.y_m) < 0.05, c
+    assert position_sigma_m(np.asarray(c.cov).reshape(3, 3)) < 0.1
+
+
+NEAR = np.diag([0.005**2, 0.005**2, math.radians(1.0) ** 2])
+
+
+def test_a_robot_carried_away_is_not_vouched_for_until_it_is_placed_again() -> None:
+    """The origin sees robot 1 2 m ahead; at 4 s robot 1 is carried 1 m sideways (its wheels
+    still).  The map keeps it where it was until the evidence re-localises it, a second later;
+    meanwhile its correction says unlocalised from the second contradicting view on."""
+    fusion = Fusion(FusionParams(), 0, (0, 1))
+    states: list[tuple[float, bool, bool, float]] = []
+    for k in range(200):
+        t = round(k * 1e9 / 30)
+        fusion.add_odometry(0, t, (0.0, 0.0, 0.0), 0.0)
+        fusion.add_odometry(1, t, (0.0, 0.0, 0.0), 0.0)
+        if k % 3 == 0:
+            fusion.add_observation(0, 1, t, (2.0, 0.0 if k < 120 else 1.0, math.pi), NEAR)  # type: ignore[arg-type]
+        fusion.advance(t)
+        if fusion.pose(1) is not None:
+            vouched = correction(fusion, 1, t, 0, claim_sigma_m=0.5)
+            states.append((k / 30, vouched.localised, correction(fusion, 1, t, 0).localised, vouched.y_m))
+    before = [s for s in states if 1.0 <= s[0] < 4.0]
+    assert before and all(s[1] for s in before)  # vouched for while views agree
+    # the first contradicting view alone (a mis-decoded tag) does not cost it
+    assert next(s for s in states if s[0] == 4.0)[1]
+    unvouched = [s[0] for s in states if s[0] >= 4.0 and not s[1]]
+    # from the second view the gate judges on (4.1 s is thinned: 0.2 s after the pair's last accepted one)
+    assert unvouched and unvouched[0] <= 4.21, unvouched
+    assert all(s[2] for s in states if s[0] in unvouched)  # claim_sigma_m = 0: the old behaviour
+    assert fusion.counters["relocalisations"] == 1
+    after = [s for s in states if s[0] > unvouched[-1]]
+    assert after and all(s[1] and abs(s[3] - 1.0) < 0.02 for s in after), after[:3]
+    assert unvouched[-1] - unvouched[0] < 1.5  # until the re-localisation

@@ -127,6 +127,8 @@ class FusionState(msgspec.Struct, frozen=True, kw_only=True):
     seen_at: dict[int, list[tuple[int, tuple[P3, float, P3] | None]]] = {}
     # (stamp_ns, other robot) of observations that contradicted the map, per robot (absent in older snapshots)
     disputes: dict[int, list[tuple[int, int]]] = {}
+    # (stamp_ns, witness, metres) how far each of those put the robot from its estimate (absent in older snapshots)
+    shifts: dict[int, list[tuple[int, int, float]]] = {}
     # the view of each pair's newest factor: (a, b, chain a, chain b, odom a (3), odom b (3), rel (3)); a
     # snapshot of an older version (its pair_factors held keyframe keys) restores without them
     pair_views: list[tuple[int, int, int, int, P3, P3, P3]] = []
@@ -220,6 +222,7 @@ def snapshot(fusion: Fusion) -> bytes:
         seen_at={rid: [(int(t), None if pl is None else (_p3(pl[0]), float(pl[1]), _p3(pl[2]))) for t, pl in q]
                  for rid, q in fusion.recovery.seen_at.items()},
         disputes={rid: [(int(t), int(o)) for t, o in q] for rid, q in fusion.recovery.disputes.items()},
+        shifts={rid: [(int(t), int(w), float(d)) for t, w, d in q] for rid, q in fusion.recovery.shifts.items()},
         pair_views=[(a, b, v.chain_a, v.chain_b, _p3(v.odom_a), _p3(v.odom_b), _p3(v.rel))
                     for (a, b), v in fusion._pair_factors.items()],
         factors=_live_factors(fusion.smoother).serialize() if stamps else "",
@@ -303,6 +306,7 @@ def restore(fusion: Fusion, blob: bytes | FusionState) -> None:
     new.recovery.seen_at = {rid: deque(((t, None if pl is None else (tuple(pl[0]), pl[1], tuple(pl[2])))  # type: ignore[misc]
                                         for t, pl in q), maxlen=256) for rid, q in state.seen_at.items()}
     new.recovery.disputes = {rid: deque(q, maxlen=256) for rid, q in state.disputes.items()}
+    new.recovery.shifts = {rid: deque(((t, w, d) for t, w, d in q), maxlen=256) for rid, q in state.shifts.items()}
     new._pair_factors = {(a, b): PairView(ca, cb, oa, ob, rel) for a, b, ca, cb, oa, ob, rel in state.pair_views}
     if state.stamps:
         try:

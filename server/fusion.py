@@ -337,8 +337,13 @@ class Fusion:
         :mod:`tagswarm.server.recovery`); the verdict if it completes a consistent set."""
         var = {rid: float(self.robots[rid].cov[0, 0] + self.robots[rid].cov[1, 1]) / 2 for rid in (observer, target)}
         self.recovery.disputed(observer, target, stamp_ns)
-        for v in views(observer, target, stamp_ns, rel, cov, po, pg, oo, go, self.robots[observer].cov,
-                       self.robots[target].cov):
+        seen = views(observer, target, stamp_ns, rel, cov, po, pg, oo, go, self.robots[observer].cov,
+                     self.robots[target].cov)
+        for v in seen:
+            placed = se2_compose(v.cand.origin, v.odom)
+            self.recovery.shifted(v.suspect, target if v.suspect == observer else observer, stamp_ns,
+                                  math.dist(placed[:2], v.now[:2]))
+        for v in seen:
             verdict = self.recovery.add(v.suspect, v.cand, current=(v.now, v.odom, var[v.suspect]),
                                         witness_var_m2=v.witness_var_m2)
             if verdict is not None:

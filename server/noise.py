@@ -77,6 +77,9 @@ class FusionParams:
     # slip evidence (the agents' OdometryEstimate.slip_m, metres of unexplained wheel travel) widens an
     # odometry increment: this many metres of position sigma (and sigma / (wheel base / 2) of yaw) per metre
     odom_slip_sigma: float = 1.0
+    # a robot whose contradicting observations put it this far from its estimate (m), twice with none agreeing
+    # since, is in dispute: the server does not vouch for its pose until that is resolved (server/recovery.py)
+    dispute_shift_m: float = 0.1
 
 
 def odom_increment_cov(delta: Pose2, p: FusionParams, slip_m: float = 0.0) -> Cov:

@@ -173,6 +173,8 @@ class Recovery:
     # (stamp_ns, other robot) of each robot's observations lately that contradicted the map (gated out, or
     # surprising), alongside ``partners``
     disputes: dict[int, deque[tuple[int, int]]] = field(default_factory=dict)
+    # (stamp_ns, witness, metres) how far each of those put the robot from its estimate
+    shifts: dict[int, deque[tuple[int, int, float]]] = field(default_factory=dict)
     counters: Counter[str] = field(default_factory=Counter)  # the fusion's
 
     def accepted(self, a: int, b: int, stamp_ns: int, seen: tuple[View, ...] = ()) -> None:
@@ -210,17 +212,24 @@ class Recovery:
         since = min(t for t, _ in recent)
         return not any(since <= t <= stamp_ns for t, _ in self.partners.get(witness, ()))
 
+    def shifted(self, suspect: int, witness: int, stamp_ns: int, shift_m: float) -> None:
+        """A contradicting observation (gated out, or surprising) puts ``suspect`` ``shift_m`` metres
+        from its estimate, as ``witness`` sees it."""
+        self.shifts.setdefault(suspect, deque(maxlen=256)).append((stamp_ns, witness, shift_m))
+
     def in_dispute(self, rid: int, stamp_ns: int) -> bool:
-        """Whether two or more of ``rid``'s observations within ``reloc_window_s`` before ``stamp_ns``
-        contradicted the map (gated out, or surprising) and none passed the gate since the first of them:
-        its estimate is in question until the evidence is judged (a re-localisation, a loosened
-        odometry) or an observation agrees with it again.  Measured in the kidnap scene: the map kept a
-        robot carried 1 m where it had been for the 1.1 s the evidence needs, views of it rejected from
-        the first frame.  The origin robot holding the map frame never is."""
+        """Whether two or more of the observations of (or by) ``rid`` within ``reloc_window_s`` before
+        ``stamp_ns`` put it more than ``dispute_shift_m`` from its estimate and none passed the gate
+        since the first of them: its position is in question until the evidence is judged (a
+        re-localisation, a loosened odometry) or an observation agrees with it again.  Measured in
+        the kidnap scene: the map kept a robot carried 1 m where it had been for the 1.1 s the
+        evidence needs, its views rejected from the first frame.  A robot turned on the spot is
+        not in dispute (its place is right).  The origin robot holding the map frame never is."""
         if rid == self.origin_id and self.anchored_origin:
             return False
         horizon = stamp_ns - int(self.p.reloc_window_s * 1e9)
-        recent = [t for t, _ in self.disputes.get(rid, ()) if horizon <= t <= stamp_ns]
+        recent = [t for t, _, shift in self.shifts.get(rid, ())
+                  if horizon <= t <= stamp_ns and shift > self.p.dispute_shift_m]
         if len(recent) < 2:
             return False
         since = min(recent)
@@ -366,9 +375,12 @@ class Recovery:
         self.seen_at.pop(rid, None)
         self.where.pop(rid, None)
         self.disputes.pop(rid, None)
+        self.shifts.pop(rid, None)
         for other, q in self.disputes.items():
             # the contradictions with its old (wrong) estimate are explained
             self.disputes[other] = deque(((t, o) for t, o in q if o != rid), maxlen=256)
+        for other, sq in self.shifts.items():
+            self.shifts[other] = deque(((t, w, d) for t, w, d in sq if w != rid), maxlen=256)
         for store in (self.robot_ev,):
             for other, ev in list(store.items()):
                 kept = [c for c in ev if witness_of(other, c) != rid]

@@ -89,3 +89,25 @@ def test_a_robot_carried_away_is_not_vouched_for_until_it_is_placed_again() -> N
     after = [s for s in states if s[0] > unvouched[-1]]
     assert after and all(s[1] and abs(s[3] - 1.0) < 0.02 for s in after), after[:3]
     assert unvouched[-1] - unvouched[0] < 1.5  # until the re-localisation
+
+
+def test_a_robot_turned_on_the_spot_is_still_vouched_for() -> None:
+    """Robot 1, 2 m ahead of the origin and seeing it, is turned 0.3 rad on the spot at 4 s: its
+    views of the origin contradict its heading, but its place is right, so it stays vouched for."""
+    fusion = Fusion(FusionParams(), 0, (0, 1))
+    unvouched = []
+    for k in range(200):
+        t = round(k * 1e9 / 30)
+        fusion.add_odometry(0, t, (0.0, 0.0, 0.0), 0.0)
+        fusion.add_odometry(1, t, (0.0, 0.0, 0.0), 0.0)
+        turn = 0.0 if k < 120 else 0.3
+        if k % 3 == 0:
+            fusion.add_observation(0, 1, t, (2.0, 0.0, math.pi + turn), NEAR)  # type: ignore[arg-type]
+            # the origin in robot 1's frame: 2 m ahead when facing it, rotated by -turn
+            c, s = math.cos(-turn), math.sin(-turn)
+            fusion.add_observation(1, 0, t + 1, (2.0 * c, 2.0 * s, math.pi - turn), NEAR)  # type: ignore[arg-type]
+        fusion.advance(t + 1)
+        if k >= 120 and not correction(fusion, 1, t, 0, claim_sigma_m=0.5).localised:
+            unvouched.append(k / 30)
+    assert fusion.counters["rejected_gate"] + fusion.counters["surprising_observations"] >= 2, dict(fusion.counters)
+    assert not unvouched, unvouched

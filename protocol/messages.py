@@ -192,7 +192,7 @@ class Correction(Msg, frozen=True, kw_only=True, tag="correction"):
     fix, a change of localisation, ``map -> odom`` moved by 1 mm or 1 mrad, or 100 ms of
     simulation time after the last.  ``localised=False`` (pose fields zero) means the
     server cannot place this robot yet, or does not vouch for its place: the map has it, but
-    less sure than ``[server] claim_sigma_m`` or with its latest observations contradicting it
+    less sure than ``[server] claim_sigma_m`` or with its latest observations putting it elsewhere
     (the global map still lists it, with its covariance).  ``cov`` is GTSAM's
     marginal of the Pose2 in its tangent space: the position block is in the
     robot's own axes (x forward, y left), so rotate it by the yaw for the map

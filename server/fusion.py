@@ -341,8 +341,9 @@ class Fusion:
                      self.robots[target].cov)
         for v in seen:
             placed = se2_compose(v.cand.origin, v.odom)
-            self.recovery.shifted(v.suspect, target if v.suspect == observer else observer, stamp_ns,
-                                  math.dist(placed[:2], v.now[:2]))
+            if not self.recovery.at_decoy_site(v.suspect, placed[0], placed[1]):  # a known copy disputes nothing
+                self.recovery.shifted(v.suspect, target if v.suspect == observer else observer, stamp_ns,
+                                      math.dist(placed[:2], v.now[:2]))
         for v in seen:
             verdict = self.recovery.add(v.suspect, v.cand, current=(v.now, v.odom, var[v.suspect]),
                                         witness_var_m2=v.witness_var_m2)

@@ -32,9 +32,11 @@ def _final_error(run: Path, rid: int) -> float:
 
 
 def _error_at(run: Path, rid: int, t_s: float) -> float:
+    """Error (m) of the newest fused pose at or before ``t_s`` (a robot the server does not vouch for,
+    such as one just carried away, has no new fused pose until it is placed again)."""
     truth = np.loadtxt(run / "trajectories" / f"truth_{rid}.tum", ndmin=2)
     fused = np.loadtxt(run / "trajectories" / f"fused_{rid}.tum", ndmin=2)
-    i = int(np.argmin(np.abs(fused[:, 0] - t_s)))
+    i = max(int(np.searchsorted(fused[:, 0], t_s, side="right")) - 1, 0)
     j = int(np.argmin(np.abs(truth[:, 0] - fused[i, 0])))
     return math.hypot(fused[i, 1] - truth[j, 1], fused[i, 2] - truth[j, 2])
 

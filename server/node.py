@@ -90,7 +90,7 @@ class ServerNode:
         self.fusion: Estimator = make_estimator(config)
         # the paper's stitching has no honest covariance to judge by: it claims what it places
         self._claim_sigma_m = s.server.claim_sigma_m if self.method == "graph" else 0.0
-        self._vouching: dict[int, str] = {}  # robot -> "unplaced" / "unvouched" / "vouched", for the log
+        self._vouching = outputs.Vouching(self._claim_sigma_m)  # logs when the server starts or stops vouching
         self.rejects = streams.RejectCounter(log)
         self.gaps = streams.GapCounter()  # messages lost on the way, per sender (lossy networks)
         self.counters: Counter[str] = Counter()
@@ -338,7 +338,9 @@ class ServerNode:
         for rid in sorted(self.roster):
             key = self.keys.correction(rid)
             msg = outputs.correction(self.fusion, rid, self.time_ns, self.seq.peek(key), self._claim_sigma_m)
-            self._note_vouching(rid, msg)
+            line = self._vouching.update(self.fusion, rid, msg, self.time_ns)
+            if line:
+                log.info("%s", line)
             if not (msg.localised or all_robots):
                 continue
             if not self.lockstep and not outputs.correction_due(self._sent.get(rid), msg):
@@ -349,22 +351,6 @@ class ServerNode:
             self._sent[rid] = msg
             if msg.localised:
                 self.counters["corrections"] += 1
-
-    def _note_vouching(self, rid: int, msg: m.Correction) -> None:
-        """Log when the server starts or stops vouching for a robot the map has (not every tick)."""
-        reason = None if msg.localised else outputs.unvouched_reason(self.fusion, rid, self._claim_sigma_m)
-        state = "vouched" if msg.localised else ("unplaced" if reason is None else "unvouched")
-        before = self._vouching.get(rid, "unplaced")
-        if state == before:
-            return
-        self._vouching[rid] = state
-        t = self.time_ns / 1e9
-        if state == "unvouched":
-            self.counters["unvouched_events"] += 1
-            log.info("robot %d is in the map but not reported localised at t=%.2f s: %s", rid, t, reason)
-        elif state == "vouched":
-            sigma = outputs.position_sigma_m(msg.cov)
-            log.info("robot %d reported localised at t=%.2f s (position sigma %.3f m)", rid, t, sigma)
 
     def _maybe_publish_map(self) -> None:
         if self.time_ns >= self._next_map_ns:

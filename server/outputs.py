@@ -136,3 +136,26 @@ def status_counters(node: Mapping[str, int], fusion: Estimator, rejects: Mapping
     counters["localised"] = len(fusion.localised())
     counters["alive"] = alive
     return counters
+
+
+class Vouching:
+    """Whether the server vouches for each robot the map has, to log the changes (not every tick)."""
+
+    def __init__(self, claim_sigma_m: float) -> None:
+        self.claim_sigma_m = claim_sigma_m
+        self.state: dict[int, str] = {}  # robot -> "unplaced" / "unvouched" / "vouched"
+
+    def update(self, fusion: Estimator, rid: int, msg: m.Correction, time_ns: int) -> str | None:
+        """Robot ``rid``'s correction ``msg`` is going out: the log line if the server started or
+        stopped vouching for it (with why), else None."""
+        reason = None if msg.localised else unvouched_reason(fusion, rid, self.claim_sigma_m)
+        state = "vouched" if msg.localised else ("unplaced" if reason is None else "unvouched")
+        if state == self.state.get(rid, "unplaced"):
+            return None
+        self.state[rid] = state
+        if state == "unvouched":
+            return f"robot {rid} is in the map but not reported localised at t={time_ns / 1e9:.2f} s: {reason}"
+        if state == "vouched":
+            return (f"robot {rid} reported localised at t={time_ns / 1e9:.2f} s "
+                    f"(position sigma {position_sigma_m(msg.cov):.3f} m)")
+        return None

@@ -8,7 +8,7 @@ import math
 import numpy as np
 
 from tagswarm.server.fusion import Fusion, FusionParams
-from tagswarm.server.outputs import correction, position_sigma_m, unvouched_reason
+from tagswarm.server.outputs import Vouching, correction, position_sigma_m, unvouched_reason
 
 # a far cube seen face-on: its bearing and range are good to centimetres, its yaw to 14 degrees
 FAR = np.diag([0.035**2, 0.02**2, math.radians(14.0) ** 2])
@@ -116,3 +116,14 @@ def test_a_robot_turned_on_the_spot_is_still_vouched_for() -> None:
             unvouched.append(k / 30)
     assert fusion.counters["rejected_gate"] + fusion.counters["surprising_observations"] >= 2, dict(fusion.counters)
     assert not unvouched, unvouched
+
+
+def test_the_log_says_when_the_server_starts_and_stops_vouching_and_not_every_tick() -> None:
+    loose, pinned = _run(origin_sees_it=False), _run(origin_sees_it=True)
+    v = Vouching(0.5)
+    t = loose.watermark_ns
+    line = v.update(loose, 1, correction(loose, 1, t, 0, claim_sigma_m=0.5), t)
+    assert line is not None and "robot 1 is in the map but not reported localised" in line and "position sigma" in line
+    assert v.update(loose, 1, correction(loose, 1, t, 0, claim_sigma_m=0.5), t) is None  # no change, no line
+    line = v.update(pinned, 1, correction(pinned, 1, t, 0, claim_sigma_m=0.5), t)
+    assert line is not None and line.startswith("robot 1 reported localised at t=")

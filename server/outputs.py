@@ -56,21 +56,11 @@ def position_sigma_m(cov: Cov | tuple[float, ...]) -> float:
     return math.sqrt(max(float(np.linalg.eigvalsh(c)[1]), 0.0))
 
 
-def claimed(fusion: Estimator, rid: int, cov: Cov, claim_sigma_m: float) -> bool:
-    """Whether the server vouches for placed robot ``rid``'s pose (reported covariance ``cov``):
-    its position is surer than ``claim_sigma_m`` (:func:`position_sigma_m`) and its estimate is not
-    in dispute (:meth:`~tagswarm.server.estimator.Estimator.in_dispute`); 0 vouches for every
+def unvouched_reason(fusion: Estimator, rid: int, cov: Cov, claim_sigma_m: float) -> str | None:
+    """Why the server does not vouch for placed robot ``rid`` (reported covariance ``cov``), None if it
+    does: its position is less sure than ``claim_sigma_m`` (:func:`position_sigma_m`), or its estimate
+    is in dispute (:meth:`~tagswarm.server.estimator.Estimator.in_dispute`); 0 vouches for every
     placed robot."""
-    return claim_sigma_m <= 0 or (position_sigma_m(cov) < claim_sigma_m and not fusion.in_dispute(rid))
-
-
-def unvouched_reason(fusion: Estimator, rid: int, claim_sigma_m: float) -> str | None:
-    """Why the server does not vouch for robot ``rid`` although the map has it (for the log), None
-    if it vouches for it or has not placed it."""
-    est = fusion.pose(rid)
-    if est is None:
-        return None
-    cov = reported_cov(est[1])
     if claim_sigma_m <= 0:
         return None
     if fusion.in_dispute(rid):
@@ -83,10 +73,10 @@ def unvouched_reason(fusion: Estimator, rid: int, claim_sigma_m: float) -> str |
 
 def correction(fusion: Estimator, rid: int, time_ns: int, seq: int, claim_sigma_m: float = 0.0) -> m.Correction:
     """Robot ``rid``'s ``map -> odom`` correction and fused pose now; ``localised=False`` (every
-    pose field zero) while the fusion cannot place it or does not vouch for it (:func:`claimed`)."""
+    pose field zero) while the fusion cannot place it or does not vouch for it (:func:`unvouched_reason`)."""
     est, mo = fusion.pose(rid), fusion.map_to_odom(rid)
     cov = None if est is None else reported_cov(est[1])
-    if est is None or mo is None or cov is None or not claimed(fusion, rid, cov, claim_sigma_m):
+    if est is None or mo is None or cov is None or unvouched_reason(fusion, rid, cov, claim_sigma_m) is not None:
         return m.Correction(seq=seq, stamp_ns=time_ns, robot_id=rid, map_odom_x_m=0.0, map_odom_y_m=0.0,
                             map_odom_yaw_rad=0.0, x_m=0.0, y_m=0.0, yaw_rad=0.0, cov=(0.0,) * 9, localised=False)
     x, y, yaw = est[0]
@@ -148,12 +138,13 @@ class Vouching:
     def update(self, fusion: Estimator, rid: int, msg: m.Correction, time_ns: int) -> str | None:
         """Robot ``rid``'s correction ``msg`` is going out: the log line if the server started or
         stopped vouching for it (with why), else None."""
-        reason = None if msg.localised else unvouched_reason(fusion, rid, self.claim_sigma_m)
-        state = "vouched" if msg.localised else ("unplaced" if reason is None else "unvouched")
+        est = None if msg.localised else fusion.pose(rid)
+        state = "vouched" if msg.localised else ("unplaced" if est is None else "unvouched")
         if state == self.state.get(rid, "unplaced"):
             return None
         self.state[rid] = state
-        if state == "unvouched":
+        if est is not None:  # why, worked out once per change
+            reason = unvouched_reason(fusion, rid, reported_cov(est[1]), self.claim_sigma_m)
             return f"robot {rid} is in the map but not reported localised at t={time_ns / 1e9:.2f} s: {reason}"
         if state == "vouched":
             return (f"robot {rid} reported localised at t={time_ns / 1e9:.2f} s "

@@ -47,9 +47,11 @@ def test_a_robot_placed_from_one_far_view_is_in_the_map_but_not_claimed() -> Non
     claimed = correction(fusion, 1, fusion.watermark_ns, 0, claim_sigma_m=0.0)
     assert claimed.localised and abs(claimed.x_m - 4.0) < 0.3
     assert correction(fusion, 0, fusion.watermark_ns, 0, claim_sigma_m=0.5).localised  # the origin
-    reason = unvouched_reason(fusion, 1, 0.5)  # what the server's log says
+    reason = unvouched_reason(fusion, 1, est[1], 0.5)  # what the server's log says
     assert reason is not None and reason.startswith("position sigma "), reason
-    assert unvouched_reason(fusion, 1, 0.0) is None and unvouched_reason(fusion, 0, 0.5) is None
+    assert unvouched_reason(fusion, 1, est[1], 0.0) is None
+    origin = fusion.pose(0)
+    assert origin is not None and unvouched_reason(fusion, 0, origin[1], 0.5) is None
 
 
 def test_the_bearing_of_a_view_back_makes_it_claimed() -> None:
@@ -81,7 +83,9 @@ def test_a_robot_carried_away_is_not_vouched_for_until_it_is_placed_again() -> N
             vouched = correction(fusion, 1, t, 0, claim_sigma_m=0.5)
             states.append((k / 30, vouched.localised, correction(fusion, 1, t, 0).localised, vouched.y_m))
             if k == 126:  # 4.2 s: in dispute
-                assert unvouched_reason(fusion, 1, 0.5) == "its latest views put it elsewhere"
+                pose = fusion.pose(1)
+                assert pose is not None
+                assert unvouched_reason(fusion, 1, pose[1], 0.5) == "its latest views put it elsewhere"
     before = [s for s in states if 1.0 <= s[0] < 4.0]
     assert before and all(s[1] for s in before)  # vouched for while views agree
     # the first contradicting view alone (a mis-decoded tag) does not cost it

@@ -60,7 +60,7 @@ import weakref
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import ClassVar
+from typing import ClassVar, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
@@ -73,6 +73,8 @@ from tagswarm.protocol.errors import UsageError
 from tagswarm.protocol.geometry import Pose2, position_sigma_m, se2_compose
 from tagswarm.protocol.layout import anchors_map, arena_to_map, footprint_radius
 from tagswarm.protocol.scenario import Agent, Mission, Robot, Scenario
+
+B = TypeVar("B", bound=Behaviour)
 
 FACTORY = "make_controller"
 
@@ -155,7 +157,10 @@ class ControlInput:
     the server's newest correction (position block in the robot's own axes,
     x forward, y left, as in :class:`~tagswarm.protocol.messages.Correction`),
     else the odometry covariance.  ``odom`` / ``odom_cov`` are the encoder
-    dead reckoning in the odometry frame.  ``observations`` are the relative
+    dead reckoning in the odometry frame.  ``loose_pose`` is, when not
+    localised, the map's estimate (map frame) if the server has placed this
+    robot without vouching for it (position σ over ``[server] claim_sigma_m``),
+    else None.  ``observations`` are the relative
     poses this agent measured from its camera images since the previous cycle
     (also published to the server; pose of the target in this robot's
     base_link frame).  ``neighbours`` are the other robots from the server's
@@ -178,6 +183,7 @@ class ControlInput:
     observations: tuple[m.RelativeObservation, ...] = ()
     neighbours: tuple[Neighbour, ...] = ()
     goal: GoalRequest | None = None
+    loose_pose: Pose2 | None = None
     images: Mapping[str, m.CameraImage] = field(default_factory=dict)
 
 
@@ -204,6 +210,14 @@ class Controller:
         raise NotImplementedError(f"{type(self).__name__} must override step()")
 
 
+def mission_behaviour(cls: type[B], s: Scenario, rid: int, to_map: Pose2, static_obstacles: tuple[Box, ...]) -> B:
+    """Robot ``rid``'s behaviour (class ``cls``) for its mission in scenario ``s``; ``to_map`` (arena to
+    map frame) and ``static_obstacles`` (map frame) as in :class:`ControllerConfig`."""
+    team = tuple(sorted(mi.robot for mi in s.missions if mi.kind == "leapfrog"))
+    return cls(rid, s.mission(rid), s.agent, s.robot, to_map, team, static_obstacles=static_obstacles,
+               anchor=anchors_map(s, rid))
+
+
 class BehaviourController(Controller):
     """The built-in behaviour (mission, go-to-goal, active re-localisation, its own collision
     avoidance) as a :class:`Controller`.  Subclass it with ``behaviour_class`` set to a
@@ -213,11 +227,8 @@ class BehaviourController(Controller):
     avoid: ClassVar[bool] = False  # the behaviour plans around others itself
 
     def __init__(self, config: ControllerConfig) -> None:
-        s, rid = config.scenario, config.robot_id
-        team = tuple(sorted(mi.robot for mi in s.missions if mi.kind == "leapfrog"))
-        self.behaviour = self.behaviour_class(rid, s.mission(rid), s.agent, s.robot, config.arena_to_map, team,
-                                              static_obstacles=config.static_obstacles,
-                                              anchor=anchors_map(s, rid))
+        self.behaviour = mission_behaviour(self.behaviour_class, config.scenario, config.robot_id,
+                                           config.arena_to_map, config.static_obstacles)
         self._goal_number = 0
         self.mode = str(self.behaviour.mode)
 
@@ -229,7 +240,8 @@ class BehaviourController(Controller):
         sigma = position_sigma_m(inputs.pose_cov) if inputs.localised else None
         v, w = self.behaviour.cycle(t_s=inputs.t_s, map_pose=inputs.pose if inputs.localised else None,
                                     odom_yaw=inputs.odom[2], moved=inputs.moved, fix=inputs.fix,
-                                    server_up=inputs.server_up, neighbours=inputs.neighbours, pos_sigma_m=sigma)
+                                    server_up=inputs.server_up, neighbours=inputs.neighbours, pos_sigma_m=sigma,
+                                    loose_pose=None if inputs.localised else inputs.loose_pose)
         self.mode = str(self.behaviour.mode)
         return Twist(v, w)
 
@@ -421,15 +433,17 @@ def control_input(*, robot_id: int, time_ns: int, map_odom: Pose2 | None, map_co
                   odom_pose: Pose2, odom_cov: NDArray[np.float64], distance_m: float, moved: bool, fix: bool,
                   server_up: bool, observations: tuple[m.RelativeObservation, ...],
                   neighbours: tuple[Neighbour, ...], goal: GoalRequest | None,
-                  images: Mapping[str, m.CameraImage]) -> ControlInput:
+                  images: Mapping[str, m.CameraImage], loose_map_odom: Pose2 | None = None) -> ControlInput:
     """The agent's state as a :class:`ControlInput`: the map pose is ``map_odom`` composed with the
-    odometry pose (when localised), else the odometry pose itself."""
+    odometry pose (when localised), else the odometry pose itself; the loose pose likewise from
+    ``loose_map_odom`` (the server's unvouched placement) when not localised."""
     ocov = tuple(float(c) for c in odom_cov.ravel())
     if map_odom is None:
         pose, cov, localised = odom_pose, ocov, False
     else:
         pose, cov, localised = se2_compose(map_odom, odom_pose), map_cov or ocov, True
+    loose = None if localised or loose_map_odom is None else se2_compose(loose_map_odom, odom_pose)
     return ControlInput(robot_id=robot_id, t_s=time_ns / 1e9, localised=localised, pose=pose, pose_cov=cov,
                         odom=odom_pose, odom_cov=ocov, distance_m=distance_m, moved=moved, fix=fix,
                         server_up=server_up, observations=observations, neighbours=neighbours, goal=goal,
-                        images=dict(images))
+                        loose_pose=loose, images=dict(images))

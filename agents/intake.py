@@ -20,6 +20,8 @@ from tagswarm.protocol.bus import Received
 from tagswarm.runtime import streams
 
 M = TypeVar("M", m.Correction, m.Goal, m.WheelCommand)
+# the server's clock never runs ahead of our odometry by more than its watermark slack (1 s, server/node.py)
+CORRECTION_AHEAD_NS = 1_000_000_000
 
 
 class AgentIntake:
@@ -65,6 +67,18 @@ class AgentIntake:
                 continue
             self._last_frame_ns[camera] = img.stamp_ns
             yield img
+
+    def placement(self, c: m.Correction, odom_since_ns: int | None, time_ns: int) -> bool:
+        """Whether ``c`` places this robot (vouched for or not) in our odometry frame: not one made
+        before the server had our odometry (``odom_since_ns``: our first odometry's stamp in this run)
+        or ahead of our clock ``time_ns`` (a previous world run), whose map -> odom is for another odom
+        frame (counted as ``stale_corrections``)."""
+        if not (c.localised or any(c.cov)):
+            return False  # the server cannot place us yet
+        if odom_since_ns is None or c.stamp_ns < odom_since_ns or c.stamp_ns > time_ns + CORRECTION_AHEAD_NS:
+            self.counters["stale_corrections"] += 1
+            return False
+        return True
 
     def own(self, items: Iterable[Received[bytes]], cls: type[M]) -> Iterator[tuple[str, M]]:
         """(key, message) of the ``cls`` messages (corrections, goals, recorded commands) for this robot."""

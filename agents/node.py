@@ -45,10 +45,11 @@ from tagswarm.agents.controller import (
     control_input,
     load_factory,
     make,
+    mission_behaviour,
 )
 from tagswarm.agents.cubepose import PoseEstimate
 from tagswarm.agents.decoys import CopySites
-from tagswarm.agents.intake import AgentIntake
+from tagswarm.agents.intake import CORRECTION_AHEAD_NS, AgentIntake
 from tagswarm.agents.neighbours import NeighbourTracker
 from tagswarm.agents.odometry import DiffDriveOdometry, DiffDriveParams, SlipMonitor
 from tagswarm.agents.vision import Vision
@@ -65,8 +66,6 @@ from tagswarm.runtime.process import serve_node
 
 log = logging.getLogger("tagswarm.agent")
 LOCKSTEP_FRAME_QUEUE = 16  # per camera, lockstep only (bounded memory under a flood)
-# the server's clock never runs ahead of our odometry by more than its watermark slack (1 s, server/node.py)
-CORRECTION_AHEAD_NS = 1_000_000_000
 MAP_QUEUE = 64  # global maps waiting to be used (a few at 2 Hz; bounded under a flood)
 REALTIME_CMD_DELAY_TICKS = 2  # a realtime world applies a command up to this many ticks after its stamp
 
@@ -136,9 +135,7 @@ class AgentNode:
                                                       s.encoders.ticks_per_rev, a.odom_wheel_sigma))
         # map -> odom; the origin robot's first pose *is* the map frame (unless landmarks pin it)
         self.map_odom: Pose2 | None = (0.0, 0.0, 0.0) if anchors_map(s, rid) else None
-        team = tuple(sorted(mi.robot for mi in s.missions if mi.kind == "leapfrog"))
-        self.behaviour = Behaviour(rid, s.mission(rid), a, s.robot, arena_to_map(s), team,
-                                   static_obstacles=self.static_obstacles, anchor=anchors_map(s, rid))
+        self.behaviour = mission_behaviour(Behaviour, s, rid, arena_to_map(s), self.static_obstacles)
         self.custom: ControllerRunner | None = None
         if self._factory is not None:
             ccfg = ControllerConfig(rid, s, self.cfg.run)
@@ -146,6 +143,7 @@ class AgentNode:
             if isinstance(self.custom.controller, BehaviourController):
                 self.behaviour = self.custom.controller.behaviour  # its counters in the status
         self.map_cov: tuple[float, ...] | None = None  # of the newest correction
+        self.loose_map_odom: Pose2 | None = None  # placed but not vouched for, before the first vouched correction
         self.goal: GoalRequest | None = None
         self._observed: list[m.RelativeObservation] = []  # since the last control cycle (for a controller)
         self._frames_seen: dict[str, m.CameraImage] = {}
@@ -271,13 +269,10 @@ class AgentNode:
             self.correction_stamp_ns = max(self.correction_stamp_ns, c.stamp_ns)
             self.server_presence.heard("server", self.time_ns)
             self.gaps.seen(key, c.seq, "corrections")
-            if not c.localised:
+            if not self.intake.placement(c, self._odom_since_ns, self.time_ns):
                 continue
-            if (self._odom_since_ns is None or c.stamp_ns < self._odom_since_ns
-                    or c.stamp_ns > self.time_ns + CORRECTION_AHEAD_NS):
-                # made before the server had our odometry, or ahead of our clock (a previous world run):
-                # its map -> odom is for another odom frame
-                self.counters["stale_corrections"] += 1
+            if not c.localised:  # placed, not vouched for: a loose pose until the first vouched correction
+                self.loose_map_odom = (c.map_odom_x_m, c.map_odom_y_m, c.map_odom_yaw_rad)
                 continue
             self.map_odom = (c.map_odom_x_m, c.map_odom_y_m, c.map_odom_yaw_rad)
             self.map_cov = c.cov
@@ -380,14 +375,17 @@ class AgentNode:
         if self.custom is None:
             v, w = self.behaviour.cycle(t_s=self.time_ns / 1e9, map_pose=self.map_pose, odom_yaw=self.odom.yaw_rad,
                                         moved=self._moved, fix=self._fix, server_up=self.server_alive,
-                                        neighbours=self._others(), pos_sigma_m=position_sigma_m(self.map_cov))
+                                        neighbours=self._others(), pos_sigma_m=position_sigma_m(self.map_cov),
+                                        loose_pose=None if self.map_odom is not None or self.loose_map_odom is None
+                                        else se2_compose(self.loose_map_odom, self.odom.pose()))
             left, right = wheel_speeds(v, w, self.s.robot)
         else:
             left, right = self.custom.command(control_input(
                 robot_id=self.rid, time_ns=self.time_ns, map_odom=self.map_odom, map_cov=self.map_cov,
                 odom_pose=self.odom.pose(), odom_cov=self.odom.cov, distance_m=self.odom.distance_m,
                 moved=self._moved, fix=self._fix, server_up=self.server_alive, observations=tuple(self._observed),
-                neighbours=self._others(), goal=self.goal, images=self._frames_seen))
+                neighbours=self._others(), goal=self.goal, images=self._frames_seen,
+                loose_map_odom=self.loose_map_odom))
             self._observed.clear()
             self._frames_seen.clear()
         self._moved = self._fix = False

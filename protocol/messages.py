@@ -190,10 +190,11 @@ class Correction(Msg, frozen=True, kw_only=True, tag="correction"):
     newest accepted observation involving this robot (as observer or observed).
     In lockstep the server sends one every tick; in realtime one when it matters: a new
     fix, a change of localisation, ``map -> odom`` moved by 1 mm or 1 mrad, or 100 ms of
-    simulation time after the last.  ``localised=False`` (pose fields zero) means the
-    server cannot place this robot yet, or does not vouch for its place: the map has it, but
-    less sure than ``[server] claim_sigma_m`` or with its latest observations putting it elsewhere
-    (the global map still lists it, with its covariance).  ``cov`` is GTSAM's
+    simulation time after the last.  ``localised=False`` means the server cannot place
+    this robot yet (every pose field and ``cov`` zero), or does not vouch for its place:
+    the map has it, but less sure than ``[server] claim_sigma_m`` or with its latest
+    observations putting it elsewhere; the fields then hold the map's loose estimate, which
+    a robot never vouched for drives on slowly (the global map lists it too).  ``cov`` is GTSAM's
     marginal of the Pose2 in its tangent space: the position block is in the
     robot's own axes (x forward, y left), so rotate it by the yaw for the map
     frame."""

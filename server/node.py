@@ -332,7 +332,7 @@ class ServerNode:
             self._publish(key, outputs.relocalisation(ev, self.seq.next(key)))
 
     def _publish_corrections(self, all_robots: bool) -> None:
-        """Every localised robot's correction; with ``all_robots`` the others' too (``localised=False``).
+        """Every placed robot's correction (``localised`` if vouched for); with ``all_robots`` the others' too.
         Realtime sends only those :func:`~tagswarm.server.outputs.correction_due` (lockstep: every one,
         every tick, as the agents wait for them)."""
         for rid in sorted(self.roster):
@@ -341,7 +341,7 @@ class ServerNode:
             line = self._vouching.update(self.fusion, rid, msg, self.time_ns)
             if line:
                 log.info("%s", line)
-            if not (msg.localised or all_robots):
+            if not (msg.localised or all_robots or any(msg.cov)):
                 continue
             if not self.lockstep and not outputs.correction_due(self._sent.get(rid), msg):
                 self.counters["corrections_held"] += 1

@@ -72,17 +72,19 @@ def unvouched_reason(fusion: Estimator, rid: int, cov: Cov, claim_sigma_m: float
 
 
 def correction(fusion: Estimator, rid: int, time_ns: int, seq: int, claim_sigma_m: float = 0.0) -> m.Correction:
-    """Robot ``rid``'s ``map -> odom`` correction and fused pose now; ``localised=False`` (every
-    pose field zero) while the fusion cannot place it or does not vouch for it (:func:`unvouched_reason`)."""
+    """Robot ``rid``'s ``map -> odom`` correction and fused pose now; ``localised=False`` while the
+    fusion cannot place it (every pose field zero) or does not vouch for it (:func:`unvouched_reason`;
+    the fields then hold the map's loose estimate)."""
     est, mo = fusion.pose(rid), fusion.map_to_odom(rid)
     cov = None if est is None else reported_cov(est[1])
-    if est is None or mo is None or cov is None or unvouched_reason(fusion, rid, cov, claim_sigma_m) is not None:
+    if est is None or mo is None or cov is None:
         return m.Correction(seq=seq, stamp_ns=time_ns, robot_id=rid, map_odom_x_m=0.0, map_odom_y_m=0.0,
                             map_odom_yaw_rad=0.0, x_m=0.0, y_m=0.0, yaw_rad=0.0, cov=(0.0,) * 9, localised=False)
     x, y, yaw = est[0]
+    vouched = unvouched_reason(fusion, rid, cov, claim_sigma_m) is None
     return m.Correction(seq=seq, stamp_ns=time_ns, robot_id=rid, map_odom_x_m=mo[0], map_odom_y_m=mo[1],
                         map_odom_yaw_rad=mo[2], x_m=x, y_m=y, yaw_rad=yaw, cov=tuple(float(v) for v in cov.ravel()),
-                        last_fix_ns=fusion.last_fix_ns(rid))
+                        last_fix_ns=fusion.last_fix_ns(rid), localised=vouched)
 
 
 def correction_due(last: m.Correction | None, msg: m.Correction,

@@ -61,10 +61,11 @@ class Rig:
         assert self.bus.wait_for(lambda: len(self.node.tick_in) > 0, 5)
         self.node.step()
 
-    def correction(self, server: Bus, k: int, x: float) -> None:
+    def correction(self, server: Bus, k: int, x: float, var: float = 1e-4, localised: bool = True) -> None:
         server.put(self.keys.correction(RID), codec.encode(m.Correction(
             seq=k, stamp_ns=k * DT, robot_id=RID, map_odom_x_m=x, map_odom_y_m=0.0, map_odom_yaw_rad=0.0,
-            x_m=x, y_m=0.0, yaw_rad=0.0, cov=(1e-4, 0, 0, 0, 1e-4, 0, 0, 0, 1e-4), last_fix_ns=k * DT)))
+            x_m=x, y_m=0.0, yaw_rad=0.0, cov=(var, 0, 0, 0, var, 0, 0, 0, 1e-4), last_fix_ns=k * DT,
+            localised=localised)))
         assert self.bus.wait_for(lambda: len(self.node.corr_in) > 0, 5)
         self.node.step()
 
@@ -152,6 +153,23 @@ def test_a_restarted_world_resets_the_agent_and_a_foreign_run_is_rejected(rig: R
             # a correction the server made for the previous run is not applied to the new odometry
             rig.correction(server, 80, x=5.0)
             assert node.map_odom is None and node.counters["stale_corrections"] == 1
+
+
+def test_a_placement_the_server_does_not_vouch_for_is_only_a_loose_pose_until_a_vouched_one(rig: Rig) -> None:
+    node, keys = rig.node, rig.keys
+    with _peer(rig.ep, "world/0", keys) as world, _peer(rig.ep, "server/0", keys) as server:
+        rig.settle(lambda: node.server_alive, "server token never seen")
+        for k in range(5):
+            rig.encoders(world, k, ticks=k * 20)
+        rig.correction(server, 4, x=3.0, var=0.8, localised=False)  # placed, sigma 0.9 m: not vouched for
+        rig.encoders(world, 5, ticks=100)
+        assert node.map_odom is None and node.loose_map_odom == (3.0, 0.0, 0.0)
+        assert node.counters["corrections"] == 0 and node.behaviour.fixes == 0  # neither a fix nor a correction
+        assert rig.last_status().counters["localised"] == 0
+        rig.correction(server, 6, x=2.0)  # vouched for
+        rig.encoders(world, 7, ticks=140)
+        assert node.map_odom == (2.0, 0.0, 0.0) and node.counters["corrections"] == 1
+        assert rig.last_status().counters["localised"] == 1
 
 
 def _run_returns_within(node: AgentNode, timeout_s: float) -> bool:

@@ -262,3 +262,27 @@ def test_an_uncertain_position_starts_the_search_before_the_count_when_asked() -
         b.cycle(t_s=k, map_pose=pose, odom_yaw=0.0, moved=True, fix=False, pos_sigma_m=0.05)
         b.cycle(t_s=k, map_pose=pose, odom_yaw=0.0, moved=False, fix=False, pos_sigma_m=0.5)
     assert b.mode != Mode.SEARCHING and b.searches == 0
+
+
+def test_a_robot_placed_but_not_vouched_for_searches_then_drives_its_mission_slowly_on_the_loose_pose() -> None:
+    b = _moving()
+    loose, yaw = (0.0, 0.0, 0.0), 0.0
+    cmds = []
+    for k in range(CFG.fix_threshold + 5):
+        v, w = b.cycle(t_s=k, map_pose=None, odom_yaw=yaw, moved=False, fix=False, loose_pose=loose)
+        yaw += w * 0.1
+        cmds.append((v, w))
+    # first as if not placed: no forward motion, it turns to look
+    assert all(v == 0.0 for v, _ in cmds[:CFG.fix_threshold]) and cmds[0][1] == CFG.search_speed_rad_s
+    # then on the loose pose, towards the waypoint at (3, 0), at the lost speed at most
+    v, w = b.cycle(t_s=200, map_pose=None, odom_yaw=yaw, moved=True, fix=True, loose_pose=(0.0, 0.0, 0.0))
+    assert b.on_loose and 0 < v <= CFG.lost_speed_factor * CFG.max_speed_m_s + 1e-9
+    # without the loose pose it would still stand
+    plain = _moving()
+    for k in range(CFG.fix_threshold + 5):
+        plain.cycle(t_s=k, map_pose=None, odom_yaw=0.0, moved=False, fix=False)
+    assert plain.cycle(t_s=200, map_pose=None, odom_yaw=0.0, moved=True, fix=True)[0] == 0.0
+    # a vouched pose wins over a loose one, at full speed
+    v_full, _ = b.cycle(t_s=201, map_pose=(0.0, 0.0, 0.0), odom_yaw=yaw, moved=True, fix=True,
+                        loose_pose=(5.0, 5.0, 0.0))
+    assert not b.on_loose and v_full > CFG.lost_speed_factor * CFG.max_speed_m_s

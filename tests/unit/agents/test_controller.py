@@ -251,7 +251,15 @@ def test_control_input_is_the_map_pose_when_localised_else_odometry() -> None:
     map_cov = tuple(float(x) for x in np.eye(3).ravel() * 0.01)
     found = control_input(map_odom=(2.0, 1.0, math.pi / 2), map_cov=map_cov, **common)  # type: ignore[arg-type]
     assert found.localised and found.pose == pytest.approx((2.0, 2.0, math.pi / 2)) and found.pose_cov == map_cov
-    assert found.odom == (1.0, 0.0, 0.0)
+    assert found.odom == (1.0, 0.0, 0.0) and found.loose_pose is None and lost.loose_pose is None
+    # placed by the server but not vouched for: not localised, the map's estimate as the loose pose
+    loose = control_input(map_odom=None, map_cov=None, loose_map_odom=(2.0, 1.0, math.pi / 2),
+                          **common)  # type: ignore[arg-type]
+    assert not loose.localised and loose.pose == (1.0, 0.0, 0.0)
+    assert loose.loose_pose == pytest.approx((2.0, 2.0, math.pi / 2))
+    vouched = control_input(map_odom=(2.0, 1.0, 0.0), map_cov=map_cov, loose_map_odom=(9.0, 9.0, 0.0),
+                            **common)  # type: ignore[arg-type]
+    assert vouched.loose_pose is None
 
 
 def test_gray_is_the_frame_as_an_array() -> None:

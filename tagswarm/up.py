@@ -391,9 +391,10 @@ def _summary(console: Console, metrics: dict[str, Any], *, failed: bool = False)
                "landmarks in more robots' view, or missions that pass them, help" if anchored else
                f"no chain of sightings joined them to the origin robot {origin} within the run; landmarks, a more "
                "central origin or missions that meet help")
-        console.print(f"[yellow]never placed: robot(s) {', '.join(never)} of {len(firsts)} (the fused error above is "
-                      f"of the other {len(firsts) - len(never)}): {tie} (README, 'Your own scene')[/]",
-                      highlight=False)
+        console.print(f"[yellow]never localised: robot(s) {', '.join(never)} of {len(firsts)} (the fused error above "
+                      f"is of the other {len(firsts) - len(never)}); the server never placed them, or never vouched "
+                      f"for their place (position sigma over claim_sigma_m; logs/server.log says which): {tie} "
+                      "(README, 'Your own scene')[/]", highlight=False)
     end_s = metrics.get("run", {}).get("sim_time_s") or 0.0
     late = {k: f for k, f in firsts.items() if f is not None and f > max(LATE_PLACEMENT_S, 0.2 * end_s)}
     if late and not failed:

@@ -28,12 +28,12 @@ def _metrics(firsts: dict[str, float | None], warnings: list[str]) -> dict[str, 
 
 def test_robots_never_placed_are_named_with_what_helps() -> None:
     text = _printed(_metrics({"0": 0.0, "1": 2.5, "2": None, "3": None}, []))
-    assert "never placed: robot(s) 2, 3 of 4" in text
+    assert "never localised: robot(s) 2, 3 of 4" in text
     assert "the other 2" in text and "origin robot 0" in text
 
 
 def test_a_run_where_every_robot_was_placed_prints_no_such_line() -> None:
-    assert "never placed" not in _printed(_metrics({"0": 0.0, "1": 2.5}, []))
+    assert "never localised" not in _printed(_metrics({"0": 0.0, "1": 2.5}, []))
 
 
 def test_robots_placed_late_are_named_with_when() -> None:
@@ -133,7 +133,7 @@ def test_never_placed_with_landmarks_blames_the_landmarks_and_a_failed_run_blame
     m = _metrics({"0": None, "1": None, "2": 1.0}, [])
     m["run"]["landmarks"] = 4
     text = _printed(m)
-    assert "never placed: robot(s) 0, 1 of 3" in text and "landmark" in text and "origin robot 0" not in text
+    assert "never localised: robot(s) 0, 1 of 3" in text and "landmark" in text and "origin robot 0" not in text
     failed = io.StringIO()
     _summary(Console(file=failed, width=400, color_system=None), _metrics({"0": None, "1": None}, []), failed=True)
     assert "the run failed" in failed.getvalue() and "never placed" not in failed.getvalue()

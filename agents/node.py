@@ -246,8 +246,9 @@ class AgentNode:
             for e in gmap.robots:
                 if e.robot_id == self.rid:
                     self.counters["resumed_from_map"] = 1
-                    # odometry restarts at zero, so map -> odom is the last known pose
-                    self.map_odom = (e.x_m, e.y_m, e.yaw_rad)
+                    # odometry restarts at zero, so map -> odom is the last known pose (loose if not vouched for)
+                    pose = (e.x_m, e.y_m, e.yaw_rad)
+                    self.map_odom, self.loose_map_odom = (pose, None) if e.localised else (None, pose)
                     log.info("resuming from the server's last pose (%.2f, %.2f, %.2f)", e.x_m, e.y_m, e.yaw_rad)
 
     # ------------------------------------------------------------------ inputs

@@ -222,7 +222,9 @@ class Goal(Msg, frozen=True, kw_only=True, tag="goal"):
 
 class MapEntry(msgspec.Struct, frozen=True, kw_only=True):
     """One robot in the global map (map frame); ``cov`` as in :class:`Correction`
-    (position block in the robot's own axes)."""
+    (position block in the robot's own axes).  ``localised`` is whether the server
+    vouches for the pose, as in the robot's :class:`Correction` (False: the map's loose
+    estimate)."""
 
     robot_id: RobotId
     x_m: float
@@ -231,6 +233,7 @@ class MapEntry(msgspec.Struct, frozen=True, kw_only=True):
     cov: tuple[float, ...]
     last_seen_ns: StampNs
     alive: bool
+    localised: bool = True
 
 
 class GlobalMap(Msg, frozen=True, kw_only=True, tag="global_map"):

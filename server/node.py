@@ -321,7 +321,7 @@ class ServerNode:
     # ------------------------------------------------------------------ outputs
     def global_map(self) -> m.GlobalMap:
         return outputs.global_map(self.fusion, sorted(self.roster), self.s.map.origin_id, self.time_ns,
-                                  self.latest_rx, self.alive, self.seq.peek(self.keys.map()))
+                                  self.latest_rx, self.alive, self.seq.peek(self.keys.map()), self._claim_sigma_m)
 
     def _publish_relocalisations(self) -> None:
         for ev in self.fusion.take_relocalisations():

@@ -30,9 +30,10 @@ CORRECTION_KEEPALIVE_NS = 100_000_000
 
 
 def global_map(fusion: Estimator, robot_ids: Iterable[int], origin_id: int, time_ns: int,
-               latest_rx: Mapping[int, int], alive: set[int], seq: int) -> m.GlobalMap:
-    """Every localised robot of ``robot_ids`` (in that order) with its fused pose, when its
-    odometry last arrived and whether its agent is alive, and the recent observation edges."""
+               latest_rx: Mapping[int, int], alive: set[int], seq: int, claim_sigma_m: float = 0.0) -> m.GlobalMap:
+    """Every placed robot of ``robot_ids`` (in that order) with its fused pose, whether the server
+    vouches for it (:func:`unvouched_reason`), when its odometry last arrived and whether its agent
+    is alive, and the recent observation edges."""
     entries = []
     for rid in robot_ids:
         est = fusion.pose(rid)
@@ -42,7 +43,8 @@ def global_map(fusion: Estimator, robot_ids: Iterable[int], origin_id: int, time
         cov = reported_cov(graph_cov)
         entries.append(m.MapEntry(robot_id=rid, x_m=x, y_m=y, yaw_rad=yaw,
                                   cov=tuple(float(v) for v in cov.ravel()),
-                                  last_seen_ns=max(latest_rx.get(rid, 0), 0), alive=rid in alive))
+                                  last_seen_ns=max(latest_rx.get(rid, 0), 0), alive=rid in alive,
+                                  localised=unvouched_reason(fusion, rid, cov, claim_sigma_m) is None))
     edges = tuple(sorted(e for e, t in fusion.edges.items() if time_ns - t <= EDGE_MEMORY_NS))
     return m.GlobalMap(seq=seq, stamp_ns=time_ns, origin_id=origin_id, robots=tuple(entries), edges=edges)
 

@@ -51,7 +51,11 @@ def summarise(msg: m.Msg) -> str:
         return f"robot {msg.robot_id} {_pose(msg.x_m, msg.y_m, msg.yaw_rad)} travelled {msg.distance_m:.2f} m"
     if isinstance(msg, m.Correction):
         if not msg.localised:
-            return f"robot {msg.robot_id} not localised"
+            if not any(msg.cov):
+                return f"robot {msg.robot_id} not localised"
+            sigma = math.sqrt(max(max(msg.cov[0], msg.cov[4]), 0.0))
+            return (f"robot {msg.robot_id} not localised: placed at {_pose(msg.x_m, msg.y_m, msg.yaw_rad)} (map), "
+                    f"not vouched for (sigma {sigma:.2f} m)")
         return f"robot {msg.robot_id} at {_pose(msg.x_m, msg.y_m, msg.yaw_rad)} (map)"
     if isinstance(msg, m.GlobalMap):
         alive = sum(1 for e in msg.robots if e.alive)

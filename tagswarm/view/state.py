@@ -257,7 +257,9 @@ class ViewState:
             if view is None:
                 continue
             view.alive = e.alive
-            if g.stamp_ns >= view.fused_stamp_ns:  # on a tie the map wins: it is what the test compares with
+            if not e.localised:  # in the map, but the server does not vouch for it: not shown as localised
+                view.localised = False
+            elif g.stamp_ns >= view.fused_stamp_ns:  # on a tie the map wins: it is what the test compares with
                 view.fused = (e.x_m, e.y_m, e.yaw_rad)
                 view.fused_cov = tuple(e.cov)
                 view.fused_stamp_ns, view.fused_source = g.stamp_ns, "map"

@@ -8,7 +8,7 @@ import math
 import numpy as np
 
 from tagswarm.server.fusion import Fusion, FusionParams
-from tagswarm.server.outputs import Vouching, correction, position_sigma_m, unvouched_reason
+from tagswarm.server.outputs import Vouching, correction, global_map, position_sigma_m, unvouched_reason
 
 # a far cube seen face-on: its bearing and range are good to centimetres, its yaw to 14 degrees
 FAR = np.diag([0.035**2, 0.02**2, math.radians(14.0) ** 2])
@@ -48,6 +48,10 @@ def test_a_robot_placed_from_one_far_view_is_in_the_map_but_not_claimed() -> Non
     # not vouched for, but the map's estimate goes out with it (the robot may drive on it slowly)
     assert abs(loose.x_m - est[0][0]) < 1e-9 and position_sigma_m(np.asarray(loose.cov).reshape(3, 3)) > 0.5
     assert loose.map_odom_x_m != 0.0 or loose.map_odom_y_m != 0.0
+    # the global map lists it too, flagged the same way
+    entries = {e.robot_id: e for e in global_map(fusion, (0, 1), 0, fusion.watermark_ns, {}, set(), 0, 0.5).robots}
+    assert entries[0].localised and not entries[1].localised and entries[1].x_m == loose.x_m
+    assert global_map(fusion, (0, 1), 0, fusion.watermark_ns, {}, set(), 0, 0.0).robots[1].localised
     claimed = correction(fusion, 1, fusion.watermark_ns, 0, claim_sigma_m=0.0)
     assert claimed.localised and abs(claimed.x_m - 4.0) < 0.3
     assert correction(fusion, 0, fusion.watermark_ns, 0, claim_sigma_m=0.5).localised  # the origin

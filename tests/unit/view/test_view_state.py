@@ -97,6 +97,17 @@ def test_unlocalised_robot_has_no_fused_pose(state: ViewState) -> None:
     assert r["fused"] is None and r["localised"] is False
 
 
+def test_a_map_entry_the_server_does_not_vouch_for_is_not_shown_as_localised(state: ViewState) -> None:
+    loose = m.MapEntry(robot_id=2, x_m=1.0, y_m=1.0, yaw_rad=0.0, cov=COV, last_seen_ns=50, alive=True,
+                       localised=False)
+    state.apply(m.GlobalMap(seq=0, stamp_ns=50, origin_id=0, robots=(loose,)), KEYS.map())
+    r = robot(state.snapshot(), 2)
+    assert r["fused"] is None and r["localised"] is False
+    state.apply(gmap(60, (2, 1.5, 1.0)), KEYS.map())  # vouched for
+    r = robot(state.snapshot(), 2)
+    assert r["fused"] is not None and r["localised"] is True
+
+
 def test_error_compares_with_the_truth_at_the_fused_stamp(state: ViewState) -> None:
     a2m = arena_to_map(state.s)
     for k, x in enumerate((0.0, 0.1, 0.2)):  # arena x; map x = arena x + 1.5

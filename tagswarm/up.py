@@ -355,7 +355,7 @@ def _controller_trouble(console: Console, out: Path) -> None:
         console.print(f"[yellow]{note} (docs/controllers.md)[/]", highlight=False)
 
 
-# a robot first placed later than this (s of simulated time, and a fifth of the run) is named at the end
+# a robot first localised later than this (s of simulated time, and a fifth of the run) is named at the end
 LATE_PLACEMENT_S = 10.0
 
 
@@ -398,11 +398,11 @@ def _summary(console: Console, metrics: dict[str, Any], *, failed: bool = False)
     end_s = metrics.get("run", {}).get("sim_time_s") or 0.0
     late = {k: f for k, f in firsts.items() if f is not None and f > max(LATE_PLACEMENT_S, 0.2 * end_s)}
     if late and not failed:
-        console.print(f"[yellow]placed late: robot(s) {', '.join(f'{k} ({f:.1f} s)' for k, f in late.items())}: no "
-                      "robot saw their tags well enough to place them before (too far for the camera, hidden or out "
-                      "of view), and time localised counts those seconds as lost; robots within each other's "
-                      "view and decoding range, or missions that pass them, help (README, 'Your own scene')[/]",
-                      highlight=False)
+        console.print(f"[yellow]localised late: robot(s) {', '.join(f'{k} ({f:.1f} s)' for k, f in late.items())}: "
+                      "no robot saw their tags well enough to place them before (too far for the camera, hidden or "
+                      "out of view), or the server did not vouch for their place before (logs/server.log), and time "
+                      "localised counts those seconds as lost; robots within each other's view and decoding range, "
+                      "or missions that pass them, help (README, 'Your own scene')[/]", highlight=False)
     over = {k: ((r.get("fused") or {}).get("ate_unaligned") or {}) for k, r in metrics.get("robots", {}).items()}
     over = {k: a for k, a in over.items() if a.get("max") is not None and a["max"] >= LOCALISED_M}
     if over:

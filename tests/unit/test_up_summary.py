@@ -42,10 +42,10 @@ def test_robots_placed_late_are_named_with_when() -> None:
     m = _metrics({"0": 0.0, "1": 6.2, "2": 25.8, "4": 23.7}, [])
     m["run"]["sim_time_s"] = 45.0
     text = _printed(m)
-    assert "placed late: robot(s) 2 (25.8 s), 4 (23.7 s)" in text and "1 (6.2 s)" not in text
+    assert "localised late: robot(s) 2 (25.8 s), 4 (23.7 s)" in text and "1 (6.2 s)" not in text
     m["run"]["sim_time_s"] = 200.0  # 25.8 s of a 200 s run is not late
-    assert "placed late" not in _printed(m)
-    assert "placed late" not in _printed(_metrics({"0": 0.0, "1": 9.0}, []))
+    assert "localised late" not in _printed(m)
+    assert "localised late" not in _printed(_metrics({"0": 0.0, "1": 9.0}, []))
 
 
 def test_robots_the_map_is_unsure_of_are_named_weakly_tied() -> None:

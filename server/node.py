@@ -341,6 +341,7 @@ class ServerNode:
             line = self._vouching.update(self.fusion, rid, msg, self.time_ns)
             if line:
                 log.info("%s", line)
+                self.counters["unvouched_events"] = self._vouching.unvouched_events
             if not (msg.localised or all_robots or any(msg.cov)):
                 continue
             if not self.lockstep and not outputs.correction_due(self._sent.get(rid), msg):

@@ -138,17 +138,19 @@ class Vouching:
     def __init__(self, claim_sigma_m: float) -> None:
         self.claim_sigma_m = claim_sigma_m
         self.state: dict[int, str] = {}  # robot -> "unplaced" / "unvouched" / "vouched"
+        self.unvouched_events = 0  # times a placed robot went (or started) unvouched
 
     def update(self, fusion: Estimator, rid: int, msg: m.Correction, time_ns: int) -> str | None:
         """Robot ``rid``'s correction ``msg`` is going out: the log line if the server started or
         stopped vouching for it (with why), else None."""
-        est = None if msg.localised else fusion.pose(rid)
-        state = "vouched" if msg.localised else ("unplaced" if est is None else "unvouched")
+        # an unvouched correction carries the map's estimate and its reported covariance, an unplaced one zeros
+        state = "vouched" if msg.localised else ("unvouched" if any(msg.cov) else "unplaced")
         if state == self.state.get(rid, "unplaced"):
             return None
         self.state[rid] = state
-        if est is not None:  # why, worked out once per change
-            reason = unvouched_reason(fusion, rid, reported_cov(est[1]), self.claim_sigma_m)
+        if state == "unvouched":  # why, worked out once per change
+            self.unvouched_events += 1
+            reason = unvouched_reason(fusion, rid, np.asarray(msg.cov).reshape(3, 3), self.claim_sigma_m)
             return f"robot {rid} is in the map but not reported localised at t={time_ns / 1e9:.2f} s: {reason}"
         if state == "vouched":
             return (f"robot {rid} reported localised at t={time_ns / 1e9:.2f} s "

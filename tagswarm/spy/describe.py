@@ -14,6 +14,7 @@ import msgspec
 
 from tagswarm.protocol import codec
 from tagswarm.protocol import messages as m
+from tagswarm.protocol.geometry import position_sigma_m
 
 
 def _pose(x: float, y: float, yaw: float) -> str:
@@ -53,7 +54,7 @@ def summarise(msg: m.Msg) -> str:
         if not msg.localised:
             if not any(msg.cov):
                 return f"robot {msg.robot_id} not localised"
-            sigma = math.sqrt(max(max(msg.cov[0], msg.cov[4]), 0.0))
+            sigma = position_sigma_m(msg.cov) or 0.0
             return (f"robot {msg.robot_id} not localised: placed at {_pose(msg.x_m, msg.y_m, msg.yaw_rad)} (map), "
                     f"not vouched for (sigma {sigma:.2f} m)")
         return f"robot {msg.robot_id} at {_pose(msg.x_m, msg.y_m, msg.yaw_rad)} (map)"

@@ -139,3 +139,6 @@ def test_the_log_says_when_the_server_starts_and_stops_vouching_and_not_every_ti
     assert v.update(loose, 1, correction(loose, 1, t, 0, claim_sigma_m=0.5), t) is None  # no change, no line
     line = v.update(pinned, 1, correction(pinned, 1, t, 0, claim_sigma_m=0.5), t)
     assert line is not None and line.startswith("robot 1 reported localised at t=")
+    assert v.unvouched_events == 1  # the server status counter unvouched_events
+    assert v.update(loose, 0, correction(loose, 0, t, 0, claim_sigma_m=0.5), t) is not None  # the origin: vouched
+    assert v.unvouched_events == 1

@@ -116,6 +116,7 @@ class Behaviour:
     leapfrog_team: tuple[int, ...] = ()
     static_obstacles: tuple[Box, ...] = ()  # map frame (tagswarm.agents.avoid.static_boxes)
     anchor: bool = False  # its first pose is the map frame: turning would only blur the frame, it never looks around
+    holders: frozenset[int] = frozenset()  # robots holding station (agents.avoid: nobody waits for them to make way)
     mode: Mode = Mode.ODOMETRY
     counter: int = 0
     since_fix: int = 1_000_000
@@ -142,7 +143,7 @@ class Behaviour:
 
     def __post_init__(self) -> None:
         self.avoider = Avoider(footprint_radius(self.robot), self.cfg.avoid_clearance_m, self.cfg.avoid_horizon_s,
-                               self.robot_id, self.cfg.avoid_stall_s)
+                               self.robot_id, self.cfg.avoid_stall_s, holders=self.holders)
 
     def set_goal(self, x_m: float, y_m: float, tolerance_m: float) -> None:
         """A run-time goal (map frame) replaces the mission until reached."""
@@ -224,7 +225,8 @@ class Behaviour:
 
     def cycle(self, *, t_s: float, map_pose: Pose2 | None, odom_yaw: float, moved: bool,
               fix: bool, server_up: bool = True, neighbours: Sequence[Neighbour] = (),
-              pos_sigma_m: float | None = None, loose_pose: Pose2 | None = None) -> tuple[float, float]:
+              pos_sigma_m: float | None = None, loose_pose: Pose2 | None = None,
+              vouched: bool = True) -> tuple[float, float]:
         """One control step.  ``map_pose`` is the corrected pose (None if never
         localised), ``odom_yaw`` the smooth odometry heading (to measure the sweep),
         ``moved`` whether the encoders moved since the last cycle, ``fix`` whether
@@ -232,9 +234,10 @@ class Behaviour:
         the module docstring), ``neighbours`` the other robots now (map frame),
         ``pos_sigma_m`` the fused position's σ in metres (None if unknown; used
         by ``agent.search_sigma_m``), ``loose_pose`` the map's estimate of a robot the server has
-        placed but does not vouch for (None otherwise; see the module docstring).  Returns
-        (v_m_s, w_rad_s)."""
-        self.on_loose = False
+        placed but does not vouch for (None otherwise; see the module docstring), ``vouched`` False
+        when ``map_pose`` is the map's estimate of a robot the server no longer vouches for (driven on
+        slowly, as a loose pose).  Returns (v_m_s, w_rad_s)."""
+        self.on_loose = map_pose is not None and not vouched
         if map_pose is None and loose_pose is not None:
             self.loose_cycles += 1
             if self.loose_cycles > self.cfg.fix_threshold:

@@ -160,7 +160,11 @@ class ControlInput:
     dead reckoning in the odometry frame.  ``loose_pose`` is, when not
     localised, the map's estimate (map frame) if the server has placed this
     robot without vouching for it (position σ over ``[server] claim_sigma_m``),
-    else None.  ``observations`` are the relative
+    else None.  ``vouched``: whether the server vouches for ``pose`` now; False
+    when not localised, and when ``pose`` is the map's newest estimate of a robot
+    the server vouched for before and no longer does (its σ grew past
+    ``claim_sigma_m``, or its views are in dispute; ``pose_cov`` is then that
+    estimate's).  ``observations`` are the relative
     poses this agent measured from its camera images since the previous cycle
     (also published to the server; pose of the target in this robot's
     base_link frame).  ``neighbours`` are the other robots from the server's
@@ -184,6 +188,7 @@ class ControlInput:
     neighbours: tuple[Neighbour, ...] = ()
     goal: GoalRequest | None = None
     loose_pose: Pose2 | None = None
+    vouched: bool = True
     images: Mapping[str, m.CameraImage] = field(default_factory=dict)
 
 
@@ -214,8 +219,9 @@ def mission_behaviour(cls: type[B], s: Scenario, rid: int, to_map: Pose2, static
     """Robot ``rid``'s behaviour (class ``cls``) for its mission in scenario ``s``; ``to_map`` (arena to
     map frame) and ``static_obstacles`` (map frame) as in :class:`ControllerConfig`."""
     team = tuple(sorted(mi.robot for mi in s.missions if mi.kind == "leapfrog"))
+    holders = frozenset(r for r in range(s.robots.count) if s.mission(r).kind == "hold")
     return cls(rid, s.mission(rid), s.agent, s.robot, to_map, team, static_obstacles=static_obstacles,
-               anchor=anchors_map(s, rid))
+               anchor=anchors_map(s, rid), holders=holders)
 
 
 class BehaviourController(Controller):
@@ -241,7 +247,7 @@ class BehaviourController(Controller):
         v, w = self.behaviour.cycle(t_s=inputs.t_s, map_pose=inputs.pose if inputs.localised else None,
                                     odom_yaw=inputs.odom[2], moved=inputs.moved, fix=inputs.fix,
                                     server_up=inputs.server_up, neighbours=inputs.neighbours, pos_sigma_m=sigma,
-                                    loose_pose=None if inputs.localised else inputs.loose_pose)
+                                    loose_pose=None if inputs.localised else inputs.loose_pose, vouched=inputs.vouched)
         self.mode = str(self.behaviour.mode)
         return Twist(v, w)
 
@@ -433,10 +439,12 @@ def control_input(*, robot_id: int, time_ns: int, map_odom: Pose2 | None, map_co
                   odom_pose: Pose2, odom_cov: NDArray[np.float64], distance_m: float, moved: bool, fix: bool,
                   server_up: bool, observations: tuple[m.RelativeObservation, ...],
                   neighbours: tuple[Neighbour, ...], goal: GoalRequest | None,
-                  images: Mapping[str, m.CameraImage], loose_map_odom: Pose2 | None = None) -> ControlInput:
+                  images: Mapping[str, m.CameraImage], loose_map_odom: Pose2 | None = None,
+                  vouched: bool = True) -> ControlInput:
     """The agent's state as a :class:`ControlInput`: the map pose is ``map_odom`` composed with the
     odometry pose (when localised), else the odometry pose itself; the loose pose likewise from
-    ``loose_map_odom`` (the server's unvouched placement) when not localised."""
+    ``loose_map_odom`` (the server's unvouched placement) when not localised; ``vouched`` whether the
+    server still vouches for ``map_odom``."""
     ocov = tuple(float(c) for c in odom_cov.ravel())
     if map_odom is None:
         pose, cov, localised = odom_pose, ocov, False
@@ -446,4 +454,4 @@ def control_input(*, robot_id: int, time_ns: int, map_odom: Pose2 | None, map_co
     return ControlInput(robot_id=robot_id, t_s=time_ns / 1e9, localised=localised, pose=pose, pose_cov=cov,
                         odom=odom_pose, odom_cov=ocov, distance_m=distance_m, moved=moved, fix=fix,
                         server_up=server_up, observations=observations, neighbours=neighbours, goal=goal,
-                        loose_pose=loose, images=dict(images))
+                        loose_pose=loose, vouched=localised and vouched, images=dict(images))

@@ -99,9 +99,8 @@ class AgentNode:
         self._cpu_frames_s = 0.0
         self.enc_in = bus.subscribe(self.keys.encoders(rid))
         self.recorded_cmd_in = bus.subscribe(self.keys.recorded_cmd(rid))  # only a replay sends them
-        # realtime: only encoders (a control cycle) and frames wake the loop; ticks, corrections, goals and
-        # maps are read at the next wake-up, which is where they are used anyway (one pass of the loop
-        # less per tick, correction and map: ~60 a second per agent).  Lockstep waits on them
+        # realtime: only encoders (a control cycle) and frames wake the loop; ticks, corrections, goals and maps
+        # are read at the next wake-up, where they are used anyway (~60 passes a second less).  Lockstep waits on them
         wakes = self.lockstep
         self.tick_in = bus.subscribe(self.keys.tick(), wakes=wakes)
         self.corr_in = bus.subscribe(self.keys.correction(rid), wakes=wakes)
@@ -143,6 +142,7 @@ class AgentNode:
             if isinstance(self.custom.controller, BehaviourController):
                 self.behaviour = self.custom.controller.behaviour  # its counters in the status
         self.map_cov: tuple[float, ...] | None = None  # of the newest correction
+        self.vouched = True  # whether the newest correction vouched for map_odom
         self.loose_map_odom: Pose2 | None = None  # placed but not vouched for, before the first vouched correction
         self.goal: GoalRequest | None = None
         self._observed: list[m.RelativeObservation] = []  # since the last control cycle (for a controller)
@@ -272,13 +272,14 @@ class AgentNode:
             self.gaps.seen(key, c.seq, "corrections")
             if not self.intake.placement(c, self._odom_since_ns, self.time_ns):
                 continue
-            if not c.localised:  # placed, not vouched for: a loose pose until the first vouched correction
-                self.loose_map_odom = (c.map_odom_x_m, c.map_odom_y_m, c.map_odom_yaw_rad)
+            pose = (c.map_odom_x_m, c.map_odom_y_m, c.map_odom_yaw_rad)
+            if not c.localised and self.map_odom is None:  # placed, not vouched for: a loose pose until vouched for
+                self.loose_map_odom = pose
                 continue
-            self.map_odom = (c.map_odom_x_m, c.map_odom_y_m, c.map_odom_yaw_rad)
-            self.map_cov = c.cov
-            self.counters["corrections"] += 1
-            if c.last_fix_ns > self.last_fix_ns:
+            # no longer vouched for: the map's newest estimate with its honest sigma, driven on slowly (Behaviour)
+            self.map_odom, self.map_cov, self.vouched = pose, c.cov, c.localised
+            self.counters["corrections"] += c.localised
+            if c.localised and c.last_fix_ns > self.last_fix_ns:
                 self.last_fix_ns = c.last_fix_ns
                 self._fix = True
         for _, g in self.intake.own(self.goal_in.drain(), m.Goal):
@@ -378,7 +379,7 @@ class AgentNode:
                                         moved=self._moved, fix=self._fix, server_up=self.server_alive,
                                         neighbours=self._others(), pos_sigma_m=position_sigma_m(self.map_cov),
                                         loose_pose=None if self.map_odom is not None or self.loose_map_odom is None
-                                        else se2_compose(self.loose_map_odom, self.odom.pose()))
+                                        else se2_compose(self.loose_map_odom, self.odom.pose()), vouched=self.vouched)
             left, right = wheel_speeds(v, w, self.s.robot)
         else:
             left, right = self.custom.command(control_input(
@@ -386,7 +387,7 @@ class AgentNode:
                 odom_pose=self.odom.pose(), odom_cov=self.odom.cov, distance_m=self.odom.distance_m,
                 moved=self._moved, fix=self._fix, server_up=self.server_alive, observations=tuple(self._observed),
                 neighbours=self._others(), goal=self.goal, images=self._frames_seen,
-                loose_map_odom=self.loose_map_odom))
+                loose_map_odom=self.loose_map_odom, vouched=self.vouched))
             self._observed.clear()
             self._frames_seen.clear()
         self._moved = self._fix = False
@@ -410,7 +411,7 @@ class AgentNode:
         out = dict(self.counters)
         received = sum(inbox.received for inbox in self.images.values())
         out.update(fixes=b.fixes, searches=b.searches, lost_events=b.lost_events, look_arounds=b.look_arounds,
-                   odometry_cycles=b.counter, localised=int(self.map_odom is not None),
+                   odometry_cycles=b.counter, localised=int(self.map_odom is not None and self.vouched),
                    server_alive=int(self.server_alive), avoiding_cycles=b.avoider.cycles_avoiding,
                    avoid_yields=b.avoider.yields, avoid_side_flips=b.avoider.side_flips,
                    maps_used=self.neighbours.maps_adopted, slip_events=self.slip.events,

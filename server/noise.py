@@ -63,6 +63,8 @@ class FusionParams:
     reloc_min_single: int = 5
     reloc_span_s: float = 1.0
     reloc_span_many_s: float = 1.0
+    # ... or reloc_min over this span when a witness and the suspect see each other where the evidence says
+    reloc_span_mutual_s: float = 0.3
     reloc_trust_s: float = 3.0
     # a witness is also trusted when its position sigma is under this share of the suspect's (0: never):
     # two robots out of everyone's view are both untrusted, yet the one far surer of itself can judge the other

@@ -31,7 +31,10 @@ Mangelson et al. 2018; Kimera-Multi) does for loop closures:
   span is the time a copy has to give itself away: until the robot is seen where the map
   has it again, a copy of its cube looks exactly like the robot carried away (measured:
   robots turning to look around glimpsed a copy cube for 0.2 s, two witnesses, and won two
-  re-localisations of a robot nobody saw in those 0.2 s);
+  re-localisations of a robot nobody saw in those 0.2 s).  A witness and the suspect that
+  see each other where the evidence says need only ``reloc_span_mutual_s``: a copy of a cube
+  has no camera, so the suspect's own views of the witness cannot come from one (measured:
+  the kidnap scene's teleported robot, facing the origin robot, back in 0.6 s instead of 1.1 s);
 - accepted observations of the suspect during that time are counter-evidence:
   a robot that is still seen where the map has it (a decoy tag of its ID on a
   wall, a spoofed stream) is not moved while more than a third as many
@@ -344,7 +347,8 @@ class Recovery:
         span_s = (max(c.stamp_ns for c in agree) - first) / 1e9
         many = len(agree) >= self.p.reloc_min and len(witnesses) >= 2 and span_s >= self.p.reloc_span_many_s
         repeated = len(agree) >= self.p.reloc_min_single and span_s >= self.p.reloc_span_s
-        if not (many or repeated or (landmark and len(agree) >= self.p.reloc_min)):
+        if not (many or repeated or (landmark and len(agree) >= self.p.reloc_min)
+                or (self._mutual(suspect, agree) and span_s >= self.p.reloc_span_mutual_s)):
             return None
         if self._counter_evidence(suspect, first, best) * 3 > len(agree):
             return None
@@ -352,6 +356,23 @@ class Recovery:
         if admit and not self.p.reloc_admit:
             return None
         return Verdict(suspect, [best, *(c for c in agree if c is not best)], witnesses, admit=admit)
+
+    def _mutual(self, suspect: int, agree: list[Candidate]) -> bool:
+        """Whether ``agree`` holds at least ``reloc_min`` pieces, two or more of them each way between the
+        suspect and one witness: the witness sees the suspect where the suspect's own view of the witness
+        puts it (see the module docstring)."""
+        if len(agree) < self.p.reloc_min:
+            return False
+        seen_by: Counter[int] = Counter()
+        sees: Counter[int] = Counter()
+        for c in agree:
+            if len(c.meas) == 4:
+                observer, target = c.meas[0], c.meas[1]
+                if target == suspect:
+                    seen_by[observer] += 1
+                else:
+                    sees[target] += 1
+        return any(n >= 2 and sees[w] >= 2 for w, n in seen_by.items())
 
     def significant(self, agree: list[Candidate], n_witnesses: int, pose: Pose2, odom: Pose2, var_m2: float) -> bool:
         """Whether the consensus of ``agree`` is far enough from the estimated ``pose``

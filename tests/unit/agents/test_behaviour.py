@@ -286,3 +286,15 @@ def test_a_robot_placed_but_not_vouched_for_searches_then_drives_its_mission_slo
     v_full, _ = b.cycle(t_s=201, map_pose=(0.0, 0.0, 0.0), odom_yaw=yaw, moved=True, fix=True,
                         loose_pose=(5.0, 5.0, 0.0))
     assert not b.on_loose and v_full > CFG.lost_speed_factor * CFG.max_speed_m_s
+
+
+def test_a_robot_the_server_no_longer_vouches_for_drives_on_slowly() -> None:
+    b = _moving()
+    v_full, _ = b.cycle(t_s=0.0, map_pose=(0.0, 0.0, 0.0), odom_yaw=0.0, moved=True, fix=True)
+    assert not b.on_loose and v_full > CFG.lost_speed_factor * CFG.max_speed_m_s
+    # its sigma grew past claim_sigma_m: the same mission, towards (3, 0), at the lost speed at most
+    v, _ = b.cycle(t_s=0.1, map_pose=(0.0, 0.0, 0.0), odom_yaw=0.0, moved=True, fix=False, vouched=False)
+    assert b.on_loose and 0 < v <= CFG.lost_speed_factor * CFG.max_speed_m_s + 1e-9, v
+    # vouched for again: full speed
+    v_again, _ = b.cycle(t_s=0.2, map_pose=(0.0, 0.0, 0.0), odom_yaw=0.0, moved=True, fix=True, vouched=True)
+    assert not b.on_loose and v_again == v_full

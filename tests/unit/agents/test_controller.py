@@ -7,6 +7,7 @@ from __future__ import annotations
 import logging
 import math
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -204,6 +205,10 @@ def test_behaviour_controller_commands_exactly_what_the_behaviour_does() -> None
         pose = (pose[0] + math.cos(pose[2]) * got.v_m_s / 30, pose[1] + math.sin(pose[2]) * got.v_m_s / 30,
                 pose[2] + got.w_rad_s / 30)
     assert ctrl.mode == str(ref.mode) and ctrl.behaviour.fixes == ref.fixes > 0
+    # no longer vouched for: both drive on slowly
+    got = ctrl.step(replace(_inputs(pose, t_s=3.0, moved=True), vouched=False))
+    want = ref.cycle(t_s=3.0, map_pose=pose, odom_yaw=pose[2], moved=True, fix=False, neighbours=(), vouched=False)
+    assert isinstance(got, Twist) and (got.v_m_s, got.w_rad_s) == want and ctrl.behaviour.on_loose
     # unlocalised: the behaviour gets no map pose and searches
     fresh = BehaviourController(cfg)
     assert fresh.step(_inputs(localised=False)) == Twist(0.0, PAPER.agent.search_speed_rad_s)
@@ -259,7 +264,10 @@ def test_control_input_is_the_map_pose_when_localised_else_odometry() -> None:
     assert loose.loose_pose == pytest.approx((2.0, 2.0, math.pi / 2))
     vouched = control_input(map_odom=(2.0, 1.0, 0.0), map_cov=map_cov, loose_map_odom=(9.0, 9.0, 0.0),
                             **common)  # type: ignore[arg-type]
-    assert vouched.loose_pose is None
+    assert vouched.loose_pose is None and vouched.vouched and found.vouched and not lost.vouched
+    # vouched for once, no longer now: localised on the map's estimate, flagged
+    lapsed = control_input(map_odom=(2.0, 1.0, 0.0), map_cov=map_cov, vouched=False, **common)  # type: ignore[arg-type]
+    assert lapsed.localised and not lapsed.vouched and lapsed.pose == pytest.approx((3.0, 1.0, 0.0))
 
 
 def test_gray_is_the_frame_as_an_array() -> None:

@@ -462,3 +462,21 @@ def test_far_views_from_a_witness_unsure_of_its_heading_do_not_move_a_robot_that
     est3, est1 = fusion.pose(3), fusion.pose(1)
     assert est3 is not None and math.dist(est3[0][:2], truth3[:2]) < 0.05  # before the lever: 0.88 m off
     assert est1 is not None and abs(math.remainder(est1[0][2], math.tau)) < 0.03  # the witness got its heading back
+
+
+def test_a_robot_that_sees_its_witness_where_the_witness_sees_it_is_relocalised_without_waiting_a_second() -> None:
+    # only the origin and robot 3 see each other: one witness, so one-way evidence needs reloc_span_s (1 s)
+    mutual = {0: (1, 2, 3), 1: (0,), 2: (0,), 3: (0,)}
+    fusion, _, hist = _run(12.0, mutual, kidnap={3: (6.0, (1.5, 0.6, math.pi - 0.3))})
+    back = _recovered_after(hist, 6.0)
+    assert back is not None and back <= 0.6, back
+    assert [e.robot_id for e in fusion.take_relocalisations()] == [3]
+    # the origin's views alone (a copy of robot 3's cube would give the same) wait the whole span
+    _, _, hist = _run(12.0, ONLY_ORIGIN_SEES_3, kidnap={3: (6.0, (1.5, 0.6, math.pi - 0.3))})
+    slow = _recovered_after(hist, 6.0)
+    assert slow is not None and slow >= 1.0, slow
+    # and with the mutual rule off, so does the mutual pair
+    _, _, hist = _run(12.0, mutual, kidnap={3: (6.0, (1.5, 0.6, math.pi - 0.3))},
+                      params=replace(FusionParams(), reloc_span_mutual_s=math.inf))
+    off = _recovered_after(hist, 6.0)
+    assert off is not None and off >= 1.0, off

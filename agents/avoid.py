@@ -21,7 +21,9 @@ Deadlocks: every robot prefers to keep the others on its left (``side`` -1),
 so two robots driving at each other head-on both veer right and pass.  A robot
 that makes no progress while avoiding for ``stall_s`` backs away for a while if
 a robot with a lower id is close (priority by id: it goes first), else tries
-the other side.  A robot holding station (``holders``) never goes first: waiting
+the other side (or, given ``replan``, first looks for a way round the room: a shelf
+whose near end a robot blocks is driven round its far end; :mod:`tagswarm.agents.route`).
+A robot holding station (``holders``) never goes first: waiting
 for it is waiting for ever (measured: a store of 14 robots, a diagonal patrol
 that met a rack's end with a station keeper beside it backed away from it 3
 times in 22 s instead of trying the rack's other side).  A goal that another robot stands on (or that lies inside a
@@ -150,6 +152,11 @@ class Avoider:
     stall_s: float = 6.0
     side: int = -1  # preferred turn while avoiding: -1 right (pass on the right), +1 left
     holders: frozenset[int] = frozenset()  # robots holding station: they never make way, so nobody yields to them
+    # called on a stall before trying the other side: (pose, target, neighbours, boxes) -> whether it found a way
+    # round (tagswarm.agents.route); the caller then steers by that way
+    replan: Callable[[Pose2, tuple[float, float], Sequence[Neighbour], Sequence[Box]], bool] | None = field(
+        default=None, repr=False)
+    reroutes: int = 0
     avoiding: bool = False
     side_flips: int = 0
     yields: int = 0
@@ -264,6 +271,8 @@ class Avoider:
                    for nb in neighbours):
                 self._yield_until = t_s + YIELD_S
                 self.yields += 1
+            elif self.replan is not None and self.replan(pose, target, neighbours, boxes):
+                self.reroutes += 1
             else:
                 self.side = -self.side
                 self.side_flips += 1

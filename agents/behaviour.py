@@ -46,7 +46,9 @@ Missions and run-time goals go through :mod:`tagswarm.agents.avoid` (unless
 clear of the other robots (``neighbours``, from the server's map) and of the
 arena's walls and obstacles (``static_obstacles``), and replaced by an avoiding
 one otherwise; a waypoint or goal occupied by another robot counts as reached
-as close as the clearance allows.  Holding and searching are not affected.
+as close as the clearance allows.  After a stall the robot follows a way round
+the room (:mod:`tagswarm.agents.route`) towards its target, if there is one.
+Holding and searching are not affected.
 
 Frames: poses are (x_m, y_m, yaw_rad) of base_link in the map frame; waypoints
 are given in the arena frame and converted with ``arena_to_map``.
@@ -60,6 +62,7 @@ from dataclasses import dataclass, field
 from enum import StrEnum
 
 from tagswarm.agents.avoid import Avoider, Box, Neighbour
+from tagswarm.agents.route import Grid, Route, plan, static_grid
 from tagswarm.protocol.geometry import Pose2, wrap_angle
 from tagswarm.protocol.geometry import se2_compose as compose
 from tagswarm.protocol.layout import footprint_radius
@@ -70,6 +73,8 @@ from tagswarm.protocol.scenario import Agent, Mission, Robot
 TURN_ON_TOL_RAD = 0.01
 TURN_ON_PASSED_RAD = 0.3
 TURN_ON_GAIN = 3.0
+#: a way round the room keeps this much beyond the avoidance's clearance, so the avoidance lets the robot follow it
+KEEP_MARGIN_M = 0.05
 
 
 class Mode(StrEnum):
@@ -140,10 +145,24 @@ class Behaviour:
     loose_cycles: int = 0  # cycles with only a loose pose (placed by the server, not vouched for)
     on_loose: bool = False  # the last cycle drove on a loose pose
     avoider: Avoider = field(init=False, repr=False)
+    route: Route | None = field(default=None, repr=False)  # a way round the room after a stall (agents.route)
+    _grid: Grid | None = field(default=None, repr=False)
+    _goal: tuple[float, float] | None = field(default=None, repr=False)  # the target the route leads to
 
     def __post_init__(self) -> None:
         self.avoider = Avoider(footprint_radius(self.robot), self.cfg.avoid_clearance_m, self.cfg.avoid_horizon_s,
-                               self.robot_id, self.cfg.avoid_stall_s, holders=self.holders)
+                               self.robot_id, self.cfg.avoid_stall_s, holders=self.holders, replan=self._replan)
+
+    def _replan(self, pose: Pose2, target: tuple[float, float], neighbours: Sequence[Neighbour],
+                boxes: Sequence[Box]) -> bool:
+        """The avoidance stalled: look for a way round the room to the target (see :mod:`tagswarm.agents.route`)."""
+        goal = self._goal or target
+        keep = footprint_radius(self.robot) + self.cfg.avoid_clearance_m + KEEP_MARGIN_M  # the avoidance must pass it
+        if self._grid is None:
+            self._grid = static_grid(boxes, keep)
+        points = None if self._grid is None else plan(self._grid, (pose[0], pose[1]), goal, neighbours, keep)
+        self.route = None if points is None or len(points) < 2 else Route(goal, points)
+        return self.route is not None
 
     def set_goal(self, x_m: float, y_m: float, tolerance_m: float) -> None:
         """A run-time goal (map frame) replaces the mission until reached."""
@@ -302,10 +321,15 @@ class Behaviour:
         factor = self.cfg.lost_speed_factor if self.mode == Mode.LOST or self.on_loose else 1.0
         if not self.cfg.avoid:
             return self.steer(map_pose, target, factor)
+        self._goal, aim = target, target
+        if self.route is not None:  # a way round after a stall: its carrot, until the goal itself is near
+            carrot = self.route.carrot(map_pose[0], map_pose[1]) if self.route.goal == target else None
+            self.route = None if carrot is None else self.route
+            aim = carrot or target
 
         def steer(p: Pose2) -> tuple[float, float]:
-            return self.steer(p, target, factor)
+            return self.steer(p, aim, factor)
 
-        return self.avoider.command(pose=map_pose, target=target, steer=steer, v_max=self.cfg.max_speed_m_s * factor,
+        return self.avoider.command(pose=map_pose, target=aim, steer=steer, v_max=self.cfg.max_speed_m_s * factor,
                                     w_max=self.cfg.max_turn_rad_s * factor, neighbours=self._neighbours,
                                     boxes=self.static_obstacles, t_s=t_s)

@@ -414,8 +414,8 @@ class AgentNode:
                    odometry_cycles=b.counter, localised=int(self.map_odom is not None and self.vouched),
                    server_alive=int(self.server_alive), avoiding_cycles=b.avoider.cycles_avoiding,
                    avoid_yields=b.avoider.yields, avoid_side_flips=b.avoider.side_flips,
-                   maps_used=self.neighbours.maps_adopted, slip_events=self.slip.events,
-                   slip_mm=round(self.slip.slip_m * 1000), frames_received=received,
+                   avoid_reroutes=b.avoider.reroutes, maps_used=self.neighbours.maps_adopted,
+                   slip_events=self.slip.events, slip_mm=round(self.slip.slip_m * 1000), frames_received=received,
                    cpu_frames_us=round(self._cpu_frames_s * 1e6),
                    cpu_detect_pose_us=round(self.vision.detect_pose_cpu_s * 1e6),
                    # overwritten in the newest-only inbox, or replaced while pending

@@ -300,10 +300,30 @@ def test_nobody_waits_for_a_station_keeper_to_make_way(know_holders: bool) -> No
     robots[12] = ((-1.98, 3.97, -0.32), hold(12), goal)
     w = World(robots, boxes=STORE_BOXES, exact=True, know_holders=know_holders).run(40.0)
     if know_holders:
-        # after stall_s it tries the rack's other side instead of backing away from a robot that never moves
-        assert w.beh[12].done and w.beh[12].avoider.yields == 0 and w.beh[12].avoider.side_flips >= 1
+        # after stall_s it looks for a way round instead of backing away from a robot that never moves
+        assert w.beh[12].done and w.beh[12].avoider.yields == 0 and w.beh[12].avoider.reroutes >= 1
     else:
         assert not w.beh[12].done and w.beh[12].avoider.yields >= 2
     assert min(float(box_distance(b, p[0], p[1])) for b in STORE_BOXES for p in w.paths[12]) > FOOT
     assert all(p[:2] == robots[rid][0][:2] for rid, p in w.pose.items() if rid != 12)  # they held station
     assert w.min_dist > 2 * FOOT
+
+
+# a pocket open to the west, the goal east of its back wall, in a closed 8 x 8 m room
+POCKET = (Box(1.0, 0.0, 0.0, 0.05, 1.0), Box(0.25, 1.0, 0.0, 0.75, 0.05), Box(0.25, -1.0, 0.0, 0.75, 0.05),
+          Box(0.0, 4.0, 0.0, 4.0, 0.05), Box(0.0, -4.0, 0.0, 4.0, 0.05), Box(4.0, 0.0, 0.0, 0.05, 4.0),
+          Box(-4.0, 0.0, 0.0, 0.05, 4.0))
+
+
+@pytest.mark.parametrize("replan", [True, False])
+def test_a_robot_in_a_pocket_finds_the_way_round_once_stalled(replan: bool) -> None:
+    w = World({1: ((0.0, 0.0, 0.0), hold(1), (3.0, 0.0))}, boxes=POCKET, exact=True)
+    if not replan:
+        w.beh[1].avoider.replan = None  # the local avoidance alone: both sides of the back wall look the same
+    w.run(60.0)
+    b = w.beh[1]
+    assert min(float(box_distance(box, p[0], p[1])) for box in POCKET for p in w.paths[1]) > FOOT
+    if replan:
+        assert b.done and b.avoider.reroutes == 1 and math.dist(w.pose[1][:2], (3.0, 0.0)) < 0.15
+    else:
+        assert not b.done and math.dist(w.pose[1][:2], (0.0, 0.0)) < 1.0

@@ -1,0 +1,138 @@
+"""A way round when local avoidance is stuck: A* on a grid of the known room (pure code, no I/O).
+
+:mod:`tagswarm.agents.avoid` steers around what is near by rolling out twists over two
+seconds.  That cannot see a way that first leads away from the goal: a robot whose
+straight way is closed by a long shelf with a robot standing at its near end makes
+no progress on either side it tries (measured: a store of 14 robots, a diagonal patrol
+stuck at a rack's end for 22 s).  Once the avoidance stalls, :func:`plan` searches the
+room itself: an 8-connected grid of ``RESOLUTION_M`` cells over the walls' extent,
+a cell closed where the robot's footprint (plus half the clearance) would overlap a
+wall, an obstacle or another robot as the map has it now (each a disc of its radius).
+The path found is followed through :class:`Route`, whose carrot (a point
+``LOOKAHEAD_M`` along it) replaces the goal for the go-to-goal controller while the
+avoidance still keeps the clearance.
+
+Frames and units: map frame, metres.  Deterministic: ties in the open list go to the
+cell pushed first.
+"""
+
+from __future__ import annotations
+
+import heapq
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from tagswarm.agents.avoid import Box, Neighbour, box_distance
+
+RESOLUTION_M = 0.1
+LOOKAHEAD_M = 0.6  # the carrot: this far along the path from the nearest point not yet passed
+MAX_CELLS = 250_000  # a room larger than 50 m x 50 m at 0.1 m is not planned (the avoidance alone steers)
+
+
+@dataclass(frozen=True)
+class Grid:
+    """The room's cells: ``free`` (ny, nx) bool over [x0, x0 + nx·res) × [y0, y0 + ny·res)."""
+
+    x0: float
+    y0: float
+    res: float
+    free: np.ndarray
+
+    def cell(self, x: float, y: float) -> tuple[int, int]:
+        ny, nx = self.free.shape
+        return (min(max(int((y - self.y0) / self.res), 0), ny - 1), min(max(int((x - self.x0) / self.res), 0), nx - 1))
+
+    def centre(self, cell: tuple[int, int]) -> tuple[float, float]:
+        return self.x0 + (cell[1] + 0.5) * self.res, self.y0 + (cell[0] + 0.5) * self.res
+
+
+def static_grid(boxes: Sequence[Box], keep_m: float, res: float = RESOLUTION_M) -> Grid | None:
+    """The cells where a robot's centre may be: farther than ``keep_m`` from every box; None if the
+    boxes span too large a room to grid (or there are none)."""
+    if not boxes:
+        return None
+    xs, ys = [], []
+    for b in boxes:
+        r = math.hypot(b.half_x_m, b.half_y_m)
+        xs += [b.x_m - r, b.x_m + r]
+        ys += [b.y_m - r, b.y_m + r]
+    nx, ny = math.ceil((max(xs) - min(xs)) / res), math.ceil((max(ys) - min(ys)) / res)
+    if nx * ny > MAX_CELLS:
+        return None
+    cx = min(xs) + (np.arange(nx) + 0.5) * res
+    cy = min(ys) + (np.arange(ny) + 0.5) * res
+    gx, gy = np.meshgrid(cx, cy)
+    free = np.ones((ny, nx), bool)
+    for b in boxes:
+        free &= box_distance(b, gx, gy) > keep_m
+    return Grid(min(xs), min(ys), res, free)
+
+
+def plan(grid: Grid, start: tuple[float, float], goal: tuple[float, float], others: Sequence[Neighbour],
+         keep_m: float) -> list[tuple[float, float]] | None:
+    """Cell centres (map frame) from ``start`` to ``goal`` around the grid's closed cells and the
+    discs of ``others`` (their radius plus ``keep_m``), or None if there is no way.  The start and
+    goal cells are open whatever is there (the robot stands in the first; the goal may lie
+    within a clearance, as a waypoint beside a wall does)."""
+    free = grid.free.copy()
+    ny, nx = free.shape
+    iy, ix = np.mgrid[0:ny, 0:nx]
+    px, py = grid.x0 + (ix + 0.5) * grid.res, grid.y0 + (iy + 0.5) * grid.res
+    for nb in others:
+        free &= np.hypot(px - nb.x_m, py - nb.y_m) > nb.radius_m + keep_m
+    s, g = grid.cell(*start), grid.cell(*goal)
+    free[s] = free[g] = True
+    h = np.hypot(px - goal[0], py - goal[1]) / grid.res
+    steps = [(-1, 0, 1.0), (1, 0, 1.0), (0, -1, 1.0), (0, 1, 1.0),
+             (-1, -1, math.sqrt(2)), (-1, 1, math.sqrt(2)), (1, -1, math.sqrt(2)), (1, 1, math.sqrt(2))]
+    cost = {s: 0.0}
+    came: dict[tuple[int, int], tuple[int, int]] = {}
+    heap = [(float(h[s]), 0, s)]
+    pushed = 0
+    while heap:
+        _, _, c = heapq.heappop(heap)
+        if c == g:
+            path = [c]
+            while path[-1] in came:
+                path.append(came[path[-1]])
+            return [grid.centre(p) for p in reversed(path)]
+        for dy, dx, step in steps:
+            n = (c[0] + dy, c[1] + dx)
+            if not (0 <= n[0] < ny and 0 <= n[1] < nx) or not free[n]:
+                continue
+            if dy and dx and not (free[c[0] + dy, c[1]] and free[c[0], c[1] + dx]):
+                continue  # no corner cutting between two closed cells
+            new = cost[c] + step
+            if new < cost.get(n, math.inf):
+                cost[n], came[n] = new, c
+                pushed += 1
+                heapq.heappush(heap, (new + float(h[n]), pushed, n))
+    return None
+
+
+@dataclass
+class Route:
+    """A planned way to ``goal`` being followed; :meth:`carrot` once per cycle."""
+
+    goal: tuple[float, float]
+    points: list[tuple[float, float]]
+    index: int = field(default=0)
+
+    def carrot(self, x_m: float, y_m: float) -> tuple[float, float] | None:
+        """Where to head from (x_m, y_m): ``LOOKAHEAD_M`` along the path from its point nearest to
+        the robot (searched a little ahead of the last one, so a path that passes close to itself
+        is not short-cut); None once the path's end is nearer than that (head for the goal then)."""
+        window = self.points[self.index:self.index + round(2 * LOOKAHEAD_M / RESOLUTION_M) + 1]
+        near = min(range(len(window)), key=lambda i: math.dist(window[i], (x_m, y_m)))
+        self.index += near
+        along = 0.0
+        prev = (x_m, y_m)
+        for p in self.points[self.index:]:
+            along += math.dist(prev, p)
+            prev = p
+            if along >= LOOKAHEAD_M:
+                return p
+        return None

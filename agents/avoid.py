@@ -23,10 +23,7 @@ that makes no progress while avoiding for ``stall_s`` backs away for a while if
 a robot with a lower id is close (priority by id: it goes first), else tries
 the other side (or, given ``replan``, first looks for a way round the room: a shelf
 whose near end a robot blocks is driven round its far end; :mod:`tagswarm.agents.route`).
-A robot holding station (``holders``) never goes first: waiting
-for it is waiting for ever (measured: a store of 14 robots, a diagonal patrol
-that met a rack's end with a station keeper beside it backed away from it 3
-times in 22 s instead of trying the rack's other side).  A goal that another robot stands on (or that lies inside a
+A goal that another robot stands on (or that lies inside a
 wall's footprint) counts as reached as close as the clearance allows
 (:meth:`Avoider.goal_slack`); near a goal that is itself close to a wall the
 wall clearance shrinks to what the goal needs, so such a goal is reached.
@@ -151,7 +148,6 @@ class Avoider:
     robot_id: int = 0
     stall_s: float = 6.0
     side: int = -1  # preferred turn while avoiding: -1 right (pass on the right), +1 left
-    holders: frozenset[int] = frozenset()  # robots holding station: they never make way, so nobody yields to them
     # called on a stall before trying the other side: (pose, target, neighbours, boxes) -> whether it found a way
     # round (tagswarm.agents.route); the caller then steers by that way
     replan: Callable[[Pose2, tuple[float, float], Sequence[Neighbour], Sequence[Box]], bool] | None = field(
@@ -266,9 +262,8 @@ class Avoider:
         elif t_s - self._best_t > self.stall_s:
             # stuck: back away if a robot with a lower id is in the jam (it goes first); otherwise
             # try the other side, ignoring the soft costs for a while
-            if any(nb.robot_id < self.robot_id and nb.robot_id not in self.holders
-                   and math.hypot(pose[0] - nb.x_m, pose[1] - nb.y_m) - self._required(nb) < PASS_RANGE_M
-                   for nb in neighbours):
+            if any(nb.robot_id < self.robot_id and math.hypot(pose[0] - nb.x_m, pose[1] - nb.y_m)
+                   - self._required(nb) < PASS_RANGE_M for nb in neighbours):
                 self._yield_until = t_s + YIELD_S
                 self.yields += 1
             elif self.replan is not None and self.replan(pose, target, neighbours, boxes):

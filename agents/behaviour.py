@@ -121,7 +121,6 @@ class Behaviour:
     leapfrog_team: tuple[int, ...] = ()
     static_obstacles: tuple[Box, ...] = ()  # map frame (tagswarm.agents.avoid.static_boxes)
     anchor: bool = False  # its first pose is the map frame: turning would only blur the frame, it never looks around
-    holders: frozenset[int] = frozenset()  # robots holding station (agents.avoid: nobody waits for them to make way)
     mode: Mode = Mode.ODOMETRY
     counter: int = 0
     since_fix: int = 1_000_000
@@ -151,7 +150,7 @@ class Behaviour:
 
     def __post_init__(self) -> None:
         self.avoider = Avoider(footprint_radius(self.robot), self.cfg.avoid_clearance_m, self.cfg.avoid_horizon_s,
-                               self.robot_id, self.cfg.avoid_stall_s, holders=self.holders, replan=self._replan)
+                               self.robot_id, self.cfg.avoid_stall_s, replan=self._replan)
 
     def _replan(self, pose: Pose2, target: tuple[float, float], neighbours: Sequence[Neighbour],
                 boxes: Sequence[Box]) -> bool:

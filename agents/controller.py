@@ -162,9 +162,8 @@ class ControlInput:
     robot without vouching for it (position σ over ``[server] claim_sigma_m``),
     else None.  ``vouched``: whether the server vouches for ``pose`` now; False
     when not localised, and when ``pose`` is the map's newest estimate of a robot
-    the server vouched for before and no longer does (its σ grew past
-    ``claim_sigma_m``, or its views are in dispute; ``pose_cov`` is then that
-    estimate's).  ``observations`` are the relative
+    the server vouched for before and no longer does because its σ grew past
+    ``claim_sigma_m`` (``pose_cov`` is then that estimate's).  ``observations`` are the relative
     poses this agent measured from its camera images since the previous cycle
     (also published to the server; pose of the target in this robot's
     base_link frame).  ``neighbours`` are the other robots from the server's
@@ -219,9 +218,8 @@ def mission_behaviour(cls: type[B], s: Scenario, rid: int, to_map: Pose2, static
     """Robot ``rid``'s behaviour (class ``cls``) for its mission in scenario ``s``; ``to_map`` (arena to
     map frame) and ``static_obstacles`` (map frame) as in :class:`ControllerConfig`."""
     team = tuple(sorted(mi.robot for mi in s.missions if mi.kind == "leapfrog"))
-    holders = frozenset(r for r in range(s.robots.count) if s.mission(r).kind == "hold")
     return cls(rid, s.mission(rid), s.agent, s.robot, to_map, team, static_obstacles=static_obstacles,
-               anchor=anchors_map(s, rid), holders=holders)
+               anchor=anchors_map(s, rid))
 
 
 class BehaviourController(Controller):

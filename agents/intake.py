@@ -11,6 +11,7 @@ when a new world run starts, belong to another run of the world: dropped and cou
 
 from __future__ import annotations
 
+import math
 from collections import Counter
 from collections.abc import Iterable, Iterator
 from typing import Any, TypeVar
@@ -22,6 +23,21 @@ from tagswarm.runtime import streams
 M = TypeVar("M", m.Correction, m.Goal, m.WheelCommand)
 # the server's clock never runs ahead of our odometry by more than its watermark slack (1 s, server/node.py)
 CORRECTION_AHEAD_NS = 1_000_000_000
+
+
+def sigma_lapsed(c: m.Correction, claim_sigma_m: float) -> bool:
+    """Whether the server does not vouch for ``c`` because its position σ grew to ``claim_sigma_m``
+    (the robot drove out of everyone's view): the agent then drives on the map's newest estimate,
+    slowly.  A correction unvouched with a small σ is a dispute (its latest views put it elsewhere):
+    a robot vouched for before drives on as it was, since moving gives the views that settle it
+    (measured: a yard of 10, a patrol slowed in a 0.2 s dispute turned away from the robot whose
+    views would have settled it, and three robots stayed unvouched to the end)."""
+    if c.localised or len(c.cov) != 9:
+        return False
+    # along the worst axis of the position block, as the server judges it (server/outputs.py: position_sigma_m)
+    a, b, d = c.cov[0], (c.cov[1] + c.cov[3]) / 2, c.cov[4]
+    worst = (a + d) / 2 + math.sqrt(((a - d) / 2) ** 2 + b * b)
+    return bool(worst >= claim_sigma_m**2)
 
 
 class AgentIntake:

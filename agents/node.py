@@ -15,9 +15,8 @@ two ticks back or earlier, which the server sent before the correction it has
 waited for, so the run does not depend on when a map arrives.
 
 Faults it rides out:
-- restart of this agent: it resumes from the server's last pose for its robot
-  (a map query at start) and ignores corrections made before the server saw
-  its new odometry (they refer to the previous process's odom frame);
+- restart of this agent: it resumes from the server's last pose for its robot (a map query
+  at start) and ignores corrections made before the server saw its new odometry;
 - loss of the server (liveliness): it keeps its mission on odometry (mode
   ``odometry``, counter ``server_alive`` 0) and takes corrections again as soon
   as a server sends them;
@@ -49,7 +48,7 @@ from tagswarm.agents.controller import (
 )
 from tagswarm.agents.cubepose import PoseEstimate
 from tagswarm.agents.decoys import CopySites
-from tagswarm.agents.intake import CORRECTION_AHEAD_NS, AgentIntake
+from tagswarm.agents.intake import CORRECTION_AHEAD_NS, AgentIntake, sigma_lapsed
 from tagswarm.agents.neighbours import NeighbourTracker
 from tagswarm.agents.odometry import DiffDriveOdometry, DiffDriveParams, SlipMonitor
 from tagswarm.agents.vision import Vision
@@ -273,11 +272,12 @@ class AgentNode:
             if not self.intake.placement(c, self._odom_since_ns, self.time_ns):
                 continue
             pose = (c.map_odom_x_m, c.map_odom_y_m, c.map_odom_yaw_rad)
-            if not c.localised and self.map_odom is None:  # placed, not vouched for: a loose pose until vouched for
-                self.loose_map_odom = pose
+            if not c.localised and (self.map_odom is None or not sigma_lapsed(c, self.s.server.claim_sigma_m)):
+                # placed, never vouched for: a loose pose; vouched for before and now in dispute (its sigma small):
+                # ignored, it drives on (the views that settle a dispute come from moving; intake.sigma_lapsed)
+                self.loose_map_odom = pose if self.map_odom is None else self.loose_map_odom
                 continue
-            # no longer vouched for: the map's newest estimate with its honest sigma, driven on slowly (Behaviour)
-            self.map_odom, self.map_cov, self.vouched = pose, c.cov, c.localised
+            self.map_odom, self.map_cov, self.vouched = pose, c.cov, c.localised  # unvouched: driven on slowly
             self.counters["corrections"] += c.localised
             if c.localised and c.last_fix_ns > self.last_fix_ns:
                 self.last_fix_ns = c.last_fix_ns

@@ -170,14 +170,18 @@ def test_a_placement_the_server_does_not_vouch_for_is_only_a_loose_pose_until_a_
         rig.encoders(world, 7, ticks=140)
         assert node.map_odom == (2.0, 0.0, 0.0) and node.counters["corrections"] == 1
         assert rig.last_status().counters["localised"] == 1 and node.vouched
-        # no longer vouched for (its sigma grew): the map's newest estimate and its sigma, flagged, not a correction
-        rig.correction(server, 8, x=2.5, var=0.8, localised=False)
+        # in dispute (unvouched, its sigma small): ignored, it drives on as it was
+        rig.correction(server, 8, x=2.7, var=1e-4, localised=False)
         rig.encoders(world, 9, ticks=180)
+        assert node.map_odom == (2.0, 0.0, 0.0) and node.vouched
+        # no longer vouched for (its sigma grew): the map's newest estimate and its sigma, flagged, not a correction
+        rig.correction(server, 10, x=2.5, var=0.8, localised=False)
+        rig.encoders(world, 11, ticks=220)
         assert node.map_odom == (2.5, 0.0, 0.0) and not node.vouched and node.map_cov is not None
         assert node.map_cov[0] == 0.8 and node.counters["corrections"] == 1 and node.loose_map_odom == (3.0, 0.0, 0.0)
         assert rig.last_status().counters["localised"] == 0
-        rig.correction(server, 10, x=2.4)  # vouched for again
-        rig.encoders(world, 11, ticks=220)
+        rig.correction(server, 12, x=2.4)  # vouched for again
+        rig.encoders(world, 13, ticks=260)
         assert node.vouched and node.map_odom == (2.4, 0.0, 0.0) and rig.last_status().counters["localised"] == 1
 
 

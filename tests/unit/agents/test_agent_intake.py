@@ -57,3 +57,17 @@ def test_corrections_and_goals_for_another_robot_are_spoofed() -> None:
              for r in (1, 2)]
     assert [g.robot_id for _, g in intake.own(goals, m.Goal)] == [1]
     assert rejects.counts == {"spoofed": 1}
+
+
+def test_a_correction_lapses_only_for_a_sigma_grown_past_the_claim() -> None:
+    from tagswarm.agents.intake import sigma_lapsed
+
+    def corr(cov: tuple[float, ...], localised: bool = False) -> m.Correction:
+        return m.Correction(seq=1, stamp_ns=1, robot_id=1, map_odom_x_m=0.0, map_odom_y_m=0.0, map_odom_yaw_rad=0.0,
+                            x_m=0.0, y_m=0.0, yaw_rad=0.0, cov=cov, last_fix_ns=0, localised=localised)
+
+    assert sigma_lapsed(corr((0.36, 0, 0, 0, 0.01, 0, 0, 0, 0.01)), 0.5)  # sigma 0.6 m along x
+    assert not sigma_lapsed(corr((0.01, 0, 0, 0, 0.01, 0, 0, 0, 0.01)), 0.5)  # sigma 0.1 m: a dispute
+    assert not sigma_lapsed(corr((0.36, 0, 0, 0, 0.01, 0, 0, 0, 0.01), localised=True), 0.5)  # vouched for
+    # the worst axis, as the server judges it: 0.2 m^2 on each axis, correlated 0.9, is 0.62 m along the diagonal
+    assert sigma_lapsed(corr((0.2, 0.18, 0, 0.18, 0.2, 0, 0, 0, 0.01)), 0.5)

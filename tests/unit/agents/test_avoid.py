@@ -35,15 +35,13 @@ class World:
     def __init__(self, robots: dict[int, tuple[Pose2, Mission, tuple[float, float] | None]],
                  boxes: tuple[Box, ...] = (), cfg: Agent = CFG, exact: bool = False,
                  arena_to_map: Pose2 = (0.0, 0.0, 0.0), goal_tolerance_m: float = 0.1,
-                 unmapped: tuple[int, ...] = (), sight_m: float = 0.0, know_holders: bool = True) -> None:
+                 unmapped: tuple[int, ...] = (), sight_m: float = 0.0) -> None:
         self.unmapped, self.sight_m = unmapped, sight_m  # robots the map leaves out; camera range (0: none)
         self.beh: dict[int, Behaviour] = {}
         self.pose: dict[int, Pose2] = {}
         self.trackers = {rid: NeighbourTracker(rid, FOOT, 0.5) for rid in robots}
-        holders = frozenset(r for r, (_, mi, goal) in robots.items() if mi.kind == "hold" and goal is None)
         for rid, (pose, mission, goal) in robots.items():
-            b = Behaviour(rid, mission, cfg, ROBOT, arena_to_map, static_obstacles=boxes,
-                          holders=holders if know_holders else frozenset())
+            b = Behaviour(rid, mission, cfg, ROBOT, arena_to_map, static_obstacles=boxes)
             if goal is not None:
                 b.set_goal(goal[0], goal[1], goal_tolerance_m)
             self.beh[rid], self.pose[rid] = b, pose
@@ -280,33 +278,6 @@ def test_static_boxes_are_the_walls_and_obstacles_in_the_map_frame() -> None:
     assert float(box_distance(boxes[4], cx, cy)) == pytest.approx(-min(shelf.size_x_m, shelf.size_y_m) / 2)
     origin = se2_compose(t, start_poses(s)[0])
     assert math.hypot(origin[0], origin[1]) < 1e-9
-
-
-# the store floor (12 x 10 m, racks 3.0 x 0.7 m) at 18 s of its run, map frame: robot 12's diagonal patrol meets a
-# rack's end with station keepers beside it and behind it
-STORE_BOXES = tuple(Box(*b) for b in (
-    (-8.76, 6.681, 2.479, 0.05, 5.05), (0.702, -0.7, 2.479, 0.05, 5.05), (-7.105, -0.952, 2.479, 6.05, 0.05),
-    (-0.953, 6.933, 2.479, 6.05, 0.05), (-2.894, -0.432, 2.479, 1.5, 0.35), (-7.625, 3.259, 2.479, 1.5, 0.35),
-    (-0.433, 2.722, 2.479, 1.5, 0.35), (-5.164, 6.413, 2.479, 1.5, 0.35)))
-STORE_HOLDERS = {0: (0.0, 0.0), 2: (1.54, 3.81), 4: (-3.02, 1.04), 5: (-1.24, 4.24), 8: (-1.21, 5.62),
-                 11: (-1.01, -0.92), 13: (-2.15, 5.74)}
-
-
-@pytest.mark.parametrize("know_holders", [True, False])
-def test_nobody_waits_for_a_station_keeper_to_make_way(know_holders: bool) -> None:
-    robots: dict[int, tuple[Pose2, Mission, tuple[float, float] | None]] = {
-        rid: ((x, y, 0.0), hold(rid), None) for rid, (x, y) in STORE_HOLDERS.items()}
-    goal = (2.37, 3.07)
-    robots[12] = ((-1.98, 3.97, -0.32), hold(12), goal)
-    w = World(robots, boxes=STORE_BOXES, exact=True, know_holders=know_holders).run(40.0)
-    if know_holders:
-        # after stall_s it looks for a way round instead of backing away from a robot that never moves
-        assert w.beh[12].done and w.beh[12].avoider.yields == 0 and w.beh[12].avoider.reroutes >= 1
-    else:
-        assert not w.beh[12].done and w.beh[12].avoider.yields >= 2
-    assert min(float(box_distance(b, p[0], p[1])) for b in STORE_BOXES for p in w.paths[12]) > FOOT
-    assert all(p[:2] == robots[rid][0][:2] for rid, p in w.pose.items() if rid != 12)  # they held station
-    assert w.min_dist > 2 * FOOT
 
 
 # a pocket open to the west, the goal east of its back wall, in a closed 8 x 8 m room

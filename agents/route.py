@@ -2,12 +2,13 @@
 
 :mod:`tagswarm.agents.avoid` steers around what is near by rolling out twists over two
 seconds.  That cannot see a way that first leads away from the goal: a robot whose
-straight way is closed by a long shelf with a robot standing at its near end makes
-no progress on either side it tries (measured: a store of 14 robots, a diagonal patrol
-stuck at a rack's end for 22 s).  Once the avoidance stalls, :func:`plan` searches the
-room itself: an 8-connected grid of ``RESOLUTION_M`` cells over the walls' extent,
-a cell closed where the robot's footprint (plus half the clearance) would overlap a
-wall, an obstacle or another robot as the map has it now (each a disc of its radius).
+way is closed by the back wall of a pocket makes no progress on either side it tries
+(unit test: a robot in a pocket never got out; a store of 14 robots had a patrol stuck at
+a rack's end, where it still waits for a lower id).  Once the avoidance stalls with nobody
+to give way to, :func:`plan` searches the room itself: an 8-connected grid of
+``RESOLUTION_M`` cells over the walls' extent, a cell closed where the robot's centre would
+be nearer than ``keep_m`` (the caller's: footprint, clearance and a margin) to a wall, an
+obstacle or another robot as the map has it now (each a disc of its radius).
 The path found is followed through :class:`Route`, whose carrot (a point
 ``LOOKAHEAD_M`` along it) replaces the goal for the go-to-goal controller while the
 avoidance still keeps the clearance.

@@ -11,13 +11,13 @@ when a new world run starts, belong to another run of the world: dropped and cou
 
 from __future__ import annotations
 
-import math
 from collections import Counter
 from collections.abc import Iterable, Iterator
 from typing import Any, TypeVar
 
 from tagswarm.protocol import messages as m
 from tagswarm.protocol.bus import Received
+from tagswarm.protocol.geometry import worst_axis_sigma_m
 from tagswarm.runtime import streams
 
 M = TypeVar("M", m.Correction, m.Goal, m.WheelCommand)
@@ -32,12 +32,7 @@ def sigma_lapsed(c: m.Correction, claim_sigma_m: float) -> bool:
     a robot vouched for before drives on as it was, since moving gives the views that settle it
     (measured: a yard of 10, a patrol slowed in a 0.2 s dispute turned away from the robot whose
     views would have settled it, and three robots stayed unvouched to the end)."""
-    if c.localised or len(c.cov) != 9:
-        return False
-    # along the worst axis of the position block, as the server judges it (server/outputs.py: position_sigma_m)
-    a, b, d = c.cov[0], (c.cov[1] + c.cov[3]) / 2, c.cov[4]
-    worst = (a + d) / 2 + math.sqrt(((a - d) / 2) ** 2 + b * b)
-    return bool(worst >= claim_sigma_m**2)
+    return not c.localised and len(c.cov) == 9 and worst_axis_sigma_m(c.cov) >= claim_sigma_m
 
 
 class AgentIntake:

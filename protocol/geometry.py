@@ -113,6 +113,16 @@ def se2_between(a: Pose2, b: Pose2) -> Pose2:
     return se2_compose(se2_inverse(a), b)
 
 
+def worst_axis_sigma_m(cov: NDArray[np.float64] | tuple[float, ...]) -> float:
+    """Standard deviation (m) of a (3, 3) (x, y, yaw) covariance's position along its worst axis (inf
+    if it is not finite); a row-major tuple of 9 (a message's ``cov``) too.  What the server vouches
+    by (``[server] claim_sigma_m``), so an agent judges a correction the same way."""
+    c = np.asarray(cov, float).reshape(3, 3)[:2, :2]
+    if not np.all(np.isfinite(c)):
+        return math.inf
+    return math.sqrt(max(float(np.linalg.eigvalsh(c)[1]), 0.0))
+
+
 def position_sigma_m(cov: tuple[float, ...] | None) -> float | None:
     """The larger axis's position σ (m) of a row-major 3x3 (x, y, yaw) covariance; None without one."""
     return math.sqrt(max(cov[0], cov[4], 0.0)) if cov is not None and len(cov) == 9 else None

@@ -15,7 +15,7 @@ from collections.abc import Iterable, Mapping
 import numpy as np
 
 from tagswarm.protocol import messages as m
-from tagswarm.protocol.geometry import wrap_angle
+from tagswarm.protocol.geometry import worst_axis_sigma_m, wrap_angle
 from tagswarm.server.estimator import Estimator
 from tagswarm.server.fusion import RelocEvent
 from tagswarm.server.noise import Cov, reported_cov
@@ -49,13 +49,7 @@ def global_map(fusion: Estimator, robot_ids: Iterable[int], origin_id: int, time
     return m.GlobalMap(seq=seq, stamp_ns=time_ns, origin_id=origin_id, robots=tuple(entries), edges=edges)
 
 
-def position_sigma_m(cov: Cov | tuple[float, ...]) -> float:
-    """Standard deviation (m) of a reported (3, 3) pose covariance's position along its worst axis
-    (inf if it is not finite); a row-major tuple of 9 (a message's ``cov``) too."""
-    c = np.asarray(cov, float).reshape(3, 3)[:2, :2]
-    if not np.all(np.isfinite(c)):
-        return math.inf
-    return math.sqrt(max(float(np.linalg.eigvalsh(c)[1]), 0.0))
+position_sigma_m = worst_axis_sigma_m  # the server's measure of a reported covariance (protocol.geometry)
 
 
 def unvouched_reason(fusion: Estimator, rid: int, cov: Cov, claim_sigma_m: float) -> str | None:

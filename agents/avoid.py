@@ -20,9 +20,12 @@ about ``base_link``), so nobody's searching rotation is ever stopped.
 Deadlocks: every robot prefers to keep the others on its left (``side`` -1),
 so two robots driving at each other head-on both veer right and pass.  A robot
 that makes no progress while avoiding for ``stall_s`` backs away for a while if
-a robot with a lower id is close (priority by id: it goes first), else tries
+a robot with a lower id is close (priority by id: it goes first; after ``MAX_YIELDS``
+at one place it stops giving way there: that robot is not leaving), else tries
 the other side (or, given ``replan``, first looks for a way round the room: a shelf
 whose near end a robot blocks is driven round its far end; :mod:`tagswarm.agents.route`).
+The stall clock is restarted by progress, or by a way that stays clear for ``CLEAR_RESET_S``:
+a go-to-goal turn that is clear and an avoiding turn back can alternate every cycle on the spot.
 A goal that another robot stands on (or that lies inside a
 wall's footprint) counts as reached as close as the clearance allows
 (:meth:`Avoider.goal_slack`); near a goal that is itself close to a wall the
@@ -57,6 +60,15 @@ PASS_RANGE_M = 0.5  # passing another robot closer than this (beyond the clearan
 NEIGHBOUR_PREDICT_S = 1.0  # others keep their velocity this long, then stand (they turn at waypoints, avoid too)
 YIELD_S = 2.5  # how long a stalled robot backs away from a jam for a robot with a lower id
 YIELD_SPEED_M_S = 0.12
+# giving way twice at one place without getting past it: the robot given way to is not leaving (it holds
+# station), so the next stall looks for a way round instead (a store of 14 robots: a patrol backed away from a
+# station keeper at a rack's end every 8.5 s for 50 s)
+MAX_YIELDS = 2
+YIELD_PLACE_M = 1.0
+# a clear way restarts the stall clock only once it has stayed clear this long: a go-to-goal turn whose path
+# is clear and an avoiding turn back can alternate every cycle on the spot (a robot beside a door held by a
+# station keeper did so for 70 s, each clear cycle restarting the clock)
+CLEAR_RESET_S = 1.0  # moving this far from where it first gave way ends a robot's run of yields
 
 
 @dataclass(frozen=True)
@@ -157,11 +169,14 @@ class Avoider:
     side_flips: int = 0
     yields: int = 0
     cycles_avoiding: int = 0
+    _yield_streak: int = 0
+    _yield_at: tuple[float, float] = (math.inf, math.inf)
     _yield_until: float = -math.inf
     _assertive_until: float = -math.inf
     _last_w: float = 0.0
     _best_dist: float = math.inf
     _best_t: float = 0.0
+    _clear_since: float = math.inf
     _target: tuple[float, float] | None = field(default=None, repr=False)
 
     # ------------------------------------------------------------------ geometry
@@ -250,22 +265,32 @@ class Avoider:
         _, ok, _ = self._gaps(xn, yn, times, pose, target, neighbours, boxes, reach)
         if self._target != target:
             self._target, self._best_dist, self._best_t = target, dist, t_s
+        if math.hypot(pose[0] - self._yield_at[0], pose[1] - self._yield_at[1]) > YIELD_PLACE_M:
+            self._yield_streak, self._yield_at = 0, (math.inf, math.inf)
         if ok[0]:
             self.avoiding = False
             self._last_w = w0
-            self._best_dist, self._best_t = dist, t_s
+            self._clear_since = min(self._clear_since, t_s)
+            if t_s - self._clear_since >= CLEAR_RESET_S or dist < self._best_dist - PROGRESS_EPS_M:
+                self._best_dist, self._best_t = dist, t_s
             return nominal
+        self._clear_since = math.inf
         self.avoiding = True
         self.cycles_avoiding += 1
         if dist < self._best_dist - PROGRESS_EPS_M:
             self._best_dist, self._best_t = dist, t_s
         elif t_s - self._best_t > self.stall_s:
-            # stuck: back away if a robot with a lower id is in the jam (it goes first); otherwise
-            # try the other side, ignoring the soft costs for a while
-            if any(nb.robot_id < self.robot_id and math.hypot(pose[0] - nb.x_m, pose[1] - nb.y_m)
-                   - self._required(nb) < PASS_RANGE_M for nb in neighbours):
+            # stuck: back away if a robot with a lower id is in the jam (it goes first), unless that was
+            # tried MAX_YIELDS times here already; otherwise look for a way round, or try the other side,
+            # ignoring the soft costs for a while
+            if self._yield_streak < MAX_YIELDS and any(
+                    nb.robot_id < self.robot_id and math.hypot(pose[0] - nb.x_m, pose[1] - nb.y_m)
+                    - self._required(nb) < PASS_RANGE_M for nb in neighbours):
                 self._yield_until = t_s + YIELD_S
                 self.yields += 1
+                if self._yield_streak == 0:
+                    self._yield_at = (pose[0], pose[1])
+                self._yield_streak += 1
             elif self.replan is not None and self.replan(pose, target, neighbours, boxes):
                 self.reroutes += 1
             else:

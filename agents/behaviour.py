@@ -145,7 +145,7 @@ class Behaviour:
     on_loose: bool = False  # the last cycle drove on a loose pose
     avoider: Avoider = field(init=False, repr=False)
     route: Route | None = field(default=None, repr=False)  # a way round the room after a stall (agents.route)
-    _grid: Grid | None = field(default=None, repr=False)
+    _grid: Grid | bool | None = field(default=False, repr=False)  # False: not built yet; None: the room has none
     _goal: tuple[float, float] | None = field(default=None, repr=False)  # the target the route leads to
 
     def __post_init__(self) -> None:
@@ -157,9 +157,10 @@ class Behaviour:
         """The avoidance stalled: look for a way round the room to the target (see :mod:`tagswarm.agents.route`)."""
         goal = self._goal or target
         keep = footprint_radius(self.robot) + self.cfg.avoid_clearance_m + KEEP_MARGIN_M  # the avoidance must pass it
-        if self._grid is None:
+        if self._grid is False:
             self._grid = static_grid(boxes, keep)
-        points = None if self._grid is None else plan(self._grid, (pose[0], pose[1]), goal, neighbours, keep)
+        grid = self._grid if isinstance(self._grid, Grid) else None
+        points = None if grid is None else plan(grid, (pose[0], pose[1]), goal, neighbours, keep)
         self.route = None if points is None or len(points) < 2 else Route(goal, points)
         return self.route is not None
 

@@ -4,8 +4,8 @@
 seconds.  That cannot see a way that first leads away from the goal: a robot whose
 way is closed by the back wall of a pocket makes no progress on either side it tries
 (unit test: a robot in a pocket never got out; a store of 14 robots had a patrol stuck at
-a rack's end, where it still waits for a lower id).  Once the avoidance stalls with nobody
-to give way to, :func:`plan` searches the room itself: an 8-connected grid of
+a rack's end beside a station keeper).  Once the avoidance stalls with nobody to give way
+to (or after giving way twice at one place), :func:`plan` searches the room itself: an 8-connected grid of
 ``RESOLUTION_M`` cells over the walls' extent, a cell closed where the robot's centre would
 be nearer than ``keep_m`` (the caller's: footprint, clearance and a margin) to a wall, an
 obstacle or another robot as the map has it now (each a disc of its radius).

@@ -9,6 +9,7 @@ import math
 
 import pytest
 
+from tagswarm.agents import avoid
 from tagswarm.agents.avoid import Avoider, Box, Neighbour, box_distance, static_boxes
 from tagswarm.agents.behaviour import Behaviour, wheel_speeds
 from tagswarm.agents.neighbours import NeighbourTracker
@@ -298,3 +299,37 @@ def test_a_robot_in_a_pocket_finds_the_way_round_once_stalled(replan: bool) -> N
         assert b.done and b.avoider.reroutes == 1 and math.dist(w.pose[1][:2], (3.0, 0.0)) < 0.15
     else:
         assert not b.done and math.dist(w.pose[1][:2], (0.0, 0.0)) < 1.0
+
+
+# an 8 x 8 m room split by a wall at x = 0 with two 1 m doors: a near one at y 0.5..1.5 and a far one at
+# y -3.5..-2.5
+DOORS = (Box(0.0, 2.75, 0.0, 0.05, 1.25), Box(0.0, -1.0, 0.0, 0.05, 1.5), Box(0.0, -3.75, 0.0, 0.05, 0.25),
+         *POCKET[3:])
+
+
+@pytest.mark.parametrize("variant", ["as_built", "never_gives_up", "flicker_restarts_clock"])
+def test_a_robot_stops_giving_way_to_a_station_keeper_in_the_door_and_takes_the_other(
+        variant: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Robot 0 holds station in the near door; robot 1 (a higher id, so it gives way) wants through.
+    Backing away for robot 0 is waiting for ever: after MAX_YIELDS at one place robot 1 looks for a
+    way round and takes the far door.  Beside the door its go-to-goal turn (clear) and the avoiding
+    turn back alternate every cycle; were a single clear cycle to restart the stall clock, it would
+    never even stall."""
+    if variant == "never_gives_up":
+        monkeypatch.setattr(avoid, "MAX_YIELDS", 1000)
+    if variant == "flicker_restarts_clock":
+        monkeypatch.setattr(avoid, "CLEAR_RESET_S", 0.0)
+    w = World({0: ((0.0, 1.0, 0.0), hold(0), None), 1: ((-2.0, 1.0, 0.0), hold(1), (2.0, 1.0))},
+              boxes=DOORS, exact=True).run(90.0)
+    b = w.beh[1]
+    assert w.pose[0] == pytest.approx((0.0, 1.0, 0.0))
+    assert min(float(box_distance(box, p[0], p[1])) for box in DOORS for p in w.paths[1]) > FOOT
+    assert w.min_dist >= CLEAR - 0.02, w.min_dist
+    if variant == "as_built":
+        assert b.avoider.yields == avoid.MAX_YIELDS and b.avoider.reroutes >= 1
+        assert b.done and math.dist(w.pose[1][:2], (2.0, 1.0)) < 0.15
+        assert min(p[1] for p in w.paths[1]) < -2.5  # through the far door
+    elif variant == "never_gives_up":
+        assert not b.done and b.avoider.yields >= 4 and b.avoider.reroutes == 0 and w.pose[1][0] < 0.0
+    else:
+        assert not b.done and b.avoider.yields == 0 and w.pose[1][0] < 0.0

@@ -119,7 +119,7 @@ the true initial pose, so its error is pure drift).
     ``counters.world``; counted by the world, see its docs); each ``null`` if the
     world reported no ``contacts_*`` counter at all (a name missing from a world
     that reported some counts 0).
-  - ``fixes``, ``searches``, ``lost_events``: sums of the agents' counters
+  - ``fixes``, ``searches``, ``lost_events``, ``avoid_side_flips``: sums of the agents' counters
     (visual fixes; re-localisation rotations started; full sweeps that found
     nobody); ``null`` if no agent reported counters.
   - ``time_lost_s``: total seconds spent in mode ``lost`` (see ``mode_time_s``).
@@ -131,8 +131,11 @@ the true initial pose, so its error is pure drift).
     ``ate_unaligned`` S, ``ate_aligned`` S (under the swarm's shared alignment),
     ``rpe_per_m`` S.
   - ``fixes``, ``searches``, ``lost_events``, ``frames_processed``,
-    ``frames_skipped``: that agent's counters from ``run.json`` (a name missing
-    from a reported counter set counts 0; all ``null`` if the agent reported none).
+    ``frames_skipped``, ``avoid_yields``, ``avoid_reroutes``, ``avoid_side_flips``
+    (stalls of the collision avoidance: gave way, followed a way round the room,
+    found none and tried the other side): that agent's counters from ``run.json``
+    (a name missing from a reported counter set counts 0; all ``null`` if the agent
+    reported none).
   - ``fused.time_localised`` / ``odom.time_localised``: that robot's share of its
     truth span spent localised (``null`` with fewer than two truth poses); a
     robot never localised scores 0; ``fused.time_localised_placed`` from its first
@@ -223,6 +226,7 @@ from tagswarm.evaluation.runsummary import (
     mode_durations,
     robot_behaviour,
     silent_sources,
+    stall_trouble,
     swarm_behaviour,
 )
 from tagswarm.evaluation.trajerror import (
@@ -290,6 +294,7 @@ def evaluate(run: RunData) -> Evaluation:
     events = recovery_metrics(run, tracks, robots_out, swarm, KINDS, warnings)
     silent = silent_sources(run.info, warnings)
     warnings.extend(controller_trouble(run.info.get("counters")))
+    warnings.extend(stall_trouble(robots_out))
     origin = run.info.get("origin_id")
     if isinstance(origin, int):
         note = anchoring_note(run.observations, origin, _truth_range(run), landmarks=_landmarks(run.info))

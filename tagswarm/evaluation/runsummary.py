@@ -10,14 +10,15 @@ that crashed early still gets its metrics.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 from tagswarm.evaluation.runfolder import ModeSample, RunData
 
-AGENT_COUNTERS = ("fixes", "searches", "lost_events", "frames_processed", "frames_skipped")
+AGENT_COUNTERS = ("fixes", "searches", "lost_events", "frames_processed", "frames_skipped", "avoid_yields",
+                  "avoid_reroutes", "avoid_side_flips")
 """Per-robot counters copied from the agent's status (``run.json`` ``counters["agent/<k>"]``)."""
-SWARM_COUNTERS = ("fixes", "searches", "lost_events")
+SWARM_COUNTERS = ("fixes", "searches", "lost_events", "avoid_side_flips")
 """Counters summed over robots into ``swarm``."""
 
 
@@ -107,6 +108,30 @@ def controller_trouble(counters: Any) -> list[str]:
     if stalls:
         notes.append(f"the lockstep world stopped waiting for a participant alive but silent ({stalls} time(s)): "
                      "a controller step that never returns? logs/world.log names it, its agent's log shows where")
+    return notes
+
+
+#: a robot whose avoidance stalled this often with no way round found is named in the warnings
+STALL_NOTE_FLIPS = 3
+
+
+def stall_trouble(per_robot: Mapping[Any, dict[str, Any]]) -> list[str]:
+    """One note per robot whose way was closed (``metrics.json`` ``robots``, or :func:`robot_behaviour`):
+    its avoidance stalled at least :data:`STALL_NOTE_FLIPS` times with no way round the room found
+    (``avoid_side_flips``: each time it tried the other side).  Nothing collides then, so without this
+    a user sees only a mission that drove little (measured: two rooms joined by a door a station keeper
+    stood in, three patrols flipping sides 1-6 times each in 60 s)."""
+    notes = []
+    for k, r in sorted(per_robot.items(), key=lambda kv: int(kv[0])):
+        flips = _int_or_zero(r.get("avoid_side_flips"))
+        if flips < STALL_NOTE_FLIPS:
+            continue
+        path = _num(r.get("path_length_m"))
+        notes.append(f"robot {k}'s way was closed {flips} times: its avoidance stalled with no way round the room "
+                     f"it could find (it gave way {_int_or_zero(r.get('avoid_yields'))} times, followed "
+                     f"{_int_or_zero(r.get('avoid_reroutes'))} way(s) round"
+                     f"{'' if path is None else f', drove {path:.1f} m'}); robots holding station or on the same "
+                     "way stood in it (plots/arena.png shows where)")
     return notes
 
 

@@ -308,6 +308,23 @@ def test_counters_cost_and_real_time_factor(tmp_path: Path) -> None:
     assert m["run"]["clock"] == "lockstep"
 
 
+def test_a_robot_whose_way_was_closed_is_named_with_its_stalls(tmp_path: Path) -> None:
+    counters = {
+        "agent/0": {"fixes": 5},
+        "agent/1": {"avoid_side_flips": 6, "avoid_yields": 2, "avoid_reroutes": 1},
+        "agent/2": {"avoid_side_flips": 2, "avoid_yields": 4},  # under STALL_NOTE_FLIPS: not named
+    }
+    truth = {k: (T20, circle(k, T20)) for k in range(3)}
+    m = compute_metrics(make_run(tmp_path, truth, counters=counters, sim_time_s=20.0, wall_time_s=10.0))
+    r1 = m["robots"]["1"]
+    assert (r1["avoid_side_flips"], r1["avoid_yields"], r1["avoid_reroutes"]) == (6, 2, 1)
+    assert (m["robots"]["0"]["avoid_side_flips"], m["swarm"]["avoid_side_flips"]) == (0, 8)
+    notes = [w for w in m["warnings"] if "way was closed" in w]
+    assert len(notes) == 1 and notes[0].startswith("robot 1's way was closed 6 times")
+    assert "gave way 2 times, followed 1 way(s) round" in notes[0]
+    assert f"drove {r1['path_length_m']:.1f} m" in notes[0]
+
+
 def test_frames_rendered_by_render_workers_are_summed(tmp_path: Path) -> None:
     # a world with render workers counts requests; the frames are in each worker's render/<i> status
     counters = {"world": {"frames_requested": 700, "step": 1200}, "render/0": {"frames_rendered": 350},

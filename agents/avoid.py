@@ -64,11 +64,11 @@ YIELD_SPEED_M_S = 0.12
 # station), so the next stall looks for a way round instead (a store of 14 robots: a patrol backed away from a
 # station keeper at a rack's end every 8.5 s for 50 s)
 MAX_YIELDS = 2
-YIELD_PLACE_M = 1.0
+YIELD_PLACE_M = 1.0  # moving this far from where it first gave way ends a robot's run of yields
 # a clear way restarts the stall clock only once it has stayed clear this long: a go-to-goal turn whose path
-# is clear and an avoiding turn back can alternate every cycle on the spot (a robot beside a door held by a
-# station keeper did so for 70 s, each clear cycle restarting the clock)
-CLEAR_RESET_S = 1.0  # moving this far from where it first gave way ends a robot's run of yields
+# is clear and an avoiding turn back can alternate every cycle on the spot (test_avoid.py: a robot beside a door
+# held by a station keeper did so from 10 s to the end, each clear cycle restarting the clock)
+CLEAR_RESET_S = 1.0
 
 
 @dataclass(frozen=True)

@@ -121,7 +121,8 @@ the true initial pose, so its error is pure drift).
     that reported some counts 0).
   - ``fixes``, ``searches``, ``lost_events``, ``avoid_side_flips``: sums of the agents' counters
     (visual fixes; re-localisation rotations started; full sweeps that found
-    nobody); ``null`` if no agent reported counters.
+    nobody; avoidance stalls with no way round found); ``null`` if no agent
+    reported counters.
   - ``time_lost_s``: total seconds spent in mode ``lost`` (see ``mode_time_s``).
   - ``mode_time_s``: ``{mode: seconds}`` summed over robots.
 - ``robots``: ``{"<k>": {...}}`` per robot:

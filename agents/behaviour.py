@@ -60,6 +60,7 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from enum import StrEnum
+from functools import cached_property
 
 from tagswarm.agents.avoid import Avoider, Box, Neighbour
 from tagswarm.agents.route import Grid, Route, plan, static_grid
@@ -145,22 +146,30 @@ class Behaviour:
     on_loose: bool = False  # the last cycle drove on a loose pose
     avoider: Avoider = field(init=False, repr=False)
     route: Route | None = field(default=None, repr=False)  # a way round the room after a stall (agents.route)
-    _grid: Grid | bool | None = field(default=False, repr=False)  # False: not built yet; None: the room has none
     _goal: tuple[float, float] | None = field(default=None, repr=False)  # the target the route leads to
 
     def __post_init__(self) -> None:
         self.avoider = Avoider(footprint_radius(self.robot), self.cfg.avoid_clearance_m, self.cfg.avoid_horizon_s,
                                self.robot_id, self.cfg.avoid_stall_s, replan=self._replan)
 
+    @property
+    def _keep_m(self) -> float:
+        """How far a planned way keeps the robot's centre from everything (m): the avoidance must pass it."""
+        return footprint_radius(self.robot) + self.cfg.avoid_clearance_m + KEEP_MARGIN_M
+
+    @cached_property
+    def _room(self) -> Grid | None:
+        """The walls and obstacles as a grid for :func:`tagswarm.agents.route.plan`, built at the first
+        stall (None: the room has none)."""
+        return static_grid(self.static_obstacles, self._keep_m)
+
     def _replan(self, pose: Pose2, target: tuple[float, float], neighbours: Sequence[Neighbour],
-                boxes: Sequence[Box]) -> bool:
-        """The avoidance stalled: look for a way round the room to the target (see :mod:`tagswarm.agents.route`)."""
+                _boxes: Sequence[Box]) -> bool:
+        """The avoidance stalled: look for a way round the room to the target (see :mod:`tagswarm.agents.route`);
+        the room is this behaviour's ``static_obstacles``, the boxes the avoidance is given."""
         goal = self._goal or target
-        keep = footprint_radius(self.robot) + self.cfg.avoid_clearance_m + KEEP_MARGIN_M  # the avoidance must pass it
-        if self._grid is False:
-            self._grid = static_grid(boxes, keep)
-        grid = self._grid if isinstance(self._grid, Grid) else None
-        points = None if grid is None else plan(grid, (pose[0], pose[1]), goal, neighbours, keep)
+        grid = self._room
+        points = None if grid is None else plan(grid, (pose[0], pose[1]), goal, neighbours, self._keep_m)
         self.route = None if points is None or len(points) < 2 else Route(goal, points)
         return self.route is not None
 

@@ -281,6 +281,38 @@ def test_static_boxes_are_the_walls_and_obstacles_in_the_map_frame() -> None:
     assert math.hypot(origin[0], origin[1]) < 1e-9
 
 
+# the store floor (12 x 10 m, racks 3.0 x 0.7 m) at 18 s of its run, map frame: robot 12's diagonal patrol meets a
+# rack's end with station keepers beside it and behind it
+STORE_BOXES = tuple(Box(*b) for b in (
+    (-8.76, 6.681, 2.479, 0.05, 5.05), (0.702, -0.7, 2.479, 0.05, 5.05), (-7.105, -0.952, 2.479, 6.05, 0.05),
+    (-0.953, 6.933, 2.479, 6.05, 0.05), (-2.894, -0.432, 2.479, 1.5, 0.35), (-7.625, 3.259, 2.479, 1.5, 0.35),
+    (-0.433, 2.722, 2.479, 1.5, 0.35), (-5.164, 6.413, 2.479, 1.5, 0.35)))
+STORE_HOLDERS = {0: (0.0, 0.0), 2: (1.54, 3.81), 4: (-3.02, 1.04), 5: (-1.24, 4.24), 8: (-1.21, 5.62),
+                 11: (-1.01, -0.92), 13: (-2.15, 5.74)}
+
+
+@pytest.mark.parametrize("gives_up", [True, False])
+def test_a_patrol_at_a_racks_end_stops_waiting_for_station_keepers_and_goes_round(
+        gives_up: bool, monkeypatch: pytest.MonkeyPatch) -> None:
+    if not gives_up:
+        monkeypatch.setattr(avoid, "MAX_YIELDS", 1000)
+    robots: dict[int, tuple[Pose2, Mission, tuple[float, float] | None]] = {
+        rid: ((x, y, 0.0), hold(rid), None) for rid, (x, y) in STORE_HOLDERS.items()}
+    goal = (2.37, 3.07)
+    robots[12] = ((-1.98, 3.97, -0.32), hold(12), goal)
+    w = World(robots, boxes=STORE_BOXES, exact=True).run(60.0)
+    a = w.beh[12].avoider
+    if gives_up:
+        # it gave way twice to a robot that never moves, then looked for a way round the rack and took it
+        assert w.beh[12].done and a.yields == avoid.MAX_YIELDS and a.reroutes >= 1
+        assert math.dist(w.pose[12][:2], goal) < 0.15
+    else:
+        assert not w.beh[12].done and a.yields >= 4 and a.reroutes == 0
+    assert min(float(box_distance(b, p[0], p[1])) for b in STORE_BOXES for p in w.paths[12]) > FOOT
+    assert all(p[:2] == robots[rid][0][:2] for rid, p in w.pose.items() if rid != 12)  # they held station
+    assert w.min_dist > 2 * FOOT
+
+
 # a pocket open to the west, the goal east of its back wall, in a closed 8 x 8 m room
 POCKET = (Box(1.0, 0.0, 0.0, 0.05, 1.0), Box(0.25, 1.0, 0.0, 0.75, 0.05), Box(0.25, -1.0, 0.0, 0.75, 0.05),
           Box(0.0, 4.0, 0.0, 4.0, 0.05), Box(0.0, -4.0, 0.0, 4.0, 0.05), Box(4.0, 0.0, 0.0, 0.05, 4.0),

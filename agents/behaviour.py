@@ -63,6 +63,7 @@ from enum import StrEnum
 from functools import cached_property
 
 from tagswarm.agents.avoid import Avoider, Box, Neighbour
+from tagswarm.agents.makeway import MakeWay
 from tagswarm.agents.route import Grid, Route, plan, static_grid
 from tagswarm.protocol.geometry import Pose2, wrap_angle
 from tagswarm.protocol.geometry import se2_compose as compose
@@ -147,10 +148,13 @@ class Behaviour:
     avoider: Avoider = field(init=False, repr=False)
     route: Route | None = field(default=None, repr=False)  # a way round the room after a stall (agents.route)
     _goal: tuple[float, float] | None = field(default=None, repr=False)  # the target the route leads to
+    make_way: MakeWay = field(init=False, repr=False)  # a station keeper steps aside (agents.makeway)
 
     def __post_init__(self) -> None:
         self.avoider = Avoider(footprint_radius(self.robot), self.cfg.avoid_clearance_m, self.cfg.avoid_horizon_s,
                                self.robot_id, self.cfg.avoid_stall_s, replan=self._replan)
+        path_m = footprint_radius(self.robot) + self.cfg.avoid_clearance_m
+        self.make_way = MakeWay(self.robot_id, self._keep_m, path_m, path_m + self._keep_m - self.cfg.avoid_clearance_m)
 
     @property
     def _keep_m(self) -> float:
@@ -325,6 +329,13 @@ class Behaviour:
         if map_pose is None:
             return 0.0, 0.0
         target = self.target(map_pose, t_s)
+        keeper = stationary and self.cfg.make_way and self.cfg.avoid and not (self.anchor or self.on_loose)
+        if target is None and keeper:
+            aside = self.make_way.target(t_s, map_pose, self._neighbours, self.static_obstacles)
+            if isinstance(aside, float):  # back on its station: its heading again
+                return 0.0, max(-self.cfg.max_turn_rad_s, min(self.cfg.max_turn_rad_s,
+                                                              2.0 * wrap_angle(aside - map_pose[2])))
+            target = aside
         if target is None:
             return 0.0, 0.0
         factor = self.cfg.lost_speed_factor if self.mode == Mode.LOST or self.on_loose else 1.0

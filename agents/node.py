@@ -414,9 +414,9 @@ class AgentNode:
                    odometry_cycles=b.counter, localised=int(self.map_odom is not None and self.vouched),
                    server_alive=int(self.server_alive), avoiding_cycles=b.avoider.cycles_avoiding,
                    avoid_yields=b.avoider.yields, avoid_side_flips=b.avoider.side_flips,
-                   avoid_reroutes=b.avoider.reroutes, maps_used=self.neighbours.maps_adopted,
-                   slip_events=self.slip.events, slip_mm=round(self.slip.slip_m * 1000), frames_received=received,
-                   cpu_frames_us=round(self._cpu_frames_s * 1e6),
+                   avoid_reroutes=b.avoider.reroutes, avoid_steps_aside=b.make_way.steps_aside,
+                   maps_used=self.neighbours.maps_adopted, slip_events=self.slip.events, frames_received=received,
+                   slip_mm=round(self.slip.slip_m * 1000), cpu_frames_us=round(self._cpu_frames_s * 1e6),
                    cpu_detect_pose_us=round(self.vision.detect_pose_cpu_s * 1e6),
                    # overwritten in the newest-only inbox, or replaced while pending
                    frames_skipped=received - self._frames_taken + self.counters["frames_replaced"])

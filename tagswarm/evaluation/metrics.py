@@ -119,10 +119,10 @@ the true initial pose, so its error is pure drift).
     ``counters.world``; counted by the world, see its docs); each ``null`` if the
     world reported no ``contacts_*`` counter at all (a name missing from a world
     that reported some counts 0).
-  - ``fixes``, ``searches``, ``lost_events``, ``avoid_side_flips``: sums of the agents' counters
-    (visual fixes; re-localisation rotations started; full sweeps that found
-    nobody; avoidance stalls with no way round found); ``null`` if no agent
-    reported counters.
+  - ``fixes``, ``searches``, ``lost_events``, ``avoid_side_flips``, ``avoid_steps_aside``: sums of
+    the agents' counters (visual fixes; re-localisation rotations started; full sweeps that found
+    nobody; avoidance stalls with no way round found; station keepers stepping aside for a robot
+    they blocked); ``null`` if no agent reported counters.
   - ``time_lost_s``: total seconds spent in mode ``lost`` (see ``mode_time_s``).
   - ``mode_time_s``: ``{mode: seconds}`` summed over robots.
 - ``robots``: ``{"<k>": {...}}`` per robot:
@@ -134,7 +134,8 @@ the true initial pose, so its error is pure drift).
   - ``fixes``, ``searches``, ``lost_events``, ``frames_processed``,
     ``frames_skipped``, ``avoid_yields``, ``avoid_reroutes``, ``avoid_side_flips``
     (stalls of the collision avoidance: gave way, followed a way round the room,
-    found none and tried the other side): that agent's counters from ``run.json``
+    found none and tried the other side), ``avoid_steps_aside`` (a station keeper stepped
+    aside for a robot it blocked): that agent's counters from ``run.json``
     (a name missing from a reported counter set counts 0; all ``null`` if the agent
     reported none).
   - ``fused.time_localised`` / ``odom.time_localised``: that robot's share of its

@@ -365,3 +365,40 @@ def test_a_robot_stops_giving_way_to_a_station_keeper_in_the_door_and_takes_the_
         assert not b.done and b.avoider.yields >= 4 and b.avoider.reroutes == 0 and w.pose[1][0] < 0.0
     else:
         assert not b.done and b.avoider.yields == 0 and w.pose[1][0] < 0.0
+
+
+# the same room with the near door only: no way round
+ONE_DOOR = (Box(0.0, 2.75, 0.0, 0.05, 1.25), Box(0.0, -1.75, 0.0, 0.05, 2.25), *POCKET[3:])
+
+
+@pytest.mark.parametrize("make_way", [True, False])
+def test_a_station_keeper_in_the_only_door_steps_aside_and_returns(make_way: bool) -> None:
+    """Robot 0 holds station in the only door; robot 1 comes from 3 m away to go through.  With
+    ``make_way`` the keeper sees it stay near, stalled, steps aside off its line, lets it through
+    and takes its station and heading again; without, robot 1 never gets through."""
+    cfg = Agent(look_around=False, make_way=make_way)
+    w = World({0: ((0.0, 1.0, 0.0), hold(0), None), 1: ((-3.0, 1.0, 0.0), hold(1), (3.0, 1.0))},
+              boxes=ONE_DOOR, cfg=cfg, exact=True).run(60.0)
+    keeper, mover = w.beh[0], w.beh[1]
+    assert min(float(box_distance(box, p[0], p[1])) for box in ONE_DOOR for r in (0, 1) for p in w.paths[r]) > FOOT
+    assert w.min_dist >= CLEAR - 0.02, w.min_dist
+    if make_way:
+        assert keeper.make_way.steps_aside == 1 and keeper.make_way.station is None  # back, and holding
+        assert max(math.dist(p[:2], (0.0, 1.0)) for p in w.paths[0]) > 0.6  # it did leave the door
+        assert math.dist(w.pose[0][:2], (0.0, 1.0)) <= 0.05 and abs(w.pose[0][2]) <= 0.05
+        assert mover.done and math.dist(w.pose[1][:2], (3.0, 1.0)) < 0.15
+    else:
+        assert keeper.make_way.steps_aside == 0 and w.pose[0] == pytest.approx((0.0, 1.0, 0.0))
+        assert not mover.done and w.pose[1][0] < 0.0
+
+
+def test_a_station_keeper_stays_for_a_robot_that_passed_it_or_parked_beside_it() -> None:
+    """Robot 1 drives past station keeper 0 and parks 1 m beyond it; robot 2 comes straight at
+    keeper 3 and parks 1 m short of it, still.  Neither keeper moves: one was passed, the other's
+    visitor does not try to get anywhere."""
+    w = World({0: ((0.0, 1.5, 0.0), hold(0), None), 1: ((-3.0, 1.0, 0.0), hold(1), (1.0, 1.0)),
+               3: ((0.0, -2.0, 0.0), hold(3), None), 2: ((-3.0, -2.0, 0.0), hold(2), (-1.0, -2.0))},
+              cfg=Agent(look_around=False), exact=True).run(40.0)
+    assert w.beh[1].done and w.beh[2].done
+    assert w.beh[0].make_way.steps_aside == w.beh[3].make_way.steps_aside == 0
+    assert w.pose[0] == pytest.approx((0.0, 1.5, 0.0)) and w.pose[3] == pytest.approx((0.0, -2.0, 0.0))

@@ -313,12 +313,14 @@ def test_a_robot_whose_way_was_closed_is_named_with_its_stalls(tmp_path: Path) -
         "agent/0": {"fixes": 5},
         "agent/1": {"avoid_side_flips": 6, "avoid_yields": 2, "avoid_reroutes": 1},
         "agent/2": {"avoid_side_flips": 2, "avoid_yields": 4},  # under STALL_NOTE_FLIPS: not named
+        "agent/3": {"avoid_steps_aside": 1},
     }
-    truth = {k: (T20, circle(k, T20)) for k in range(3)}
+    truth = {k: (T20, circle(k, T20)) for k in range(4)}
     m = compute_metrics(make_run(tmp_path, truth, counters=counters, sim_time_s=20.0, wall_time_s=10.0))
     r1 = m["robots"]["1"]
     assert (r1["avoid_side_flips"], r1["avoid_yields"], r1["avoid_reroutes"]) == (6, 2, 1)
     assert (m["robots"]["0"]["avoid_side_flips"], m["swarm"]["avoid_side_flips"]) == (0, 8)
+    assert (m["robots"]["3"]["avoid_steps_aside"], m["swarm"]["avoid_steps_aside"]) == (1, 1)
     notes = [w for w in m["warnings"] if "way was closed" in w]
     assert len(notes) == 1 and notes[0].startswith("robot 1's way was closed 6 times")
     assert "gave way 2 times, followed 1 way(s) round" in notes[0]

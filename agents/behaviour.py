@@ -275,6 +275,8 @@ class Behaviour:
             if self.loose_cycles > self.cfg.fix_threshold:
                 map_pose, self.on_loose = loose_pose, True
         self._neighbours = tuple(neighbours)
+        if self.mission.kind == "hold":
+            self.make_way.watch(t_s, self._neighbours)
         swept = 0.0 if self._last_yaw is None else abs(wrap_angle(odom_yaw - self._last_yaw))
         self._last_yaw = odom_yaw
         stationary = self.mission.kind == "hold" and self.goal is None

@@ -66,18 +66,19 @@ class MakeWay:
     steps_aside: int = 0
     _history: dict[int, deque[tuple[float, float, float]]] = field(default_factory=dict, repr=False)
     _next_sample_s: float = field(default=-math.inf, repr=False)
+    _next_check_s: float = field(default=-math.inf, repr=False)
 
-    def _remember(self, t_s: float, neighbours: Sequence[Neighbour]) -> bool:
-        """Keep the neighbours' positions every ``SAMPLE_S``; whether it did now."""
+    def watch(self, t_s: float, neighbours: Sequence[Neighbour]) -> None:
+        """Keep the neighbours' positions every ``SAMPLE_S``; called every cycle, also while the keeper
+        turns to look around (a robot that is to stall beside it is on its way then)."""
         if t_s < self._next_sample_s:
-            return False
+            return
         self._next_sample_s = t_s + SAMPLE_S
         for n in neighbours:
             h = self._history.setdefault(n.robot_id, deque())
             h.append((t_s, n.x_m, n.y_m))
             while h and h[0][0] < t_s - HISTORY_S:
                 h.popleft()
-        return True
 
     def blocked(self, t_s: float, here: tuple[float, float],
                 neighbours: Sequence[Neighbour]) -> tuple[Neighbour, tuple[float, float]] | None:
@@ -113,10 +114,13 @@ class MakeWay:
     def target(self, t_s: float, pose: Pose2, neighbours: Sequence[Neighbour],
                boxes: Sequence[Box]) -> tuple[float, float] | float | None:
         """Where this station keeper at ``pose`` goes now: a point (map frame) to drive to, a
-        heading (rad) to turn to on the spot, or None to hold station as usual."""
-        sampled = self._remember(t_s, neighbours)
+        heading (rad) to turn to on the spot, or None to hold station as usual (the neighbours
+        as given to :meth:`watch` this cycle)."""
         if self.station is None:
-            found = self.blocked(t_s, pose[:2], neighbours) if sampled else None
+            if t_s < self._next_check_s:
+                return None
+            self._next_check_s = t_s + SAMPLE_S
+            found = self.blocked(t_s, pose[:2], neighbours)
             spot = None if found is None else aside_spot(pose, found[1], neighbours, boxes, self.keep_m,
                                                            self.path_m, self.pass_m)
             if found is None or spot is None:

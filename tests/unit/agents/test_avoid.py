@@ -371,12 +371,13 @@ def test_a_robot_stops_giving_way_to_a_station_keeper_in_the_door_and_takes_the_
 ONE_DOOR = (Box(0.0, 2.75, 0.0, 0.05, 1.25), Box(0.0, -1.75, 0.0, 0.05, 2.25), *POCKET[3:])
 
 
-@pytest.mark.parametrize("make_way", [True, False])
-def test_a_station_keeper_in_the_only_door_steps_aside_and_returns(make_way: bool) -> None:
+@pytest.mark.parametrize(("make_way", "look_around"), [(True, False), (True, True), (False, False)])
+def test_a_station_keeper_in_the_only_door_steps_aside_and_returns(make_way: bool, look_around: bool) -> None:
     """Robot 0 holds station in the only door; robot 1 comes from 3 m away to go through.  With
     ``make_way`` the keeper sees it stay near, stalled, steps aside off its line, lets it through
-    and takes its station and heading again; without, robot 1 never gets through."""
-    cfg = Agent(look_around=False, make_way=make_way)
+    and takes its station and heading again (also when robot 1 came while the keeper turned to
+    look around: it watched all along); without, robot 1 never gets through."""
+    cfg = Agent(look_around=look_around, make_way=make_way)
     w = World({0: ((0.0, 1.0, 0.0), hold(0), None), 1: ((-3.0, 1.0, 0.0), hold(1), (3.0, 1.0))},
               boxes=ONE_DOOR, cfg=cfg, exact=True).run(60.0)
     keeper, mover = w.beh[0], w.beh[1]
@@ -385,7 +386,13 @@ def test_a_station_keeper_in_the_only_door_steps_aside_and_returns(make_way: boo
     if make_way:
         assert keeper.make_way.steps_aside == 1 and keeper.make_way.station is None  # back, and holding
         assert max(math.dist(p[:2], (0.0, 1.0)) for p in w.paths[0]) > 0.6  # it did leave the door
-        assert math.dist(w.pose[0][:2], (0.0, 1.0)) <= 0.05 and abs(w.pose[0][2]) <= 0.05
+        path = w.paths[0]
+        j = next(i for i, p in enumerate(path) if math.dist(p[:2], (0.0, 1.0)) > 0.01) - 1
+        while j > 0 and path[j - 1] != path[j]:  # back over its turn towards the spot: the heading it held
+            j -= 1
+        before = path[j]
+        assert math.dist(w.pose[0][:2], (0.0, 1.0)) <= 0.05
+        assert abs(math.remainder(w.pose[0][2] - before[2], math.tau)) <= 0.05  # the heading it held
         assert mover.done and math.dist(w.pose[1][:2], (3.0, 1.0)) < 0.15
     else:
         assert keeper.make_way.steps_aside == 0 and w.pose[0] == pytest.approx((0.0, 1.0, 0.0))

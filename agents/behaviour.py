@@ -181,6 +181,7 @@ class Behaviour:
         """A run-time goal (map frame) replaces the mission until reached."""
         self.goal, self.goal_tolerance_m, self.done = (x_m, y_m), tolerance_m, False
         self.look_pending = False
+        self.make_way.cancel()
 
     def _waypoints(self) -> list[tuple[float, float]]:
         return [compose(self.arena_to_map, (x, y, 0.0))[:2] for x, y in self.mission.waypoints]

@@ -68,6 +68,11 @@ class MakeWay:
     _next_sample_s: float = field(default=-math.inf, repr=False)
     _next_check_s: float = field(default=-math.inf, repr=False)
 
+    def cancel(self) -> None:
+        """Forget the station left (a run-time goal sends the keeper elsewhere: it holds where sent)."""
+        self.station = self.aside = self.blocked_id = None
+        self.returning = False
+
     def watch(self, t_s: float, neighbours: Sequence[Neighbour]) -> None:
         """Keep the neighbours' positions every ``SAMPLE_S``; called every cycle, also while the keeper
         turns to look around (a robot that is to stall beside it is on its way then)."""
@@ -144,8 +149,7 @@ class MakeWay:
         if abs(math.remainder(station[2] - pose[2], math.tau)) > HEADING_TOL_RAD:
             return station[2]
         log.info("robot %d holds station again at (%.2f, %.2f) at t=%.1f s", self.robot_id, pose[0], pose[1], t_s)
-        self.station = self.aside = self.blocked_id = None
-        self.returning = False
+        self.cancel()
         return None
 
 

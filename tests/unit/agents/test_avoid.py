@@ -409,3 +409,17 @@ def test_a_station_keeper_stays_for_a_robot_that_passed_it_or_parked_beside_it()
     assert w.beh[1].done and w.beh[2].done
     assert w.beh[0].make_way.steps_aside == w.beh[3].make_way.steps_aside == 0
     assert w.pose[0] == pytest.approx((0.0, 1.5, 0.0)) and w.pose[3] == pytest.approx((0.0, -2.0, 0.0))
+
+
+def test_a_keeper_sent_elsewhere_while_aside_holds_where_it_was_sent() -> None:
+    """The door keeper above is sent to a run-time goal while it stands aside: it holds there
+    afterwards rather than going back to the door."""
+    w = World({0: ((0.0, 1.0, 0.0), hold(0), None), 1: ((-3.0, 1.0, 0.0), hold(1), (3.0, 1.0))},
+              boxes=ONE_DOOR, cfg=Agent(look_around=False), exact=True)
+    while w.beh[0].make_way.station is None and w.t < 40.0:
+        w.run(0.5)
+    assert w.beh[0].make_way.station is not None  # it did step aside
+    w.beh[0].set_goal(2.0, -2.0, 0.1)
+    w.run(40.0)
+    assert w.beh[0].make_way.station is None and w.beh[0].done
+    assert math.dist(w.pose[0][:2], (2.0, -2.0)) < 0.15

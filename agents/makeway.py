@@ -166,13 +166,23 @@ def _clear(boxes: Sequence[Box], a: tuple[float, float], b: tuple[float, float],
     return bool(gap[-1] >= end_m and np.all(ok | ~left))
 
 
+def _segment_distance(a: tuple[float, float], b: tuple[float, float], p: tuple[float, float]) -> float:
+    """Distance (m) from ``p`` to the segment from ``a`` to ``b``."""
+    dx, dy = b[0] - a[0], b[1] - a[1]
+    length2 = dx * dx + dy * dy
+    u = 0.0 if length2 == 0.0 else min(1.0, max(0.0, ((p[0] - a[0]) * dx + (p[1] - a[1]) * dy) / length2))
+    return math.dist(p, (a[0] + u * dx, a[1] + u * dy))
+
+
 def aside_spot(pose: Pose2, way: tuple[float, float], neighbours: Sequence[Neighbour], boxes: Sequence[Box],
                keep_m: float, path_m: float, pass_m: float) -> tuple[float, float] | None:
     """The nearest spot (ring by ring, ``RINGS_M``) a keeper at ``pose`` can drive straight to
     (keeping ``path_m`` from the walls and obstacles ``boxes`` on the way) that leaves ``pass_m``
     between it and the line through the station along ``way`` (the unit direction the blocked
-    robot came in), is not back against it, and keeps ``keep_m`` from the boxes and ``pass_m``
-    from every other robot; on a ring, the one farthest from that line.  None if there is none."""
+    robot came in), is not back against it, keeps ``keep_m`` from the boxes and ``pass_m`` from
+    every other robot, and whose way there passes every robot's circle by ``path_m`` (or, for a
+    robot nearer than that already, never comes nearer to it); on a ring,
+    the one farthest from that line.  None if there is none."""
     here = (pose[0], pose[1])
     ux, uy = way
     for r in RINGS_M:
@@ -184,8 +194,9 @@ def aside_spot(pose: Pose2, way: tuple[float, float], neighbours: Sequence[Neigh
             side = abs((c[0] - here[0]) * uy - (c[1] - here[1]) * ux)
             if side < pass_m or along < -0.2 or side <= best_side:
                 continue
-            if any(math.dist(c, (n.x_m, n.y_m)) < n.radius_m + pass_m / 2 for n in neighbours):
-                continue
+            if any(math.dist(c, (n.x_m, n.y_m)) < n.radius_m + pass_m / 2 or _segment_distance(here, c, (n.x_m, n.y_m))
+                   < min(n.radius_m + path_m, math.dist(here, (n.x_m, n.y_m)) - 1e-6) for n in neighbours):
+                continue  # a robot at the spot, or on the way there (the avoidance would stop the keeper short)
             if _clear(boxes, here, c, path_m, keep_m):
                 best, best_side = c, side
         if best is not None:

@@ -12,6 +12,7 @@ import pytest
 from tagswarm.agents import avoid
 from tagswarm.agents.avoid import Avoider, Box, Neighbour, box_distance, static_boxes
 from tagswarm.agents.behaviour import Behaviour, wheel_speeds
+from tagswarm.agents.makeway import aside_spot
 from tagswarm.agents.neighbours import NeighbourTracker
 from tagswarm.protocol import messages as m
 from tagswarm.protocol.geometry import Pose2, se2_compose
@@ -423,3 +424,17 @@ def test_a_keeper_sent_elsewhere_while_aside_holds_where_it_was_sent() -> None:
     w.run(40.0)
     assert w.beh[0].make_way.station is None and w.beh[0].done
     assert math.dist(w.pose[0][:2], (2.0, -2.0)) < 0.15
+
+
+def test_a_keeper_steps_aside_to_a_spot_it_can_reach_past_the_others() -> None:
+    """Robot 1 came from the west and stalled at keeper 0 (at the origin): the nearest spots off
+    its line are 0.7 m north and south; with robot 2 standing on the way north, the keeper goes
+    south (the avoidance would stop it short of the north spot)."""
+    blocked = Neighbour(1, -0.6, 0.0, 0.0, 0.0, FOOT)
+    keep, path = FOOT + CFG.avoid_clearance_m + 0.05, FOOT + CFG.avoid_clearance_m
+    args = ((0.0, 0.0, 0.0), (1.0, 0.0))
+    assert aside_spot(*args, [blocked], (), keep, path, 2 * FOOT + CFG.avoid_clearance_m + 0.05) == pytest.approx(
+        (0.0, 0.7), abs=1e-9)
+    spot = aside_spot(*args, [blocked, Neighbour(2, 0.3, 0.3, 0.0, 0.0, FOOT)], (), keep, path,
+                      2 * FOOT + CFG.avoid_clearance_m + 0.05)
+    assert spot == pytest.approx((0.0, -0.7), abs=1e-9)

@@ -153,8 +153,9 @@ class Behaviour:
     def __post_init__(self) -> None:
         self.avoider = Avoider(footprint_radius(self.robot), self.cfg.avoid_clearance_m, self.cfg.avoid_horizon_s,
                                self.robot_id, self.cfg.avoid_stall_s, replan=self._replan)
-        path_m = footprint_radius(self.robot) + self.cfg.avoid_clearance_m
-        self.make_way = MakeWay(self.robot_id, self._keep_m, path_m, path_m + self._keep_m - self.cfg.avoid_clearance_m)
+        foot = footprint_radius(self.robot)
+        # a spot keeps the route's margin from walls; the blocked robot passes it with two footprints and that margin
+        self.make_way = MakeWay(self.robot_id, self._keep_m, foot + self.cfg.avoid_clearance_m, self._keep_m + foot)
 
     @property
     def _keep_m(self) -> float:

@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from tagswarm.agents.avoid import Box, Neighbour, box_distance
+from tagswarm.protocol.freespace import point_segment_distance
 from tagswarm.protocol.geometry import Pose2
 
 log = logging.getLogger(__name__)
@@ -166,12 +167,14 @@ def _clear(boxes: Sequence[Box], a: tuple[float, float], b: tuple[float, float],
     return bool(gap[-1] >= end_m and np.all(ok | ~left))
 
 
-def _segment_distance(a: tuple[float, float], b: tuple[float, float], p: tuple[float, float]) -> float:
-    """Distance (m) from ``p`` to the segment from ``a`` to ``b``."""
-    dx, dy = b[0] - a[0], b[1] - a[1]
-    length2 = dx * dx + dy * dy
-    u = 0.0 if length2 == 0.0 else min(1.0, max(0.0, ((p[0] - a[0]) * dx + (p[1] - a[1]) * dy) / length2))
-    return math.dist(p, (a[0] + u * dx, a[1] + u * dy))
+def _in_the_way(n: Neighbour, here: tuple[float, float], spot: tuple[float, float], path_m: float,
+                pass_m: float) -> bool:
+    """Whether robot ``n`` stands at ``spot`` (within ``pass_m / 2`` of its circle) or on the straight way
+    there from ``here`` (within ``path_m``, or nearer than it already is): the avoidance would stop the
+    keeper short."""
+    p = (n.x_m, n.y_m)
+    return (math.dist(spot, p) < n.radius_m + pass_m / 2
+            or point_segment_distance(p, here, spot) < min(n.radius_m + path_m, math.dist(here, p) - 1e-6))
 
 
 def aside_spot(pose: Pose2, way: tuple[float, float], neighbours: Sequence[Neighbour], boxes: Sequence[Box],
@@ -194,9 +197,8 @@ def aside_spot(pose: Pose2, way: tuple[float, float], neighbours: Sequence[Neigh
             side = abs((c[0] - here[0]) * uy - (c[1] - here[1]) * ux)
             if side < pass_m or along < -0.2 or side <= best_side:
                 continue
-            if any(math.dist(c, (n.x_m, n.y_m)) < n.radius_m + pass_m / 2 or _segment_distance(here, c, (n.x_m, n.y_m))
-                   < min(n.radius_m + path_m, math.dist(here, (n.x_m, n.y_m)) - 1e-6) for n in neighbours):
-                continue  # a robot at the spot, or on the way there (the avoidance would stop the keeper short)
+            if any(_in_the_way(n, here, c, path_m, pass_m) for n in neighbours):
+                continue
             if _clear(boxes, here, c, path_m, keep_m):
                 best, best_side = c, side
         if best is not None:

@@ -87,6 +87,9 @@ def scene_run(up: Callable[..., Path], work: Path, scene: str, duration: float,
         "relocalisations": sw.get("relocalisations"), "kidnaps": sw.get("kidnaps"), "contacts": sw.get("contacts"),
         "nees": fused.get("nees"), "nees_nominal": fused.get("nees_nominal"),
         "searches": sw.get("searches"), "rtf": m["cost"].get("real_time_factor"),
+        # the robot views' systematic range error per range bin (metrics.json view_error_vs_range)
+        "view_range_bias_m": {f"{b['lo_m']:g}-{'' if b['hi_m'] is None else format(b['hi_m'], 'g')}": b["range_bias_m"]
+                              for b in (m.get("view_error_vs_range") or {}).get("bins", []) if b["count"]},
         "per_robot": per_robot,
     }
 

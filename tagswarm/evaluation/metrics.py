@@ -158,6 +158,13 @@ the true initial pose, so its error is pure drift).
   position error.  ``samples`` (with such a neighbour), ``unobserved_samples``
   (without), ``bins``: ``[{"lo_m", "hi_m" (null = open), "count",
   "median_error_m", "mean_error_m"}]`` (errors ``null`` in an empty bin).
+- ``view_error_vs_range``: every robot's views of the others (``observations.csv``) against
+  the truth at their stamps, binned by the true range (:mod:`tagswarm.evaluation.views`):
+  ``{"views", "unmatched"`` (robot views without a true pose of both robots within
+  ``assoc_max_diff_s``, or non-finite), ``"bins": [{"lo_m", "hi_m" (null = open), "count",
+  "range_bias_m", "range_rmse_m", "across_bias_m", "across_rmse_m", "yaw_bias_rad",
+  "yaw_rmse_rad"}]}`` (errors ``null`` in an empty bin).  A bin's bias is the views'
+  systematic error at that range: positive ``range_bias_m`` = targets seen farther than they are.
 - ``relocalisations``: the server's re-localisation events (``relocalisations.csv``)
   of this run's robots, in time order: ``{"t_s", "robot", "jump_m"`` (how far the
   estimate moved), ``"evidence"`` (observations in the consistent set),
@@ -246,6 +253,7 @@ from tagswarm.evaluation.trajerror import (
     rpe_per_metre,
     swarm_trajectory_stats,
 )
+from tagswarm.evaluation.views import view_error_by_range
 
 __all__ = [
     "ASSOC_MAX_DIFF_S", "DISTANCE_BINS_M", "F64", "KINDS", "MODES_HEADER", "NEIGHBOUR_WINDOW_S", "OBS_HEADER",
@@ -321,6 +329,7 @@ def evaluate(run: RunData) -> Evaluation:
         "robots": robots_out,
         "error_vs_distance": {"samples": int(dist.error_m.size), "unobserved_samples": dist.unobserved,
                               "bins": bin_by_distance(dist.distance_m, dist.error_m)},
+        "view_error_vs_range": view_error_by_range(run.observations, run.truth),
         **events,
         "warnings": warnings,
     }

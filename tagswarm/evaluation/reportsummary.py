@@ -125,6 +125,18 @@ def recovery_lines(metrics: dict[str, Any]) -> list[str]:
     return lines
 
 
+def view_line(metrics: dict[str, Any]) -> str | None:
+    """The robot views' range bias per range bin (mm, bins with views), or ``None`` without views."""
+    v = metrics.get("view_error_vs_range") or {}
+    bins = [b for b in v.get("bins", []) if b["count"]]
+    if not bins:
+        return None
+    parts = [f"{1000 * b['range_bias_m']:+.1f} mm "
+             + (f"at {b['lo_m']:g}-{b['hi_m']:g} m" if b["hi_m"] is not None else f"beyond {b['lo_m']:g} m")
+             + f" ({b['count']})" for b in bins]
+    return f"robot views against the truth, range bias (+ = seen farther): {', '.join(parts)}"
+
+
 def print_summary(metrics: dict[str, Any], run_dir: Path, console: Console | None = None) -> None:
     """The summary tables, formation error, shared alignment, recovery, cost and warnings."""
     con = console or Console()
@@ -139,6 +151,9 @@ def print_summary(metrics: dict[str, Any], run_dir: Path, console: Console | Non
         if al:
             con.print(f"  shared SE(2) alignment: yaw {math.degrees(al['yaw_rad']):.2f} deg, "
                       f"shift ({al['x_m']:.3f}, {al['y_m']:.3f}) m, {al['points']} points", highlight=False)
+    views = view_line(metrics)
+    if views is not None:
+        con.print(views, highlight=False, soft_wrap=True)
     for line in recovery_lines(metrics):
         con.print(line, highlight=False, soft_wrap=True)
     con.print(f"cost: wall {_m(c['wall_time_s'], 1)} s, sim {_m(c['sim_time_s'], 1)} s, "

@@ -53,16 +53,19 @@ class RunFolderError(UsageError, ValueError):
 class Observations:
     """Relative observations published by the agents (one row each of ``observations.csv``).
     ``stamp_s`` simulation seconds; ``target_id`` is a robot id when ``is_robot``,
-    else a landmark tag id."""
+    else a landmark tag id; ``rel`` (N, 3) what the observer measured: the target's base
+    (a landmark's tag frame) in its own base frame, (x_m, y_m, yaw_rad)."""
 
     stamp_s: F64
     observer: NDArray[np.int64]
     is_robot: NDArray[np.bool_]
     target_id: NDArray[np.int64]
+    rel: F64
 
     @staticmethod
     def empty() -> Observations:
-        return Observations(np.zeros(0), np.zeros(0, np.int64), np.zeros(0, bool), np.zeros(0, np.int64))
+        return Observations(np.zeros(0), np.zeros(0, np.int64), np.zeros(0, bool), np.zeros(0, np.int64),
+                            np.zeros((0, 3)))
 
 
 @dataclass(frozen=True)
@@ -189,11 +192,11 @@ def _int(value: str, path: Path, line: int, name: str) -> int:
 
 
 def read_observations(path: Path, warnings: list[str]) -> Observations:
-    """``observations.csv`` (header :data:`OBS_HEADER`); only who saw whom and when is kept."""
+    """``observations.csv`` (header :data:`OBS_HEADER`)."""
     rows = _read_csv(path, OBS_HEADER, warnings)
     if not rows:
         return Observations.empty()
-    stamps, observers, robot, target = [], [], [], []
+    stamps, observers, robot, target, rel = [], [], [], [], []
     for i, r in enumerate(rows, start=2):
         stamps.append(_int(r["stamp_ns"], path, i, "stamp_ns") / 1e9)
         observers.append(_int(r["observer"], path, i, "observer"))
@@ -202,8 +205,10 @@ def read_observations(path: Path, warnings: list[str]) -> Observations:
             raise RunFolderError(f"{path}:{i}: target_kind must be robot or landmark, got {kind!r}")
         robot.append(kind == "robot")
         target.append(_int(r["target_id"], path, i, "target_id"))
+        # a non-finite measurement is kept (as NaN) and skipped by the metrics that read it: who saw whom stands
+        rel.append(tuple(_float(r[k], path, i, k, finite=False) for k in ("x_m", "y_m", "yaw_rad")))
     return Observations(np.array(stamps, float), np.array(observers, np.int64), np.array(robot, bool),
-                        np.array(target, np.int64))
+                        np.array(target, np.int64), np.array(rel, float).reshape(-1, 3))
 
 
 def read_modes(path: Path, warnings: list[str]) -> list[ModeSample]:
@@ -215,12 +220,14 @@ def read_modes(path: Path, warnings: list[str]) -> list[ModeSample]:
     return sorted(out, key=lambda s: (s.robot, s.stamp_s))
 
 
-def _float(value: str, path: Path, line: int, name: str) -> float:
+def _float(value: str, path: Path, line: int, name: str, finite: bool = True) -> float:
     try:
         v = float(value)
     except (TypeError, ValueError):
         raise RunFolderError(f"{path}:{line}: {name} must be a number, got {value!r}") from None
     if not math.isfinite(v):
+        if not finite:
+            return math.nan
         raise RunFolderError(f"{path}:{line}: {name} must be finite, got {value!r}")
     return v
 

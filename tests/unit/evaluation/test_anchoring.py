@@ -11,7 +11,8 @@ from tagswarm.evaluation.runfolder import Observations
 def _obs(rows: list[tuple[float, int, bool, int]]) -> Observations:
     """Observations from (t_s, observer, is_robot, target) rows."""
     return Observations(np.array([r[0] for r in rows], float), np.array([r[1] for r in rows], np.int64),
-                        np.array([r[2] for r in rows], bool), np.array([r[3] for r in rows], np.int64))
+                        np.array([r[2] for r in rows], bool), np.array([r[3] for r in rows], np.int64),
+                        np.zeros((len(rows), 3)))
 
 
 def _range(m: float):  # type: ignore[no-untyped-def]

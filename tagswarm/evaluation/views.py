@@ -11,7 +11,7 @@ the true distance; a bin's mean is the views' systematic error at that range (it
 average out over frames or observers), its RMS what a single view carries.
 
 Measured on the built-in scenes with the default camera (320 x 240, 60 deg): nothing under
-2 m, +7 to +11 mm at 3-4 m and +13 to +28 mm at 4-5 m, the same sign for every view
+2 m, +7 to +11 mm at 3-4 m and +13 to +28 mm at 4-5 m on average, positive in every scene
 (docs/benchmarks.md, "Where the conservative NEES comes from").
 """
 
@@ -40,15 +40,17 @@ def _xy_yaw(traj: PoseTrajectory3D) -> F64:
 
 
 def _at(stamps: F64, poses: F64, t_s: F64, max_diff_s: float) -> F64:
-    """(N, 3) pose nearest in time to each of ``t_s`` (NaN where none within ``max_diff_s``)."""
+    """(N, 3) pose at each of ``t_s``, linearly interpolated between the two samples around it
+    (yaw unwrapped); NaN where no sample lies within ``max_diff_s``."""
     out = np.full((t_s.size, 3), np.nan)
     if stamps.size == 0:
         return out
-    j = np.clip(np.searchsorted(stamps, t_s), 1, stamps.size - 1) if stamps.size > 1 else np.zeros(t_s.size, int)
-    if stamps.size > 1:
-        j = np.where(np.abs(stamps[j - 1] - t_s) <= np.abs(stamps[j] - t_s), j - 1, j)
-    ok = np.abs(stamps[j] - t_s) <= max_diff_s
-    out[ok] = poses[j[ok]]
+    j = np.clip(np.searchsorted(stamps, t_s), 0, stamps.size - 1)
+    near = np.minimum(np.abs(stamps[j] - t_s), np.abs(stamps[np.maximum(j - 1, 0)] - t_s))
+    ok = near <= max_diff_s
+    yaw = np.unwrap(poses[:, 2])
+    for i, col in enumerate((poses[:, 0], poses[:, 1], yaw)):
+        out[ok, i] = np.interp(t_s[ok], stamps, col)
     return out
 
 

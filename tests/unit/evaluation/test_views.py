@@ -106,3 +106,14 @@ def test_metrics_json_has_the_views_by_range_and_the_summary_names_the_bias(tmp_
     line = view_line(m)
     assert line is not None and "+20.0 mm at 3-4 m (10)" in line
     assert view_line({"view_error_vs_range": {"views": 0, "unmatched": 0, "bins": []}}) is None
+
+
+def test_a_moving_target_s_true_pose_is_interpolated_between_the_truth_samples_around_the_view() -> None:
+    t = np.arange(0.0, 2.0, 0.1)  # robot 1 drives along x at 1 m/s, turning at 0.5 rad/s, truth every 0.1 s
+    q = np.column_stack([np.cos(0.25 * t), np.zeros((t.size, 2)), np.sin(0.25 * t)])
+    mover = PoseTrajectory3D(np.column_stack([3.0 + t, np.zeros((t.size, 2))]), q, t)
+    truth = {0: traj(0.0, 0.0, 0.0), 1: mover}
+    # seen at 0.54 s, where it is (3.54, 0, 0.27): the truth samples are 4 cm either side
+    r, err, unmatched = view_errors(observations([(0.54, 0, True, 1, (3.54, 0.0, 0.27))]), truth)
+    assert unmatched == 0 and r[0] == pytest.approx(3.54)
+    assert np.allclose(err, 0.0, atol=1e-9)

@@ -25,7 +25,7 @@ from numpy.typing import NDArray
 from tagswarm.evaluation.covframe import covariance_ellipse, position_cov_in_map
 from tagswarm.evaluation.localised import LOCALISED_HOLD_S, LOCALISED_M
 from tagswarm.evaluation.runfolder import F64, CovTrack, RelocEvent, RunData
-from tagswarm.evaluation.trajerror import ASSOC_MAX_DIFF_S, Track, pooled_stats
+from tagswarm.evaluation.trajerror import ASSOC_MAX_DIFF_S, Track, pooled_stats, trajectory_yaw
 
 RECOVERED_STAY_S = 1.0
 """After a kidnap a robot has recovered once it stays localised this long (s)."""
@@ -123,12 +123,6 @@ def time_localised(signals: Sequence[LocalisedSignal | None]) -> float | None:
 # --------------------------------------------------------------------------- NEES
 
 
-def _yaw(traj: PoseTrajectory3D) -> F64:
-    q = np.asarray(traj.orientations_quat_wxyz, float)
-    w, x, y, z = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
-    return np.asarray(np.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z)), float)
-
-
 def outside(stamps_s: F64, windows: Sequence[tuple[float, float]]) -> NDArray[np.bool_]:
     """(N,) mask of the ``stamps_s`` (s, shape (N,)) outside every closed interval of ``windows``."""
     keep = np.ones(stamps_s.shape, bool)
@@ -152,7 +146,7 @@ def nees_samples(track: Track, cov: CovTrack | None, max_diff_s: float = ASSOC_M
     right = np.clip(idx, 0, cov.stamp_s.size - 1)
     pick = np.where(np.abs(cov.stamp_s[left] - s) <= np.abs(cov.stamp_s[right] - s), left, right)
     e = track.est_xy - track.truth_xy
-    yaw = _yaw(track.est)
+    yaw = trajectory_yaw(track.est)
     keep = outside(s, exclude)
     out = []
     for i, c in enumerate(pick):

@@ -39,6 +39,13 @@ Stats = dict[str, float | int]
 # --------------------------------------------------------------------------- evo wrappers
 
 
+def trajectory_yaw(traj: PoseTrajectory3D | PosePath3D) -> F64:
+    """(N,) heading (rad, about z) of every pose of a planar trajectory."""
+    q = np.asarray(traj.orientations_quat_wxyz, float)
+    w, x, y, z = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
+    return np.asarray(np.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z)), float)
+
+
 def associate(truth: PoseTrajectory3D, est: PoseTrajectory3D,
               max_diff: float = ASSOC_MAX_DIFF_S) -> tuple[PoseTrajectory3D, PoseTrajectory3D] | None:
     """(truth, estimate) resampled at common timestamps by evo, or ``None`` if no stamp

@@ -26,7 +26,7 @@ from evo.core.trajectory import PoseTrajectory3D
 from numpy.typing import NDArray
 
 from tagswarm.evaluation.runfolder import F64, Observations
-from tagswarm.evaluation.trajerror import ASSOC_MAX_DIFF_S
+from tagswarm.evaluation.trajerror import ASSOC_MAX_DIFF_S, trajectory_yaw
 
 VIEW_RANGE_BINS_M: tuple[float, ...] = (0.0, 1.0, 2.0, 3.0, 4.0, 5.0, math.inf)
 """Bin edges (m) of the true observer-target distance; the last bin is open."""
@@ -34,9 +34,7 @@ VIEW_RANGE_BINS_M: tuple[float, ...] = (0.0, 1.0, 2.0, 3.0, 4.0, 5.0, math.inf)
 
 def _xy_yaw(traj: PoseTrajectory3D) -> F64:
     """(N, 3) x, y, yaw of a planar trajectory."""
-    q = np.asarray(traj.orientations_quat_wxyz, float)
-    yaw = np.arctan2(2 * (q[:, 0] * q[:, 3] + q[:, 1] * q[:, 2]), 1 - 2 * (q[:, 2] ** 2 + q[:, 3] ** 2))
-    return np.column_stack([np.asarray(traj.positions_xyz, float)[:, :2], yaw])
+    return np.column_stack([np.asarray(traj.positions_xyz, float)[:, :2], trajectory_yaw(traj)])
 
 
 def _at(stamps: F64, poses: F64, t_s: F64, max_diff_s: float) -> F64:

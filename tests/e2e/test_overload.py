@@ -99,8 +99,11 @@ def test_slow_agent_skips_frames_keeps_flat_memory_and_the_world_keeps_pace(tmp_
     assert counters["frame_age_max_ms"] <= 1000 * (DELAY_S + 0.1) + 150, counters
     mem = np.array([r for _, r in rss], float) / MB
     growth = float(mem[-3:].mean() - mem[:3].mean())
-    # the skipped frames are gone, not parked: keeping them would hold 77 kB x 6 frames/s x 12 s ~ 5.5 MB
-    assert len(mem) >= 20 and growth < 2.0, mem.round(2).tolist()
+    # the skipped frames are gone, not parked: keeping them would hold 77 kB x 6 frames/s x 12 s ~ 5.5 MB,
+    # ~0.23 MB between two samples. One step of its own (the allocator taking a fresh 2.1 MB block once,
+    # seen in CI) is not a queue, so the growth is judged without the largest single step
+    step = float(np.diff(mem).max()) if len(mem) > 1 else 0.0
+    assert len(mem) >= 20 and growth - max(step, 0.0) < 1.5, mem.round(2).tolist()
     slope = float(np.polyfit([w for w, _ in rss], mem, 1)[0])
     # the realtime world keeps its pace with a slow agent on the network
     rate_change = slow_rate / normal_rate - 1
@@ -109,6 +112,7 @@ def test_slow_agent_skips_frames_keeps_flat_memory_and_the_world_keeps_pace(tmp_
               "rate_change": rate_change, "realtime_overruns": world.get("realtime_overruns", 0),
               "frames_received": received, "frames_processed": processed, "frames_skipped": skipped,
               "frame_age_max_ms": counters["frame_age_max_ms"], "rss_mb_start": float(mem[0]),
-              "rss_growth_mb": growth, "rss_slope_mb_per_s": slope, "rss_samples": len(mem)}
+              "rss_growth_mb": growth, "rss_largest_step_mb": step, "rss_slope_mb_per_s": slope,
+              "rss_samples": len(mem)}
     (tmp_path / "overload_report.json").write_text(json.dumps(report, indent=1))
     print(json.dumps(report, indent=1))

@@ -126,14 +126,16 @@ def recovery_lines(metrics: dict[str, Any]) -> list[str]:
 
 
 def view_line(metrics: dict[str, Any]) -> str | None:
-    """The robot views' range bias per range bin (mm, bins with views), or ``None`` without views."""
+    """The robot views' range bias per range bin (mm, bins with views) and, where the views
+    carried covariances, their NEES; ``None`` without views."""
     v = metrics.get("view_error_vs_range") or {}
     bins = [b for b in v.get("bins", []) if b["count"]]
     if not bins:
         return None
     parts = [f"{1000 * b['range_bias_m']:+.1f} mm "
              + (f"at {b['lo_m']:g}-{b['hi_m']:g} m" if b["hi_m"] is not None else f"beyond {b['lo_m']:g} m")
-             + f" ({b['count']})" for b in bins]
+             + f" ({b['count']}" + (f", NEES {b['nees']:.2f})" if b.get("nees") is not None else ")")
+             for b in bins]
     return f"robot views against the truth, range bias (+ = seen farther): {', '.join(parts)}"
 
 

@@ -34,6 +34,8 @@ from numpy.typing import NDArray
 from tagswarm.evaluation.runformat import (
     FUSED_COV_HEADER,
     INTERVENTIONS_HEADER,
+    OBS_COV_COLUMNS,
+    OBS_HEADER,
     RELOC_HEADER,
     WORLD_COMMANDS_HEADER,
 )
@@ -41,7 +43,6 @@ from tagswarm.protocol.errors import UsageError
 
 F64 = NDArray[np.float64]
 
-OBS_HEADER = ("stamp_ns", "observer", "target_kind", "target_id", "x_m", "y_m", "yaw_rad")
 MODES_HEADER = ("stamp_ns", "robot", "mode")
 
 
@@ -54,18 +55,26 @@ class Observations:
     """Relative observations published by the agents (one row each of ``observations.csv``).
     ``stamp_s`` simulation seconds; ``target_id`` is a robot id when ``is_robot``,
     else a landmark tag id; ``rel`` (N, 3) what the observer measured: the target's base
-    (a landmark's tag frame) in its own base frame, (x_m, y_m, yaw_rad)."""
+    (a landmark's tag frame) in its own base frame, (x_m, y_m, yaw_rad); ``cov`` (N, 3, 3)
+    the covariance the observer sent with it (same axes; NaN where the run folder has none)."""
 
     stamp_s: F64
     observer: NDArray[np.int64]
     is_robot: NDArray[np.bool_]
     target_id: NDArray[np.int64]
     rel: F64
+    cov: F64 | None = None
+
+    def covariances(self) -> F64:
+        """(N, 3, 3) :attr:`cov`, all NaN when the run folder predates it."""
+        if self.cov is None:
+            return np.full((self.stamp_s.size, 3, 3), np.nan)
+        return self.cov
 
     @staticmethod
     def empty() -> Observations:
         return Observations(np.zeros(0), np.zeros(0, np.int64), np.zeros(0, bool), np.zeros(0, np.int64),
-                            np.zeros((0, 3)))
+                            np.zeros((0, 3)), np.zeros((0, 3, 3)))
 
 
 @dataclass(frozen=True)
@@ -196,7 +205,8 @@ def read_observations(path: Path, warnings: list[str]) -> Observations:
     rows = _read_csv(path, OBS_HEADER, warnings)
     if not rows:
         return Observations.empty()
-    stamps, observers, robot, target, rel = [], [], [], [], []
+    stamps, observers, robot, target, rel, cov = [], [], [], [], [], []
+    upper = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
     for i, r in enumerate(rows, start=2):
         stamps.append(_int(r["stamp_ns"], path, i, "stamp_ns") / 1e9)
         observers.append(_int(r["observer"], path, i, "observer"))
@@ -207,8 +217,14 @@ def read_observations(path: Path, warnings: list[str]) -> Observations:
         target.append(_int(r["target_id"], path, i, "target_id"))
         # a non-finite measurement is kept (as NaN) and skipped by the metrics that read it: who saw whom stands
         rel.append(tuple(_float(r[k], path, i, k, finite=False) for k in ("x_m", "y_m", "yaw_rad")))
+        c = np.full((3, 3), np.nan)
+        for (a, b), k in zip(upper, OBS_COV_COLUMNS, strict=True):
+            if r.get(k) not in (None, ""):  # older run folders have no covariance columns
+                c[a, b] = c[b, a] = _float(r[k], path, i, k, finite=False)
+        cov.append(c)
     return Observations(np.array(stamps, float), np.array(observers, np.int64), np.array(robot, bool),
-                        np.array(target, np.int64), np.array(rel, float).reshape(-1, 3))
+                        np.array(target, np.int64), np.array(rel, float).reshape(-1, 3),
+                        np.array(cov, float).reshape(-1, 3, 3))
 
 
 def read_modes(path: Path, warnings: list[str]) -> list[ModeSample]:

@@ -6,6 +6,9 @@ importing either's dependencies (Zenoh on one side, evo on the other).
   pose of ``fused_<k>.tum``: ``stamp_ns`` and the row-major 3x3 covariance of
   (x_m, y_m, yaw_rad) as the server published it, in the robot's own axes (see
   :mod:`tagswarm.evaluation.covframe`); m², m·rad, rad².
+- ``observations.csv``: :data:`OBS_HEADER`, then (newer) :data:`OBS_COV_COLUMNS`, the upper
+  triangle of the covariance the observer sent with each measurement (x_m, y_m, yaw_rad in its
+  own base axes; m², m·rad, rad²; empty or NaN when it sent none).
 - ``relocalisations.csv`` (:data:`RELOC_HEADER`): the server's
   :class:`~tagswarm.protocol.messages.Relocalisation` events; poses in the MAP frame (m,
   rad); ``observers`` space-separated robot ids (``-1`` = a landmark).
@@ -22,6 +25,8 @@ from __future__ import annotations
 
 from typing import Final
 
+OBS_HEADER: Final = ("stamp_ns", "observer", "target_kind", "target_id", "x_m", "y_m", "yaw_rad")
+OBS_COV_COLUMNS: Final = ("cov_xx", "cov_xy", "cov_xyaw", "cov_yy", "cov_yyaw", "cov_yawyaw")
 FUSED_COV_HEADER: Final = ("stamp_ns", *(f"c{i}{j}" for i in range(3) for j in range(3)))
 RELOC_HEADER: Final = ("stamp_ns", "robot_id", "jump_m", "from_x_m", "from_y_m", "from_yaw_rad", "to_x_m", "to_y_m",
                        "to_yaw_rad", "evidence", "observers")

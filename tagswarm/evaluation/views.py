@@ -58,6 +58,35 @@ def view_errors(obs: Observations, truth: dict[int, PoseTrajectory3D | None],
     errors (N, 3) range / across / yaw, unmatched)`` for the N views whose observer and target
     both have a true pose within ``max_diff_s`` of the stamp and a finite measurement;
     ``unmatched`` counts the robot views without."""
+    r, err, _, unmatched = _views(obs, truth, max_diff_s)
+    return r, err, unmatched
+
+
+def view_sigmas(true_rel: F64, meas: F64, cov: F64) -> F64:
+    """(N, 3): per view, the standard deviation its own covariance ``cov`` (N, 3, 3; observer's
+    axes, m²) claims along and across the true line of sight (``true_rel`` (N, 3), m) and the
+    view's position NEES, e^T P^-1 e / 2 with e = ``meas`` - ``true_rel`` (x, y) and P the
+    covariance's position block.  NaN where the covariance is missing or not positive definite."""
+    out = np.full((true_rel.shape[0], 3), np.nan)
+    if true_rel.shape[0] == 0:
+        return out
+    p = np.asarray(cov, float)[:, :2, :2]
+    r = np.hypot(true_rel[:, 0], true_rel[:, 1])
+    u = true_rel[:, :2] / r[:, None]
+    v = np.column_stack([-u[:, 1], u[:, 0]])
+    det = p[:, 0, 0] * p[:, 1, 1] - p[:, 0, 1] * p[:, 1, 0]
+    ok = np.isfinite(det) & (det > 0) & (p[:, 0, 0] > 0)
+    for i, w in enumerate((u, v)):
+        out[ok, i] = np.sqrt(np.einsum("ni,nij,nj->n", w[ok], p[ok], w[ok]))
+    e = meas[ok, :2] - true_rel[ok, :2]
+    out[ok, 2] = (p[ok, 1, 1] * e[:, 0] ** 2 - 2 * p[ok, 0, 1] * e[:, 0] * e[:, 1]
+                  + p[ok, 0, 0] * e[:, 1] ** 2) / det[ok] / 2.0
+    return out
+
+
+def _views(obs: Observations, truth: dict[int, PoseTrajectory3D | None],
+           max_diff_s: float) -> tuple[F64, F64, F64, int]:
+    """:func:`view_errors` plus, per matched view, :func:`view_sigmas` (N, 3)."""
     robot = np.flatnonzero(obs.is_robot)
     stamps = obs.stamp_s[robot]
     poses = {k: (np.asarray(tr.timestamps, float), _xy_yaw(tr)) for k, tr in truth.items()
@@ -82,15 +111,19 @@ def view_errors(obs: Observations, truth: dict[int, PoseTrajectory3D | None],
     along = np.hypot(m[:, 0], m[:, 1]) - r
     across = (tr[:, 0] * m[:, 1] - tr[:, 1] * m[:, 0]) / r
     yaw = (m[:, 2] - tr[:, 2] + math.pi) % (2 * math.pi) - math.pi
-    return r, np.column_stack([along, across, yaw]), int(robot.size - np.count_nonzero(ok))
+    sig = view_sigmas(tr, m, obs.covariances()[robot][ok])
+    return r, np.column_stack([along, across, yaw]), sig, int(robot.size - np.count_nonzero(ok))
 
 
 def view_error_by_range(obs: Observations, truth: dict[int, PoseTrajectory3D | None]) -> dict[str, Any]:
     """``{"views", "unmatched", "bins"}``: the robot views' errors (see :func:`view_errors`) per
     bin of :data:`VIEW_RANGE_BINS_M`: ``{"lo_m", "hi_m" (null = open), "count", "range_bias_m",
     "range_rmse_m", "across_bias_m", "across_rmse_m", "yaw_bias_rad", "yaw_rmse_rad"}`` (the
-    errors ``null`` in an empty bin)."""
-    r, err, unmatched = view_errors(obs, truth)
+    errors ``null`` in an empty bin), and what the views' own covariances claim
+    (:func:`view_sigmas`): ``"range_sigma_m"`` and ``"across_sigma_m"`` (RMS of the claimed
+    standard deviations) and ``"nees"`` (mean position NEES, 1 when the claim is honest; below,
+    the observers claim worse than they see), ``null`` when no view of the bin has a covariance."""
+    r, err, sig, unmatched = _views(obs, truth, ASSOC_MAX_DIFF_S)
     bins = []
     for lo, hi in itertools.pairwise(VIEW_RANGE_BINS_M):
         sel = (r >= lo) & (r < hi)
@@ -100,5 +133,9 @@ def view_error_by_range(obs: Observations, truth: dict[int, PoseTrajectory3D | N
             e = err[sel, i]
             row[f"{name}_bias_{unit}"] = float(np.mean(e)) if e.size else None
             row[f"{name}_rmse_{unit}"] = float(np.sqrt(np.mean(e**2))) if e.size else None
+        claimed = sig[sel & np.isfinite(sig[:, 2])]
+        row["range_sigma_m"] = float(np.sqrt(np.mean(claimed[:, 0] ** 2))) if claimed.size else None
+        row["across_sigma_m"] = float(np.sqrt(np.mean(claimed[:, 1] ** 2))) if claimed.size else None
+        row["nees"] = float(np.mean(claimed[:, 2])) if claimed.size else None
         bins.append(row)
     return {"views": int(r.size), "unmatched": unmatched, "bins": bins}

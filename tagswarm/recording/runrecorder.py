@@ -25,6 +25,8 @@ import msgspec
 from tagswarm.evaluation.runformat import (
     FUSED_COV_HEADER,
     INTERVENTIONS_HEADER,
+    OBS_COV_COLUMNS,
+    OBS_HEADER,
     RELOC_HEADER,
     WORLD_COMMANDS_HEADER,
 )
@@ -70,7 +72,8 @@ class RunRecorder:
         #: (command, simulation time of its arrival here in ns: a tool may not know the sim time)
         self.world_commands: list[tuple[m.WorldCommand, int]] = []
         self.applied: list[m.WorldCommand] = []  # what the world applied of them and of the events
-        self.observations: list[tuple[int, int, str, int, float, float, float]] = []
+        # stamp, observer, kind, target, x, y, yaw and the upper triangle of the measurement's covariance
+        self.observations: list[tuple[Any, ...]] = []
         self.modes: list[tuple[int, int, str]] = []
         self.counters: dict[str, dict[str, int]] = {}
         self.mode_now: dict[int, str] = {}
@@ -116,8 +119,9 @@ class RunRecorder:
         for it in ib["obs"].drain():
             ob = self._decode(m.RelativeObservation, it.value, it.key)
             if ob is not None:
+                c = ob.cov  # 3x3 row-major (the decoder rejects any other)
                 self.observations.append((ob.stamp_ns, ob.robot_id, ob.target_kind, ob.target_id, ob.x_m, ob.y_m,
-                                          ob.yaw_rad))
+                                          ob.yaw_rad, c[0], c[1], c[2], c[4], c[5], c[8]))
         for it in ib["reloc"].drain():
             rl = self._decode(m.Relocalisation, it.value)
             if rl is not None and self._known(rl.robot_id):
@@ -194,7 +198,7 @@ class RunRecorder:
                             if len(cov) == 9)
         with open(run_dir / "observations.csv", "w", newline="") as f:
             w = csv.writer(f)
-            w.writerow(["stamp_ns", "observer", "target_kind", "target_id", "x_m", "y_m", "yaw_rad"])
+            w.writerow([*OBS_HEADER, *OBS_COV_COLUMNS])
             w.writerows(sorted(self.observations))  # arrival order across agents is not deterministic
         with open(run_dir / "modes.csv", "w", newline="") as f:
             w = csv.writer(f)

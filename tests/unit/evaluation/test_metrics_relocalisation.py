@@ -333,6 +333,12 @@ def test_recorder_writes_what_the_reader_reads(tmp_path: Path) -> None:
         seq=0, stamp_ns=2_500_000_000, robot_id=2, from_x_m=1.0, from_y_m=0.0, from_yaw_rad=0.0, to_x_m=2.0,
         to_y_m=0.5, to_yaw_rad=0.1, jump_m=1.118, evidence=5, observers=(0, 1, -1))))
     bus.inboxes[keys.relocalisation()].put(keys.relocalisation(), b"\xc1garbage")
+    obs_cov = (0.0001, 0.00002, 0.00003, 0.00002, 0.0004, 0.00005, 0.00003, 0.00005, 0.01)
+    for target, c in ((2, obs_cov), (3, (0.0,) * 9)):
+        bus.inboxes[keys.observation()].put(keys.observation(1), codec.encode(m.RelativeObservation(
+            seq=target, stamp_ns=1_000_000_000, robot_id=1, target_kind="robot", target_id=target, x_m=2.0,
+            y_m=-0.5, yaw_rad=0.3, cov=c, pose=m.Pose3(x_m=0.0, y_m=0.0, z_m=0.0), reprojection_rms_px=0.2,
+            tag_ids=(target,), camera="front")))
     bus.inboxes[keys.world_command()].put(keys.world_command(), codec.encode(m.WorldCommand(
         seq=0, stamp_ns=2_000_000_000, robot_id=2, action="teleport", x_m=1.0, y_m=-1.0, yaw_rad=0.5)))
     bus.inboxes[keys.world_command()].put(keys.world_command(), codec.encode(m.WorldCommand(
@@ -350,6 +356,10 @@ def test_recorder_writes_what_the_reader_reads(tmp_path: Path) -> None:
     assert ct is not None and ct.stamp_s.tolist() == [0.0, 0.1, 0.2]
     assert ct.cov[2].ravel().tolist() == list(cov)
     assert run.fused_cov[0] is None  # a header and no row
+    obs = run.observations
+    assert obs.target_id.tolist() == [2, 3] and obs.rel[0].tolist() == [2.0, -0.5, 0.3]
+    assert obs.covariances()[0].ravel().tolist() == list(obs_cov)
+    assert obs.covariances()[1].ravel().tolist() == [0.0] * 9
 
 
 def test_nominal_nees_leaves_out_a_kidnapped_robot_until_it_is_found_again(tmp_path: Path) -> None:

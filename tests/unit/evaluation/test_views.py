@@ -117,3 +117,41 @@ def test_a_moving_target_s_true_pose_is_interpolated_between_the_truth_samples_a
     r, err, unmatched = view_errors(observations([(0.54, 0, True, 1, (3.54, 0.0, 0.27))]), truth)
     assert unmatched == 0 and r[0] == pytest.approx(3.54)
     assert np.allclose(err, 0.0, atol=1e-9)
+
+
+def test_a_view_s_claimed_sigma_and_nees_are_taken_along_and_across_the_line_of_sight() -> None:
+    # robot 1 is 4 m off the observer's left (+y): the line of sight is its y axis. Each view claims
+    # sigma 2 cm along y (the range) and 5 mm along x (across) and is off by 2 cm in range, 5 mm across
+    truth = {0: traj(0.0, 0.0, 0.0), 1: traj(0.0, 4.0, 0.0)}
+    cov = np.diag([0.005**2, 0.02**2, 0.01**2])
+    rows = [(0.1 * k, 0, True, 1, (-0.005 if k % 2 else 0.005, 4.02, 0.0)) for k in range(10)]
+    obs = observations(rows)
+    obs = Observations(obs.stamp_s, obs.observer, obs.is_robot, obs.target_id, obs.rel, np.tile(cov, (10, 1, 1)))
+    b = view_error_by_range(obs, truth)["bins"][4]
+    assert b["count"] == 10
+    assert b["range_sigma_m"] == pytest.approx(0.02) and b["across_sigma_m"] == pytest.approx(0.005)
+    assert b["nees"] == pytest.approx((1.0 + 1.0) / 2)  # one sigma along and one across
+    # the same views claiming twice the range sigma are conservative: NEES (1/4 + 1) / 2
+    wide = Observations(obs.stamp_s, obs.observer, obs.is_robot, obs.target_id, obs.rel,
+                        np.tile(np.diag([0.005**2, 0.04**2, 0.01**2]), (10, 1, 1)))
+    assert view_error_by_range(wide, truth)["bins"][4]["nees"] == pytest.approx(0.625)
+    # without covariances (an older run folder) the claim is unknown, the errors are not
+    plain = view_error_by_range(observations(rows), truth)["bins"][4]
+    assert plain["nees"] is None and plain["range_sigma_m"] is None
+    assert plain["range_bias_m"] == pytest.approx(0.02, abs=1e-5)
+
+
+def test_the_observation_covariance_round_trips_through_observations_csv(tmp_path: Path) -> None:
+    truth = {0: (T, static(0.0, 0.0, T)), 1: (T, static(3.5, 0.0, T))}
+    run = make_run(tmp_path, truth, fused={0: truth[0], 1: truth[1]},
+                   observations=[(int(k * 1e8), 0, "robot", 1) for k in range(10)])
+    lines = (run / "observations.csv").read_text().splitlines()
+    cols = ",cov_xx,cov_xy,cov_xyaw,cov_yy,cov_yyaw,cov_yawyaw"
+    # seen at 3.52 m (2 cm too far) with a claimed range sigma of 1 cm: NEES 2 (4 / 2)
+    body = [ln.replace(",1.0,0.0,0.0", ",3.52,0.0,0.0") + ",0.0001,0.0,0.0,0.0001,0.0,0.0004" for ln in lines[1:]]
+    (run / "observations.csv").write_text("\n".join([lines[0] + cols, *body]) + "\n")
+    m = compute_metrics(run)
+    b = m["view_error_vs_range"]["bins"][3]
+    assert b["count"] == 10 and b["nees"] == pytest.approx(2.0) and b["range_sigma_m"] == pytest.approx(0.01)
+    line = view_line(m)
+    assert line is not None and "+20.0 mm at 3-4 m (10, NEES 2.00)" in line

@@ -163,11 +163,11 @@ the true initial pose, so its error is pure drift).
   ``{"views", "unmatched"`` (robot views without a true pose of both robots within
   ``assoc_max_diff_s``, or non-finite), ``"bins": [{"lo_m", "hi_m" (null = open), "count",
   "range_bias_m", "range_rmse_m", "across_bias_m", "across_rmse_m", "yaw_bias_rad",
-  "yaw_rmse_rad", "range_sigma_m", "across_sigma_m", "nees"}]}`` (errors ``null`` in an empty
-  bin).  A bin's bias is the views' systematic error at that range: positive ``range_bias_m`` =
-  targets seen farther than they are.  ``range_sigma_m`` / ``across_sigma_m`` are what the views'
-  own covariances claim (RMS of the claimed standard deviations) and ``nees`` their mean position
-  NEES (1 = honest, below = the agents claim worse than they see); ``null`` for run folders older
+  "yaw_rmse_rad", "range_sigma_m", "across_sigma_m", "yaw_sigma_rad", "nees"}]}`` (errors
+  ``null`` in an empty bin).  A bin's bias is the views' systematic error at that range:
+  positive ``range_bias_m`` = targets seen farther than they are.  The ``*_sigma_*`` are what
+  the views' own covariances claim (RMS of the claimed standard deviations), ``nees`` their mean
+  position NEES (1 = honest, below = the agents claim worse than they see); ``null`` for run folders older
   than the covariance columns of ``observations.csv``.
 - ``relocalisations``: the server's re-localisation events (``relocalisations.csv``)
   of this run's robots, in time order: ``{"t_s", "robot", "jump_m"`` (how far the

@@ -63,11 +63,12 @@ def view_errors(obs: Observations, truth: dict[int, PoseTrajectory3D | None],
 
 
 def view_sigmas(true_rel: F64, meas: F64, cov: F64) -> F64:
-    """(N, 3): per view, the standard deviation its own covariance ``cov`` (N, 3, 3; observer's
-    axes, m²) claims along and across the true line of sight (``true_rel`` (N, 3), m) and the
+    """(N, 4): per view, the standard deviation its own covariance ``cov`` (N, 3, 3; observer's
+    axes, m², rad²) claims along and across the true line of sight (``true_rel`` (N, 3), m), the
     view's position NEES, e^T P^-1 e / 2 with e = ``meas`` - ``true_rel`` (x, y) and P the
-    covariance's position block.  NaN where the covariance is missing or not positive definite."""
-    out = np.full((true_rel.shape[0], 3), np.nan)
+    covariance's position block, and the claimed yaw standard deviation (rad).  NaN where the
+    covariance is missing or not positive definite."""
+    out = np.full((true_rel.shape[0], 4), np.nan)
     if true_rel.shape[0] == 0:
         return out
     p = np.asarray(cov, float)[:, :2, :2]
@@ -81,12 +82,13 @@ def view_sigmas(true_rel: F64, meas: F64, cov: F64) -> F64:
     e = meas[ok, :2] - true_rel[ok, :2]
     out[ok, 2] = (p[ok, 1, 1] * e[:, 0] ** 2 - 2 * p[ok, 0, 1] * e[:, 0] * e[:, 1]
                   + p[ok, 0, 0] * e[:, 1] ** 2) / det[ok] / 2.0
+    out[ok, 3] = np.sqrt(np.maximum(np.asarray(cov, float)[ok, 2, 2], 0.0))
     return out
 
 
 def _views(obs: Observations, truth: dict[int, PoseTrajectory3D | None],
            max_diff_s: float) -> tuple[F64, F64, F64, int]:
-    """:func:`view_errors` plus, per matched view, :func:`view_sigmas` (N, 3)."""
+    """:func:`view_errors` plus, per matched view, :func:`view_sigmas` (N, 4)."""
     robot = np.flatnonzero(obs.is_robot)
     stamps = obs.stamp_s[robot]
     poses = {k: (np.asarray(tr.timestamps, float), _xy_yaw(tr)) for k, tr in truth.items()
@@ -120,8 +122,8 @@ def view_error_by_range(obs: Observations, truth: dict[int, PoseTrajectory3D | N
     bin of :data:`VIEW_RANGE_BINS_M`: ``{"lo_m", "hi_m" (null = open), "count", "range_bias_m",
     "range_rmse_m", "across_bias_m", "across_rmse_m", "yaw_bias_rad", "yaw_rmse_rad"}`` (the
     errors ``null`` in an empty bin), and what the views' own covariances claim
-    (:func:`view_sigmas`): ``"range_sigma_m"`` and ``"across_sigma_m"`` (RMS of the claimed
-    standard deviations) and ``"nees"`` (mean position NEES, 1 when the claim is honest; below,
+    (:func:`view_sigmas`): ``"range_sigma_m"``, ``"across_sigma_m"`` and ``"yaw_sigma_rad"`` (RMS
+    of the claimed standard deviations) and ``"nees"`` (mean position NEES, 1 when the claim is honest; below,
     the observers claim worse than they see), ``null`` when no view of the bin has a covariance."""
     r, err, sig, unmatched = _views(obs, truth, ASSOC_MAX_DIFF_S)
     bins = []
@@ -137,5 +139,6 @@ def view_error_by_range(obs: Observations, truth: dict[int, PoseTrajectory3D | N
         row["range_sigma_m"] = float(np.sqrt(np.mean(claimed[:, 0] ** 2))) if claimed.size else None
         row["across_sigma_m"] = float(np.sqrt(np.mean(claimed[:, 1] ** 2))) if claimed.size else None
         row["nees"] = float(np.mean(claimed[:, 2])) if claimed.size else None
+        row["yaw_sigma_rad"] = float(np.sqrt(np.mean(claimed[:, 3] ** 2))) if claimed.size else None
         bins.append(row)
     return {"views": int(r.size), "unmatched": unmatched, "bins": bins}

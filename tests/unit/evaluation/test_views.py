@@ -131,6 +131,7 @@ def test_a_view_s_claimed_sigma_and_nees_are_taken_along_and_across_the_line_of_
     assert b["count"] == 10
     assert b["range_sigma_m"] == pytest.approx(0.02) and b["across_sigma_m"] == pytest.approx(0.005)
     assert b["nees"] == pytest.approx((1.0 + 1.0) / 2)  # one sigma along and one across
+    assert b["yaw_sigma_rad"] == pytest.approx(0.01)
     # the same views claiming twice the range sigma are conservative: NEES (1/4 + 1) / 2
     wide = Observations(obs.stamp_s, obs.observer, obs.is_robot, obs.target_id, obs.rel,
                         np.tile(np.diag([0.005**2, 0.04**2, 0.01**2]), (10, 1, 1)))

@@ -57,6 +57,9 @@ SOFT_GAP_M = 0.1  # room beyond the clearance that alternatives try to keep
 STATIC_MIN_GAP_M = 0.01  # a goal beside a wall may bring the footprint this close to it
 PROGRESS_EPS_M = 0.05  # progress smaller than this over stall_s is a stall
 PASS_RANGE_M = 0.5  # passing another robot closer than this (beyond the clearance) on the wrong side costs
+# the own position sigma's multiple kept from walls and obstacles on top of the clearance is capped here: a robot
+# lost by metres still fits through a 1.2 m door (2 x (footprint 0.16 + clearance 0.1 + 0.2) = 0.92 m)
+MAX_SIGMA_MARGIN_M = 0.2
 NEIGHBOUR_PREDICT_S = 1.0  # others keep their velocity this long, then stand (they turn at waypoints, avoid too)
 YIELD_S = 2.5  # how long a stalled robot backs away from a jam for a robot with a lower id
 YIELD_SPEED_M_S = 0.12
@@ -160,6 +163,8 @@ class Avoider:
     robot_id: int = 0
     stall_s: float = 6.0
     side: int = -1  # preferred turn while avoiding: -1 right (pass on the right), +1 left
+    # walls and obstacles are kept this many of the robot's own position sigma farther (see command)
+    sigma_k: float = 0.0
     # called on a stall before trying the other side: (pose, target, neighbours, boxes) -> whether it found a way
     # round (tagswarm.agents.route); the caller then steers by that way
     replan: Callable[[Pose2, tuple[float, float], Sequence[Neighbour], Sequence[Box]], bool] | None = field(
@@ -178,14 +183,16 @@ class Avoider:
     _best_t: float = 0.0
     _clear_since: float = math.inf
     _target: tuple[float, float] | None = field(default=None, repr=False)
+    _margin_m: float = 0.0  # this cycle's extra room from walls and obstacles
 
     # ------------------------------------------------------------------ geometry
     def _required(self, nb: Neighbour) -> float:
         return self.footprint_m + nb.radius_m + self.clearance_m
 
     def _static_required(self, b: Box, goal: tuple[float, float]) -> float:
-        """Room to keep from a box: footprint + clearance, less if the goal itself is closer to it."""
-        full = self.footprint_m + self.clearance_m
+        """Room to keep from a box: footprint + clearance + this cycle's margin for the robot's own
+        position uncertainty, less if the goal itself is closer to it."""
+        full = self.footprint_m + self.clearance_m + self._margin_m
         at_goal = float(box_distance(b, goal[0], goal[1]))
         return max(self.footprint_m + STATIC_MIN_GAP_M, min(full, at_goal - STATIC_MIN_GAP_M))
 
@@ -252,10 +259,17 @@ class Avoider:
     # ------------------------------------------------------------------ control
     def command(self, *, pose: Pose2, target: tuple[float, float], steer: Callable[[Pose2], tuple[float, float]],
                 v_max: float, w_max: float, neighbours: Sequence[Neighbour], boxes: Sequence[Box],
-                t_s: float) -> tuple[float, float]:
+                t_s: float, pos_sigma_m: float | None = None) -> tuple[float, float]:
         """The twist (v_m_s, w_rad_s) to drive towards ``target`` from ``pose``; ``steer`` is the
         go-to-goal controller (pose -> twist), whose command is kept whenever the path it is about
-        to drive is clear (see the module docstring)."""
+        to drive is clear (see the module docstring).  ``pos_sigma_m`` is the robot's own
+        position sigma (m, None if unknown): walls and obstacles, whose geometry is known exactly,
+        are kept ``sigma_k`` of it farther (at most ``MAX_SIGMA_MARGIN_M``), so a robot that slipped
+        out of everyone's view does not drive into a shelf it believes 20 cm away.  The other
+        robots are not: their poses come from the same map, and the swarm's margin to each other
+        is what lets a crowd move."""
+        sigma = pos_sigma_m if pos_sigma_m is not None and math.isfinite(pos_sigma_m) else 0.0
+        self._margin_m = min(self.sigma_k * max(sigma, 0.0), MAX_SIGMA_MARGIN_M)
         times: Arr = np.arange(1, round(self.horizon_s / STEP_S) + 1, dtype=np.float64) * STEP_S
         dist = math.hypot(target[0] - pose[0], target[1] - pose[1])
         reach = v_max * self.horizon_s + SOFT_GAP_M
@@ -308,6 +322,11 @@ class Avoider:
         x, y, th = rollout(pose, v[:-1], w[:-1], times, dist)
         x, y, th = np.vstack([x, xn]), np.vstack([y, yn]), np.vstack([th, thn])
         tight, ok, wrong_side = self._gaps(x, y, times, pose, target, neighbours, boxes, reach)
+        if self._margin_m > 0.0 and not ok[-1] and not np.any(ok[:-1] & (v[:-1] > 0.0)):
+            # the margin leaves no way forward (a waypoint near a wall, the way along it bulging towards it on
+            # the turn): drop it this cycle, the clearance itself still holds
+            self._margin_m = 0.0
+            tight, ok, wrong_side = self._gaps(x, y, times, pose, target, neighbours, boxes, reach)
         # turning in place never brings the footprint closer to anything (the last row is the
         # controller's path, which may turn first and drive later: it stays as judged)
         ok[:-1] |= v[:-1] == 0.0

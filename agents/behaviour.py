@@ -143,6 +143,7 @@ class Behaviour:
     _fix_yaw: float | None = field(default=None, repr=False)  # odometry heading at the last fix
     _fixes_at_sweep: int = field(default=0, repr=False)  # fixes before the sweep under way began
     _neighbours: tuple[Neighbour, ...] = field(default=(), repr=False)
+    _pos_sigma: float | None = field(default=None, repr=False)  # the fused position's sigma this cycle (m)
     loose_cycles: int = 0  # cycles with only a loose pose (placed by the server, not vouched for)
     on_loose: bool = False  # the last cycle drove on a loose pose
     avoider: Avoider = field(init=False, repr=False)
@@ -152,7 +153,8 @@ class Behaviour:
 
     def __post_init__(self) -> None:
         self.avoider = Avoider(footprint_radius(self.robot), self.cfg.avoid_clearance_m, self.cfg.avoid_horizon_s,
-                               self.robot_id, self.cfg.avoid_stall_s, replan=self._replan)
+                               self.robot_id, self.cfg.avoid_stall_s, sigma_k=self.cfg.avoid_sigma_k,
+                               replan=self._replan)
         foot = footprint_radius(self.robot)
         # a spot keeps the route's margin from walls; the blocked robot passes it with two footprints and that margin
         self.make_way = MakeWay(self.robot_id, self._keep_m, foot + self.cfg.avoid_clearance_m, self._keep_m + foot)
@@ -277,6 +279,7 @@ class Behaviour:
             if self.loose_cycles > self.cfg.fix_threshold:
                 map_pose, self.on_loose = loose_pose, True
         self._neighbours = tuple(neighbours)
+        self._pos_sigma = pos_sigma_m
         if self.mission.kind == "hold":
             self.make_way.watch(t_s, self._neighbours)
         swept = 0.0 if self._last_yaw is None else abs(wrap_angle(odom_yaw - self._last_yaw))
@@ -356,4 +359,4 @@ class Behaviour:
 
         return self.avoider.command(pose=map_pose, target=aim, steer=steer, v_max=self.cfg.max_speed_m_s * factor,
                                     w_max=self.cfg.max_turn_rad_s * factor, neighbours=self._neighbours,
-                                    boxes=self.static_obstacles, t_s=t_s)
+                                    boxes=self.static_obstacles, t_s=t_s, pos_sigma_m=self._pos_sigma)

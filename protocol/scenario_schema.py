@@ -331,7 +331,9 @@ class Agent(Spec, frozen=True, kw_only=True, forbid_unknown_fields=True):
     footprints (the circle of ``tagswarm.protocol.layout.footprint_radius``); it only
     steps in when the next ``avoid_horizon_s`` of the path would come closer
     than that, and after ``avoid_stall_s`` without progress it tries the other
-    side (or backs off for a robot with a lower id).  The searching rotation is
+    side (or backs off for a robot with a lower id).  Walls and obstacles are kept
+    ``avoid_sigma_k`` of the robot's own fused position σ farther still (at most 0.2 m):
+    their geometry is exact, the robot's idea of where it is not.  The searching rotation is
     never changed by it.  ``make_way``: a station keeper (not the origin robot)
     that a robot come from afar has stayed near, barely moving, for 10 s steps
     aside off that robot's line, waits until it has gone and returns to its
@@ -366,6 +368,8 @@ class Agent(Spec, frozen=True, kw_only=True, forbid_unknown_fields=True):
     avoid_clearance_m: NonNeg = 0.1  # kept between footprints (robot-robot, robot-wall/obstacle)
     avoid_horizon_s: Annotated[float, msgspec.Meta(ge=0.5, le=10)] = 2.0
     avoid_stall_s: Pos = 6.0
+    # walls and obstacles are kept this many of the robot's own fused position sigma farther (at most 0.2 m)
+    avoid_sigma_k: NonNeg = 2.0
     # a station keeper steps aside for a robot it blocks, then returns (agents/makeway.py)
     make_way: bool = True
 

@@ -212,6 +212,58 @@ def test_hemmed_in_robot_turns_in_place_but_never_drives_closer() -> None:
     assert a.avoiding and v <= 1e-9  # no forward motion into it; turning on the spot is allowed
 
 
+def test_a_robot_unsure_where_it_is_keeps_its_sigma_s_multiple_farther_from_a_shelf() -> None:
+    # driving at 0.3 m/s, 0.1 rad towards a shelf on its left: over the 2 s horizon it comes 6 cm nearer, and its
+    # face is 12 cm beyond what the clearance needs (6 cm to spare)
+    need = FOOT + CFG.avoid_clearance_m
+
+    def shelf(beyond_m: float) -> tuple[Box, ...]:
+        return (Box(1.0, need + beyond_m + 0.3, 0.0, 1.5, 0.3),)
+
+    def steer(p: Pose2) -> tuple[float, float]:
+        return 0.3, 0.0
+
+    def drive(sigma: float | None, k: float = CFG.avoid_sigma_k, beyond_m: float = 0.12) -> tuple[Avoider, float]:
+        a = Avoider(FOOT, CFG.avoid_clearance_m, sigma_k=k)
+        _, w = a.command(pose=(0.0, 0.0, 0.1), target=(3.0, 0.3), steer=steer, v_max=0.3, w_max=1.2, neighbours=(),
+                         boxes=shelf(beyond_m), t_s=0.0, pos_sigma_m=sigma)
+        return a, w
+
+    for sigma in (None, 0.0, 0.02, math.nan):  # sure of itself (2 sigma under the 6 cm to spare), or no sigma
+        a, w = drive(sigma)
+        assert not a.avoiding and w == 0.0, sigma
+    a, w = drive(0.05)  # 2 sigma = 10 cm: the shelf would come 4 cm too near, it turns away (right)
+    assert a.avoiding and w < 0.0
+    assert not drive(0.05, k=0.0)[0].avoiding  # the margin switched off
+    # a robot lost by metres keeps at most 20 cm more: a shelf 29 cm beyond (23 after the 6 cm) leaves it be
+    assert not drive(5.0, beyond_m=0.29)[0].avoiding
+    assert drive(0.5 * avoid.MAX_SIGMA_MARGIN_M + 0.05, beyond_m=0.23)[0].avoiding
+
+
+def test_the_margin_gives_way_where_it_leaves_no_way_forward_and_the_clearance_still_holds() -> None:
+    """The depot's robot 6 reaches its patrol waypoint 0.4 m from the north wall with a 6 cm sigma and
+    must turn back along the wall: every way to the next waypoint bulges nearer the wall than the 12 cm
+    margin allows.  It drops the margin for those cycles and goes on (it stood 22 s there when the
+    margin was a hard bound) without ever coming within the clearance."""
+    s = load_scenario("depot")
+    mission = next(mi for mi in s.missions if mi.robot == 6)
+    t = arena_to_map(s)
+    boxes = static_boxes(s)
+    for sigma in (0.06, 0.15):
+        b = Behaviour(6, mission, s.agent, s.robot, t, static_obstacles=boxes)
+        pose = se2_compose(t, (2.07, 1.21, 1.2))
+        nearest = math.inf
+        for k in range(30 * 20):
+            v, w = b.cycle(t_s=k / 30, map_pose=pose, odom_yaw=pose[2], moved=True, fix=True, pos_sigma_m=sigma)
+            pose = (pose[0] + v * math.cos(pose[2]) / 30, pose[1] + v * math.sin(pose[2]) / 30, pose[2] + w / 30)
+            nearest = min(nearest, min(float(box_distance(bx, pose[0], pose[1])) for bx in boxes))
+        assert b.waypoint_index == 1
+        start = se2_compose(t, (2.2, 1.6, 0.0))
+        travelled = math.hypot(pose[0] - start[0], pose[1] - start[1])
+        assert travelled > 2.0, (sigma, travelled)  # well on its way west along the wall
+        assert nearest >= FOOT + s.agent.avoid_clearance_m - 0.01, nearest
+
+
 def test_swap_on_a_circle_resolves_without_contact() -> None:
     robots: dict[int, tuple[Pose2, Mission, tuple[float, float] | None]] = {}
     for k in range(6):

@@ -58,7 +58,7 @@ STATIC_MIN_GAP_M = 0.01  # a goal beside a wall may bring the footprint this clo
 PROGRESS_EPS_M = 0.05  # progress smaller than this over stall_s is a stall
 PASS_RANGE_M = 0.5  # passing another robot closer than this (beyond the clearance) on the wrong side costs
 # the own position sigma's multiple kept from walls and obstacles on top of the clearance is capped here: a robot
-# lost by metres still fits through a 1.2 m door (2 x (footprint 0.16 + clearance 0.1 + 0.2) = 0.92 m)
+# lost by metres still fits through a 1.2 m door (2 x (footprint 0.19 + clearance 0.1 + 0.2) = 0.98 m)
 MAX_SIGMA_MARGIN_M = 0.2
 NEIGHBOUR_PREDICT_S = 1.0  # others keep their velocity this long, then stand (they turn at waypoints, avoid too)
 YIELD_S = 2.5  # how long a stalled robot backs away from a jam for a robot with a lower id

@@ -81,7 +81,22 @@ def complete(s: Scenario, toml_count: int) -> tuple[Scenario, list[str]]:
     s, note = fit_tag_ids(s, own)
     if note:
         notes.append(note)
+    note = idle_note(s)
+    if note:
+        notes.append(note)
     return s, notes
+
+
+def idle_note(s: Scenario) -> str | None:
+    """A line naming the robots the scenario gives no mission (they hold station where they
+    start), or None if every robot has one: a first scene with ``placement = "random"`` and no
+    ``[[missions]]`` is a swarm that never moves, which nothing else would say."""
+    given = {mi.robot for mi in s.missions}
+    idle = [k for k in s.robot_ids if k not in given and k != s.map.origin_id]
+    if not idle:
+        return None
+    return (f"{_ids(idle)}: no mission in scenario {s.name!r}: holding station where they start "
+            f"(a [[missions]] entry with kind = \"patrol\" or \"waypoints\" moves one)")
 
 
 def mission_path(start: XY, mission: Mission | None) -> Path:

@@ -200,7 +200,9 @@ def load_scenario(name_or_path: str = "paper", overrides: tuple[str, ...] | list
     _trim_to_count(table, toml_count if isinstance(toml_count, int) else None)
     scenario: Scenario = convert(table, Scenario, f"scenario {name_or_path!r}")
     scenario, notes = complete(scenario, toml_count if isinstance(toml_count, int) else Robots().count)
-    for note in notes:
+    # a resolved scenario (scenario.json, what tagswarm up hands its children) was completed and its notes
+    # logged where it was resolved: every child saying so again is noise
+    for note in notes if not str(name_or_path).endswith(".json") else ():
         log.info("%s", note)
     scenario = _expand_agents(scenario)
     validate(scenario)

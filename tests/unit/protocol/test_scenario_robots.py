@@ -108,6 +108,28 @@ def test_nothing_logged_when_the_scenario_places_every_robot(caplog: pytest.LogC
     assert caplog.records == []
 
 
+def test_robots_left_without_a_mission_are_named_once_where_the_scenario_is_resolved(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    over = ['robots.placement="random"', "robots.count=6", "missions=[]"]
+    with caplog.at_level(logging.INFO, logger="tagswarm.protocol.scenario"):
+        s = load_scenario("paper", over)
+        one = load_scenario("paper", [*over, 'missions=[{robot = 3, kind = "patrol", waypoints = [[0.0, 0.0]]}]'])
+    lines = [rec.getMessage() for rec in caplog.records]
+    # the origin robot holding station is the map's reference, not an oversight
+    assert lines == ["robots 1-5: no mission in scenario 'paper': holding station where they start (a [[missions]] "
+                     'entry with kind = "patrol" or "waypoints" moves one)',
+                     "robots 1-2, 4-5: no mission in scenario 'paper': holding station where they start (a "
+                     '[[missions]] entry with kind = "patrol" or "waypoints" moves one)']
+    assert one.mission(3).kind == "patrol" and s.mission(2).kind == "hold"
+    caplog.clear()
+    path = tmp_path / "scenario.json"
+    path.write_bytes(msgspec.json.encode(s))
+    with caplog.at_level(logging.INFO, logger="tagswarm.protocol.scenario"):
+        assert load_scenario(str(path)) == s
+    assert caplog.records == []  # every child process loads that copy: it says nothing again
+    assert robotfill.idle_note(load_scenario("hall")) is None
+
+
 def test_fewer_robots_than_the_list_keeps_the_first() -> None:
     s = load_scenario("paper", ["robots.count=2"])
     assert layout.start_poses(s) == layout.start_poses(load_scenario("paper"))[:2]

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from typing import Final
+from typing import Any, Final
 
 #: Scale of a drawn 95 % covariance ellipse: sqrt of the chi-square 95 % quantile for 2 degrees of freedom.
 ELLIPSE_SCALE_95: Final = math.sqrt(5.991)
@@ -29,6 +29,14 @@ def position_cov_in_map(cov: Sequence[float], yaw_rad: float) -> tuple[float, fl
     syy = s * s * bxx + 2 * c * s * bxy + c * c * byy
     sxy = c * s * (bxx - byy) + (c * c - s * s) * bxy
     return sxx, sxy, syy
+
+
+def position_nees(sxx: Any, sxy: Any, syy: Any, ex: Any, ey: Any) -> Any:
+    """e^T P^-1 e / 2 of a position error ``(ex, ey)`` (m) against the 2x2 covariance ``[[sxx,
+    sxy], [sxy, syy]]`` (m², same axes): 1 on average for an honest covariance.  Scalars or
+    arrays of one shape; the caller checks that P is positive definite."""
+    det = sxx * syy - sxy * sxy
+    return (syy * ex * ex - 2 * sxy * ex * ey + sxx * ey * ey) / det / 2.0
 
 
 def covariance_ellipse(cov: tuple[float, ...], scale: float = ELLIPSE_SCALE_95,

@@ -22,7 +22,7 @@ import numpy as np
 from evo.core.trajectory import PoseTrajectory3D
 from numpy.typing import NDArray
 
-from tagswarm.evaluation.covframe import covariance_ellipse, position_cov_in_map
+from tagswarm.evaluation.covframe import covariance_ellipse, position_cov_in_map, position_nees
 from tagswarm.evaluation.localised import LOCALISED_HOLD_S, LOCALISED_M
 from tagswarm.evaluation.runfolder import F64, CovTrack, RelocEvent, RunData
 from tagswarm.evaluation.trajerror import ASSOC_MAX_DIFF_S, Track, pooled_stats, trajectory_yaw
@@ -156,8 +156,7 @@ def nees_samples(track: Track, cov: CovTrack | None, max_diff_s: float = ASSOC_M
         det = sxx * syy - sxy * sxy
         if not (math.isfinite(det) and det > 0.0 and sxx > 0.0):
             continue
-        ex, ey = e[i]
-        out.append((syy * ex * ex - 2 * sxy * ex * ey + sxx * ey * ey) / det / 2.0)
+        out.append(position_nees(sxx, sxy, syy, *e[i]))
     return np.asarray(out, float)
 
 

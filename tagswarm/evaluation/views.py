@@ -25,6 +25,7 @@ import numpy as np
 from evo.core.trajectory import PoseTrajectory3D
 from numpy.typing import NDArray
 
+from tagswarm.evaluation.covframe import position_nees
 from tagswarm.evaluation.runfolder import F64, Observations
 from tagswarm.evaluation.trajerror import ASSOC_MAX_DIFF_S, trajectory_yaw
 
@@ -80,8 +81,7 @@ def view_sigmas(true_rel: F64, meas: F64, cov: F64) -> F64:
     for i, w in enumerate((u, v)):
         out[ok, i] = np.sqrt(np.einsum("ni,nij,nj->n", w[ok], p[ok], w[ok]))
     e = meas[ok, :2] - true_rel[ok, :2]
-    out[ok, 2] = (p[ok, 1, 1] * e[:, 0] ** 2 - 2 * p[ok, 0, 1] * e[:, 0] * e[:, 1]
-                  + p[ok, 0, 0] * e[:, 1] ** 2) / det[ok] / 2.0
+    out[ok, 2] = position_nees(p[ok, 0, 0], p[ok, 0, 1], p[ok, 1, 1], e[:, 0], e[:, 1])
     out[ok, 3] = np.sqrt(np.maximum(np.asarray(cov, float)[ok, 2, 2], 0.0))
     return out
 

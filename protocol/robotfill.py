@@ -54,6 +54,7 @@ from tagswarm.protocol import tags
 from tagswarm.protocol.freespace import XY, obstacle_clearance, segment_distance, sight_blocked, wall_clearance
 from tagswarm.protocol.layout import footprint_radius
 from tagswarm.protocol.scenario_schema import Mission, Scenario, ScenarioError, StartPose
+from tagswarm.protocol.sightlines import reading_range_m, unseen_at_start
 
 MARGIN_M = 0.1
 MAX_SPACING_M = 1.0
@@ -81,9 +82,9 @@ def complete(s: Scenario, toml_count: int) -> tuple[Scenario, list[str]]:
     s, note = fit_tag_ids(s, own)
     if note:
         notes.append(note)
-    note = idle_note(s)
-    if note:
-        notes.append(note)
+    for note in (idle_note(s), unseen_note(s)):
+        if note:
+            notes.append(note)
     return s, notes
 
 
@@ -97,6 +98,18 @@ def idle_note(s: Scenario) -> str | None:
         return None
     return (f"{_ids(idle)}: no mission in scenario {s.name!r}: holding station where they start "
             f"(a [[missions]] entry with kind = \"patrol\" or \"waypoints\" moves one)")
+
+
+def unseen_note(s: Scenario) -> str | None:
+    """A line naming the robots that start where no robot that can be placed sees them
+    (:mod:`tagswarm.protocol.sightlines`), or None: they stay unplaced until someone drives by."""
+    unseen = unseen_at_start(s)
+    if not unseen:
+        return None
+    return (f"{_ids(unseen)}: at the start no robot that can be placed in scenario {s.name!r} is within sight "
+            f"(a camera reads a cube to about {reading_range_m(s):.1f} m here; obstacles as tall as the cubes "
+            f"hide one): unplaced until a mission brings one within sight of a placed robot, and time localised "
+            f"counts that time as lost")
 
 
 def mission_path(start: XY, mission: Mission | None) -> Path:

@@ -1,0 +1,69 @@
+"""Which robots start where no robot that can be placed sees them (pure geometry): a scene's
+first check, before anything runs.
+
+At the start only the origin robot is in the map.  Every other robot turns on the spot until
+it is placed (a search, or a station keeper's look around), so a robot is placed as soon as
+it and a placed robot are within reading range of each other with nothing tall between them;
+the robots reached that way from the origin robot, link by link, can be placed without
+anyone driving.  The others stay unplaced until a mission brings someone within sight, and
+time localised counts those seconds as lost (measured: a store room whose aisle patrols
+started behind shelf rows were first placed at 10-26 s).
+
+Reading range is an estimate: a cube is read while its tags span at least ``MIN_TAG_PX``
+pixels (about where half the frames still decode: ideal camera, and the realistic one with
+its noise and blur; docs/camera.md), capped by ``agent.max_range_m``; the widest camera of a
+rig counts.  Obstacles at least as tall as the cubes' centre block a line of sight.  A
+scenario with landmark tags is not checked: its robots place themselves from the field's tags.
+
+Arena frame, metres.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Final
+
+from tagswarm.protocol.freespace import sight_blocked
+from tagswarm.protocol.layout import start_poses
+from tagswarm.protocol.scenario_schema import Camera, Scenario
+
+__all__ = ["MIN_TAG_PX", "reading_range_m", "unseen_at_start"]
+
+#: a tag this many pixels wide is read in about half the frames (320x240, 60 deg: the ideal camera
+#: to ~5.5 m, the realistic one, noisy and blurred, to ~3.4 m; bench/lens_range.py)
+MIN_TAG_PX: Final = {"ideal": 8.0, "realistic": 13.0}
+
+
+def _focal_px(cam: Camera) -> float:
+    """Pixels per radian at the image centre: pinhole below 120 deg, equidistant fisheye from there
+    (as the realistic preset's lenses; an ideal camera is always a pinhole)."""
+    half = math.radians(cam.hfov_deg) / 2.0
+    if cam.lens == "fisheye" or (cam.lens == "auto" and cam.hfov_deg >= 120.0):
+        return cam.width / 2.0 / half
+    return cam.width / 2.0 / math.tan(half)
+
+
+def reading_range_m(s: Scenario) -> float:
+    """How far (m) a robot's best camera reads another robot's cube, about (see the module docstring)."""
+    px = MIN_TAG_PX[s.camera.preset]
+    best = max(_focal_px(c) for c in s.robot.cameras) * s.tags.size_m / px
+    return min(best, s.agent.max_range_m)
+
+
+def unseen_at_start(s: Scenario) -> list[int]:
+    """Robots not linked to the origin robot at their start poses by a chain of robots within
+    :func:`reading_range_m` and in sight of each other; empty with landmarks or no such robot."""
+    if s.landmarks or not s.robot.cameras or not 0 <= s.map.origin_id < s.robots.count:
+        return []  # (no camera: validation, which comes after, says so)
+    pts = [(p[0], p[1]) for p in start_poses(s)]
+    reach, tall = reading_range_m(s), s.robot.cube_center_z_m
+    placed, frontier = {s.map.origin_id}, [s.map.origin_id]
+    while frontier:
+        a = frontier.pop()
+        for b in range(len(pts)):
+            if b not in placed and math.dist(pts[a], pts[b]) <= reach and not sight_blocked(
+                    pts[a], pts[b], s.arena, tall):
+                placed.add(b)
+                frontier.append(b)
+    return [k for k in range(len(pts)) if k not in placed]
+

@@ -25,7 +25,7 @@ from typing import Final
 
 from tagswarm.protocol.freespace import sight_blocked
 from tagswarm.protocol.layout import start_poses
-from tagswarm.protocol.scenario_schema import Camera, Scenario
+from tagswarm.protocol.scenario_schema import Camera, Scenario, lens_of
 
 __all__ = ["MIN_TAG_PX", "reading_range_m", "unseen_at_start"]
 
@@ -34,11 +34,11 @@ __all__ = ["MIN_TAG_PX", "reading_range_m", "unseen_at_start"]
 MIN_TAG_PX: Final = {"ideal": 8.0, "realistic": 13.0}
 
 
-def _focal_px(cam: Camera) -> float:
-    """Pixels per radian at the image centre: pinhole below 120 deg, equidistant fisheye from there
-    (as the realistic preset's lenses; an ideal camera is always a pinhole)."""
+def _focal_px(cam: Camera, preset: str) -> float:
+    """Pixels per radian at the image centre of ``cam``'s lens (:func:`lens_of`): equidistant for a
+    fisheye, pinhole otherwise (distortion is small at the centre)."""
     half = math.radians(cam.hfov_deg) / 2.0
-    if cam.lens == "fisheye" or (cam.lens == "auto" and cam.hfov_deg >= 120.0):
+    if lens_of(cam, preset)[0] == "fisheye":
         return cam.width / 2.0 / half
     return cam.width / 2.0 / math.tan(half)
 
@@ -46,7 +46,7 @@ def _focal_px(cam: Camera) -> float:
 def reading_range_m(s: Scenario) -> float:
     """How far (m) a robot's best camera reads another robot's cube, about (see the module docstring)."""
     px = MIN_TAG_PX[s.camera.preset]
-    best = max(_focal_px(c) for c in s.robot.cameras) * s.tags.size_m / px
+    best = max(_focal_px(c, s.camera.preset) for c in s.robot.cameras) * s.tags.size_m / px
     return min(best, s.agent.max_range_m)
 
 

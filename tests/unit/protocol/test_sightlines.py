@@ -42,6 +42,11 @@ def test_the_realistic_camera_reads_nearer() -> None:
     assert unseen_at_start(_room(starts, 0.1)) == []
     realistic = _room(starts, 0.1, "camera.preset=realistic")
     assert 3.0 < reading_range_m(realistic) < 3.8 and unseen_at_start(realistic) == [1]
+    # a 120 deg lens at 320x240 (an equidistant fisheye through the realistic preset) reads to ~2 m
+    # (bench/lens_range.py: 7 of 12 frames at 2.0 m), a 640x480 one twice as far (the rig)
+    wide = _room(starts, 0.1, "camera.preset=realistic", "robot.cameras=[{hfov_deg=120.0}]")
+    assert 1.7 < reading_range_m(wide) < 2.1
+    assert 3.5 < reading_range_m(load_scenario("rig")) < 4.0
 
 
 @pytest.mark.parametrize("name", sc.builtin_names())

@@ -57,6 +57,7 @@ def test_every_builtin_places_every_robot_from_the_start(name: str) -> None:
 def test_landmarks_and_the_line_logged_where_the_scenario_is_resolved(caplog: pytest.LogCaptureFixture) -> None:
     assert unseen_at_start(load_scenario("landmarks", ["robots.count=12"])) == []
     starts = "{x_m=-2.0, y_m=0.5}, {x_m=2.0, y_m=0.5}, {x_m=2.0, y_m=-0.5}, {x_m=-3.0, y_m=-1.5}"
+    caplog.clear()  # the landmarks' own lines (robots filled in, tag IDs), if this worker logs INFO already
     with caplog.at_level(logging.INFO, logger="tagswarm.protocol.scenario"):
         _room(starts, 1.5, 'missions=[{robot=1, kind="hold"}, {robot=2, kind="hold"}, {robot=3, kind="hold"}]')
     assert [r.getMessage() for r in caplog.records] == [

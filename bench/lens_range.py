@@ -1,6 +1,7 @@
 """How far a cube is decoded, and how well its pose is estimated, through the realistic wide lenses
-(docs/camera.md, "What the world does"): robot 0 still at the origin, robot 1's cube at distance d
-and bearing b, facing the camera within +-30 deg (12 yaws), realistic noise, no motion.  For each
+(docs/camera.md, "What the world does") and, for comparison, the default (ideal) camera: robot 0 still
+at the origin of a 14 m arena, robot 1's cube at distance d and bearing b, facing the camera within
++-30 deg (12 yaws), the preset's noise, no motion.  For each
 (lens, bearing, distance): frames in which robot 1's cube is decoded, and the median position and
 heading error of the agent's own estimate of it (its Vision pipeline: detection, undistortion,
 cube pose).  Writes ``bench/results/lens_range.json``.
@@ -30,17 +31,20 @@ from tagswarm.protocol.geometry import se2_matrix  # noqa: E402
 from tagswarm.protocol.scenario import load_scenario  # noqa: E402
 from tagswarm.world.render import Renderer, image_message  # noqa: E402
 
-LENSES = {"320x240 120deg fisheye": (320, 240, 120.0), "640x480 120deg fisheye": (640, 480, 120.0),
-          "320x240 60deg brown_conrady": (320, 240, 60.0)}
+LENSES = {"320x240 120deg fisheye": (320, 240, 120.0, "realistic"),
+          "640x480 120deg fisheye": (640, 480, 120.0, "realistic"),
+          "320x240 60deg brown_conrady": (320, 240, 60.0, "realistic"),
+          # the default camera, for comparison (protocol/sightlines.py takes its reading range from here)
+          "320x240 60deg ideal": (320, 240, 60.0, "ideal")}
 BEARINGS_DEG = (0, 25, 45)
-DISTANCES_M = (1.0, 1.5, 2.0, 2.5, 3.0, 3.5)
+DISTANCES_M = (1.0, 1.5, 2.0, 2.5, 3.0, 3.5, 4.0, 4.5, 5.0)
 YAWS = 12
 
 
-def lens_row(name: str, width: int, height: int, hfov_deg: float) -> dict[str, Any]:
+def lens_row(name: str, width: int, height: int, hfov_deg: float, preset: str) -> dict[str, Any]:
     s = load_scenario("paper", [
         "robots.count=2", 'robots.placement="explicit"', "robots.start=[{x_m=0.0, y_m=0.0}, {x_m=2.0, y_m=0.0}]",
-        "camera.preset=realistic", "camera.exposure_ms=0.0",
+        f"camera.preset={preset}", "camera.exposure_ms=0.0", "arena.size_x_m=14.0", "arena.size_y_m=14.0",
         f'robot.cameras=[{{name="front", width={width}, height={height}, hfov_deg={hfov_deg}, z_m=0.6, '
         'pitch_deg=-15.0}]'])
     cam = s.robot.cameras[0]

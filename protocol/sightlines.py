@@ -10,8 +10,8 @@ time localised counts those seconds as lost (measured: a store room whose aisle 
 started behind shelf rows were first placed at 10-26 s).
 
 Reading range is an estimate: a cube is read while its tags span at least ``MIN_TAG_PX``
-pixels (about where half the frames still decode: ideal camera, and the realistic one with
-its noise and blur; docs/camera.md), capped by ``agent.max_range_m``; the widest camera of a
+pixels (about where half the frames still decode, for the ideal camera and the realistic one
+with its noise and lens: bench/lens_range.py), capped by ``agent.max_range_m``; the widest camera of a
 rig counts.  Obstacles at least as tall as the cubes' centre block a line of sight.  A
 scenario with landmark tags is not checked: its robots place themselves from the field's tags.
 
@@ -29,9 +29,10 @@ from tagswarm.protocol.scenario_schema import Camera, Scenario, lens_of
 
 __all__ = ["MIN_TAG_PX", "reading_range_m", "unseen_at_start"]
 
-#: a tag this many pixels wide is read in about half the frames (320x240, 60 deg: the ideal camera
-#: to ~5.5 m, the realistic one, noisy and blurred, to ~3.4 m; bench/lens_range.py)
-MIN_TAG_PX: Final = {"ideal": 8.0, "realistic": 13.0}
+#: a tag this many pixels wide is read in about half the frames (bench/lens_range.py, 320x240, 60 deg,
+#: cube straight ahead: the ideal camera reads 7 of 12 at 4.0 m and none at 4.5 m, ~4.2 m; the realistic
+#: one, noisy and behind its lens, 5 of 12 at 3.5 m and none at 4.0 m, ~3.4 m)
+MIN_TAG_PX: Final = {"ideal": 10.5, "realistic": 13.0}
 
 
 def _focal_px(cam: Camera, preset: str) -> float:

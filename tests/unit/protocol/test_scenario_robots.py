@@ -150,6 +150,7 @@ def test_same_scenario_same_poses_and_a_resolved_copy_loads_unchanged(tmp_path: 
     assert a == b
     path = tmp_path / "scenario.json"
     path.write_bytes(msgspec.json.encode(a))
+    caplog.clear()  # the lines of the loads above, if this worker logs INFO already
     with caplog.at_level(logging.INFO, logger="tagswarm.protocol.scenario"):
         assert load_scenario(str(path)) == a
     assert caplog.records == []  # the resolved copy every child process loads is complete

@@ -29,16 +29,16 @@ def test_a_robot_behind_a_tall_shelf_is_unseen_and_a_low_one_hides_nobody() -> N
 
 
 def test_a_chain_of_robots_in_sight_reaches_beyond_one_camera() -> None:
-    s = load_scenario("paper", [*ROOM, "arena.size_x_m=17.0", "robots.count=4", "robots.start=[{x_m=-7.5, y_m=0.0}, "
-                                "{x_m=-2.5, y_m=0.0}, {x_m=2.0, y_m=0.0}, {x_m=7.9, y_m=0.0}]"])
+    s = load_scenario("paper", [*ROOM, "arena.size_x_m=14.0", "robots.count=4", "robots.start=[{x_m=-6.0, y_m=0.0}, "
+                                "{x_m=-2.0, y_m=0.0}, {x_m=2.0, y_m=0.0}, {x_m=6.5, y_m=0.0}]"])
     reach = reading_range_m(s)
-    assert 5.0 < reach < 5.8  # 320x240, 60 deg, 0.16 m tags, ideal camera: 8 px across a tag
-    # 5 m and 4.5 m links place robots 1 and 2 (robot 2 is 9.5 m from the origin robot); robot 3 is 5.9 m on
+    assert 4.0 < reach < 4.4  # 320x240, 60 deg, 0.16 m tags, ideal camera: 10.5 px across a tag
+    # 4 m links place robots 1 and 2 (robot 2 is 8 m from the origin robot); robot 3 is 4.5 m on
     assert unseen_at_start(s) == [3]
 
 
 def test_the_realistic_camera_reads_nearer() -> None:
-    starts = "{x_m=-2.0, y_m=-1.5}, {x_m=2.2, y_m=-1.5}"
+    starts = "{x_m=-2.0, y_m=-1.5}, {x_m=1.9, y_m=-1.5}"
     assert unseen_at_start(_room(starts, 0.1)) == []
     realistic = _room(starts, 0.1, "camera.preset=realistic")
     assert 3.0 < reading_range_m(realistic) < 3.8 and unseen_at_start(realistic) == [1]
@@ -62,5 +62,5 @@ def test_landmarks_and_the_line_logged_where_the_scenario_is_resolved(caplog: py
         _room(starts, 1.5, 'missions=[{robot=1, kind="hold"}, {robot=2, kind="hold"}, {robot=3, kind="hold"}]')
     assert [r.getMessage() for r in caplog.records] == [
         "robots 1-2: at the start no robot that can be placed in scenario 'paper' is within sight (a camera reads "
-        "a cube to about 5.5 m here; obstacles as tall as the cubes hide one): unplaced until a mission brings one "
+        "a cube to about 4.2 m here; obstacles as tall as the cubes hide one): unplaced until a mission brings one "
         "within sight of a placed robot, and time localised counts that time as lost"]

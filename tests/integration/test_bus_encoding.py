@@ -59,9 +59,20 @@ def test_a_plain_zenoh_subscriber_sees_each_message_types_encoding() -> None:
                              (b"\xc1 not msgpack", "zenoh/bytes"),
                              (codec.encode(EXAMPLES[m.Goal]), "application/msgpack;Goal")):
             sent.append((mixed, enc, payload))
+        dropping = [x for x in sent if x[0].endswith("/0/status")]  # one DROP publisher too
         for key, _, payload in sent:
-            bus.put(key, payload, drop=key.endswith("/0/status"))  # one DROP publisher too
-        received = [got.get(timeout=10) for _ in sent]
+            bus.put(key, payload, drop=(key, _, payload) in dropping)
+        received = [got.get(timeout=10) for _ in sent[len(dropping):]]
+        # a DROP publisher may drop under congestion (a burst of BLOCK samples beside it, a loaded CI
+        # machine: lost there once): what is checked is its encoding, so it is put again until it arrives
+        deadline = time.monotonic() + 10.0
+        while len(received) < len(sent) and time.monotonic() < deadline:
+            try:
+                received.append(got.get(timeout=0.5))
+            except queue.Empty:
+                for key, _, payload in dropping:
+                    if not any(r[0] == key for r in received):
+                        bus.put(key, payload, drop=True)
         assert sorted(received) == sorted(sent)  # the DROP (not express) sample may come later
         assert [r for r in received if r[0] == mixed] == [s for s in sent if s[0] == mixed]
 

@@ -411,6 +411,12 @@ class Server(Spec, frozen=True, kw_only=True, forbid_unknown_fields=True):
     ``obs_sigma_floor_m = 0.02`` bring the hall's, the crowd's and the corridor's fused NEES
     into [0.5, 2] at some cost in accuracy (README, "Scenes nobody tuned for").
 
+    ``odom_calibration`` makes each robot's wheel radii and wheel base variables of the graph
+    (known beforehand to 1 % and 2 %; :mod:`tagswarm.server.odomcal`): views of a robot then correct
+    its odometry between them too, and the server logs what it learnt at the end.  With it,
+    ``odom_wheel_sigma = 0.01`` and ``odom_scale_sigma = 0.005`` describe what is left (the world's
+    wheel noise): docs/benchmarks.md, "Odometry calibration in the graph", has what it changes.
+
     The graph vouches for a placed robot (its correction says ``localised``, its agent steers on
     it, its fused trajectory is recorded) only while its fused position is surer than
     ``claim_sigma_m`` (m, standard deviation along the reported covariance's worst axis) and its
@@ -426,6 +432,7 @@ class Server(Spec, frozen=True, kw_only=True, forbid_unknown_fields=True):
     odom_scale_sigma: NonNeg = 0.02
     obs_sigma_floor_m: NonNeg = 0.0
     claim_sigma_m: NonNeg = 0.5
+    odom_calibration: bool = False
 
 
 class Event(Spec, frozen=True, kw_only=True, forbid_unknown_fields=True):

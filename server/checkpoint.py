@@ -44,6 +44,7 @@ import numpy as np
 
 from tagswarm.protocol.errors import TagswarmError
 from tagswarm.protocol.geometry import Pose2
+from tagswarm.server import odomcal
 from tagswarm.server.fusion import Fusion, _Event
 from tagswarm.server.keyframes import PairView, Robot
 from tagswarm.server.placement import Candidate
@@ -79,6 +80,11 @@ class RobotState(msgspec.Struct, frozen=True, array_like=True):
     reset_hint: P3 | None
     slip_m: float = 0.0
     kf_slip_m: float = 0.0
+    # odometry calibration (absent in older snapshots): key, generation, estimate (3), covariance (9, or none)
+    cal_key: int | None = None
+    cal_gen: int = 0
+    cal: P3 = (0.0, 0.0, 0.0)
+    cal_cov: tuple[float, ...] = ()
 
 
 class EventState(msgspec.Struct, frozen=True, array_like=True):
@@ -133,6 +139,9 @@ class FusionState(msgspec.Struct, frozen=True, kw_only=True):
     # snapshot of an older version (its pair_factors held keyframe keys) restores without them
     pair_views: list[tuple[int, int, int, int, P3, P3, P3]] = []
     factors: str  # gtsam NonlinearFactorGraph.serialize() of the smoother's live factors
+    # the calibrated odometry factors among them (GTSAM cannot serialise them): (position among the live
+    # factors, keyframe a, keyframe b, calibration key, increment (3), covariance (9)); absent in older snapshots
+    cal_factors: list[tuple[int, int, int, int, P3, tuple[float, ...]]] = []
     theta: str  # gtsam Values.serialize() of the smoother's linearisation point
     stamps: list[tuple[int, float]]  # (key, seconds) of every variable in the smoother
 
@@ -167,7 +176,9 @@ def _robot_state(r: Robot, keep_from_ns: int) -> RobotState:
                       cov=_flat(r.cov), drift_cov=_flat(r.drift_cov), latest_odom=lo, last_fix_ns=r.last_fix_ns,
                       accepted=r.accepted, last_distance=float(r.last_distance),
                       reset_hint=None if r.reset_hint is None else _p3(r.reset_hint),
-                      slip_m=float(r.slip_m), kf_slip_m=float(r.kf_slip_m))
+                      slip_m=float(r.slip_m), kf_slip_m=float(r.kf_slip_m), cal_key=r.cal_key, cal_gen=r.cal_gen,
+                      cal=(float(r.cal[0]), float(r.cal[1]), float(r.cal[2])),
+                      cal_cov=() if r.cal_cov is None else _flat(r.cal_cov))
 
 
 def _event_state(ev: _Event) -> EventState:
@@ -188,14 +199,24 @@ def _candidate_state(c: Candidate) -> CandidateState:
     return CandidateState(c.stamp_ns, _p3(c.origin), float(c.trace), "landmark", (), (*_p3(pose), *_flat(cov_map)))
 
 
-def _live_factors(smoother: FixedLagSmoother) -> gtsam.NonlinearFactorGraph:
-    """The smoother's factors without the empty slots marginalisation leaves behind."""
+def _live_factors(smoother: FixedLagSmoother) -> tuple[gtsam.NonlinearFactorGraph, list[tuple[int, int, int]]]:
+    """The smoother's factors without the empty slots marginalisation leaves behind, and apart from
+    them its calibrated odometry factors (Python ones) as (position among the live factors,
+    keyframe a, keyframe b)."""
     graph = smoother.getFactors()
     out = gtsam.NonlinearFactorGraph()
+    custom: list[tuple[int, int, int]] = []
+    live = 0
     for i in range(graph.size()):
         if graph.exists(i):
-            out.add(graph.at(i))
-    return out
+            f = graph.at(i)
+            if isinstance(f, gtsam.CustomFactor):
+                keys = f.keys()
+                custom.append((live, int(keys[0]), int(keys[1])))
+            else:
+                out.add(f)
+            live += 1
+    return out, custom
 
 
 def snapshot(fusion: Fusion) -> bytes:
@@ -205,6 +226,12 @@ def snapshot(fusion: Fusion) -> bytes:
         raise RuntimeError("snapshot with factors staged for the smoother: take it right after advance()")
     keep_from = fusion.watermark_ns - int((fusion.p.init_window_s + ODOM_MARGIN_S) * 1e9)
     stamps = [(int(k), float(t)) for k, t in sorted(fusion.smoother.timestamps().items())]
+    live, custom = _live_factors(fusion.smoother) if stamps else (gtsam.NonlinearFactorGraph(), [])
+    cal = fusion.graph.cal_factors
+    try:
+        cal_factors = [(i, a, b, cal[(a, b)][0], _p3(cal[(a, b)][1]), _flat(cal[(a, b)][2])) for i, a, b in custom]
+    except KeyError as exc:
+        raise RuntimeError(f"a calibrated odometry factor the fusion does not know of: {exc}") from None
     state = FusionState(
         robots={rid: _robot_state(r, keep_from) for rid, r in fusion.robots.items()},
         events=[_event_state(ev) for ev in fusion._events],  # heap order as is: a valid heap again
@@ -225,7 +252,7 @@ def snapshot(fusion: Fusion) -> bytes:
         shifts={rid: [(int(t), int(w), float(d)) for t, w, d in q] for rid, q in fusion.recovery.shifts.items()},
         pair_views=[(a, b, v.chain_a, v.chain_b, _p3(v.odom_a), _p3(v.odom_b), _p3(v.rel))
                     for (a, b), v in fusion._pair_factors.items()],
-        factors=_live_factors(fusion.smoother).serialize() if stamps else "",
+        factors=live.serialize() if stamps else "", cal_factors=cal_factors,
         theta=fusion.smoother.getLinearizationPoint().serialize() if stamps else "", stamps=stamps)
     return zlib.compress(_ENC.encode(state), ZLIB_LEVEL)
 
@@ -244,7 +271,8 @@ def _robot(s: RobotState, maxlen: int) -> Robot:
                   estimate=s.estimate, cov=_mat(s.cov), drift_cov=_mat(s.drift_cov),
                   latest_odom=None if s.latest_odom is None else (s.latest_odom[0], s.latest_odom[1:]),
                   last_fix_ns=s.last_fix_ns, accepted=s.accepted, last_distance=s.last_distance,
-                  reset_hint=s.reset_hint, slip_m=s.slip_m, kf_slip_m=s.kf_slip_m)
+                  reset_hint=s.reset_hint, slip_m=s.slip_m, kf_slip_m=s.kf_slip_m, cal_key=s.cal_key,
+                  cal_gen=s.cal_gen, cal=np.asarray(s.cal, float), cal_cov=_mat(s.cal_cov) if s.cal_cov else None)
 
 
 def _event(s: EventState) -> _Event:
@@ -287,6 +315,16 @@ def restore(fusion: Fusion, blob: bytes | FusionState) -> None:
     if unknown:
         raise CheckpointError(f"checkpoint holds robots {sorted(unknown)} outside the roster")
     graph, theta, stamps = _smoother_input(state)
+    if state.cal_factors:  # back into their places: the order of the factors is iSAM2's order of elimination
+        merged, plain = gtsam.NonlinearFactorGraph(), iter(range(graph.size()))
+        custom = {i: (a, b, c, delta, cov) for i, a, b, c, delta, cov in state.cal_factors}
+        for i in range(graph.size() + len(custom)):
+            if i in custom:
+                a, b, c, delta, cov = custom[i]
+                merged.add(odomcal.factor(a, b, c, delta, _mat(cov), fusion.p.wheel_base_m))
+            else:
+                merged.add(graph.at(next(plain)))
+        graph = merged
     new = Fusion(fusion.p, fusion.origin_id, tuple(fusion.robots), fusion.landmarks)  # built aside
     for rid, rs in state.robots.items():
         new.robots[rid] = _robot(rs, new.p.odom_buffer)
@@ -307,6 +345,7 @@ def restore(fusion: Fusion, blob: bytes | FusionState) -> None:
                                         for t, pl in q), maxlen=256) for rid, q in state.seen_at.items()}
     new.recovery.disputes = {rid: deque(q, maxlen=256) for rid, q in state.disputes.items()}
     new.recovery.shifts = {rid: deque(((t, w, d) for t, w, d in q), maxlen=256) for rid, q in state.shifts.items()}
+    new.graph.cal_factors = {(a, b): (c, delta, _mat(cov)) for _, a, b, c, delta, cov in state.cal_factors}
     new._pair_factors = {(a, b): PairView(ca, cb, oa, ob, rel) for a, b, ca, cb, oa, ob, rel in state.pair_views}
     if state.stamps:
         try:

@@ -24,8 +24,10 @@ from typing import NamedTuple
 
 import gtsam
 import numpy as np
+from numpy.typing import NDArray
 
 from tagswarm.protocol.geometry import Pose2, se2_between, se2_compose
+from tagswarm.server import odomcal
 from tagswarm.server.noise import Cov, FusionParams, odom_increment_cov
 from tagswarm.server.smoother import FixedLagSmoother
 
@@ -56,6 +58,12 @@ class Robot:
     reset_hint: Pose2 | None = None
     slip_m: float = 0.0  # the agent's cumulative slip evidence at the latest odometry
     kf_slip_m: float = 0.0  # ... at the last keyframe
+    # odometry calibration ([server] odom_calibration, server/odomcal.py): the graph variable, how many
+    # the robot has had, and its latest estimate (e_left, e_right, e_base) and (3, 3) marginal covariance
+    cal_key: int | None = None
+    cal_gen: int = 0
+    cal: NDArray[np.float64] = field(default_factory=lambda: np.zeros(3))
+    cal_cov: Cov | None = None
 
 
 class PairView(NamedTuple):
@@ -105,6 +113,9 @@ class KeyframeGraph:
         self.stamps: dict[int, float] = {}
         self.next_cov_ns = 0
         self.updates = 0
+        # (keyframe a, keyframe b) -> (calibration key, increment, covariance) of each calibrated odometry
+        # factor: a Python factor GTSAM cannot serialise, so a checkpoint saves these and rebuilds it
+        self.cal_factors: dict[tuple[int, int], tuple[int, Pose2, Cov]] = {}
 
     def _new_smoother(self) -> FixedLagSmoother:
         isam = gtsam.ISAM2Params()
@@ -160,9 +171,16 @@ class KeyframeGraph:
             cov = odom_increment_cov(delta, self.p, r.slip_m - r.kf_slip_m)
             if disturbed is not None:
                 cov = cov + disturbed
-            self.factors.add(gtsam.BetweenFactorPose2(r.kf_key, key, gtsam.Pose2(*delta),
-                                                      gtsam.noiseModel.Gaussian.Covariance(cov)))
-            guess = se2_compose(r.estimate, delta)
+            if self.p.odom_calibration:
+                ck = self._cal_key(rid, r, stamp_ns)
+                self.cal_factors[(r.kf_key, key)] = (ck, delta, cov)
+                self.factors.add(odomcal.factor(r.kf_key, key, ck, delta, cov, self.p.wheel_base_m))
+                cd = odomcal.corrected(delta, r.cal, self.p.wheel_base_m)
+                guess = se2_compose(r.estimate, (cd.x(), cd.y(), cd.theta()))
+            else:
+                self.factors.add(gtsam.BetweenFactorPose2(r.kf_key, key, gtsam.Pose2(*delta),
+                                                          gtsam.noiseModel.Gaussian.Covariance(cov)))
+                guess = se2_compose(r.estimate, delta)
             r.cov = r.cov + cov
         else:
             assert initial is not None
@@ -181,6 +199,20 @@ class KeyframeGraph:
         r.kf_slip_m = r.slip_m
         self.counters["keyframes"] += 1
         return key
+
+    def _cal_key(self, rid: int, r: Robot, stamp_ns: int) -> int:
+        """The key of ``rid``'s calibration variable, kept in the window by ``stamp_ns``; a new one
+        (with a prior at the last estimate and covariance, or the nominal wheels' uncertainty) when the
+        robot has none in the smoother: its first odometry factor, or after a reset."""
+        if r.cal_key is None or (r.cal_key not in self.smoother and r.cal_key not in self.stamps):
+            r.cal_gen += 1
+            r.cal_key = int(gtsam.symbol("c", (rid << 16) | r.cal_gen))
+            cov = r.cal_cov if r.cal_cov is not None else odomcal.prior_cov(self.p)
+            self.factors.add(gtsam.PriorFactorVector(r.cal_key, np.asarray(r.cal, float),
+                                                     gtsam.noiseModel.Gaussian.Covariance(np.asarray(cov, float))))
+            self.values.insert(r.cal_key, np.asarray(r.cal, float))
+        self.stamps[r.cal_key] = stamp_ns / 1e9
+        return r.cal_key
 
     def anchor(self, rid: int, stamp_ns: int, odom_pose: Pose2, guess: Pose2) -> tuple[int, Pose2, Cov]:
         """Keyframe an observation at ``stamp_ns`` attaches to: the robot's latest
@@ -210,6 +242,8 @@ class KeyframeGraph:
         self.factors = gtsam.NonlinearFactorGraph()
         self.values = gtsam.Values()
         self.stamps = {}
+        if self.cal_factors and self.updates % 64 == 0:  # forget the factors marginalisation has taken
+            self.cal_factors = {ab: v for ab, v in self.cal_factors.items() if ab[1] in self.smoother}
         # only each robot's newest keyframe is needed; per-key retrieval avoids
         # materialising every variable of the window on every update
         with_cov = watermark_ns >= self.next_cov_ns
@@ -221,11 +255,21 @@ class KeyframeGraph:
             except RuntimeError:
                 continue
             r.estimate = (p.x(), p.y(), p.theta())
+            if r.cal_key is not None and r.cal_key in self.smoother:
+                try:
+                    r.cal = np.asarray(self.smoother.isam.calculateEstimateVector(r.cal_key), float)
+                except RuntimeError:
+                    pass
             if with_cov:
                 try:
                     r.cov = self.smoother.marginalCovariance(r.kf_key)
                 except RuntimeError:
                     pass
+                if r.cal_key is not None and r.cal_key in self.smoother:
+                    try:
+                        r.cal_cov = self.smoother.marginalCovariance(r.cal_key)
+                    except RuntimeError:
+                        pass
         if with_cov:
             self.next_cov_ns = watermark_ns + int(self.p.cov_period_s * 1e9)
         self.updates += 1
@@ -243,6 +287,7 @@ class KeyframeGraph:
         log.warning("the smoother refused an update (%s): dropped that batch and restarted it from "
                     "every robot's last estimate", why)
         self.smoother = self._new_smoother()
+        self.cal_factors.clear()
         factors, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
         stamps: dict[int, float] = {}
         for r in self.robots.values():
@@ -256,6 +301,7 @@ class KeyframeGraph:
             values.insert(r.kf_key, gtsam.Pose2(*r.estimate))
             stamps[r.kf_key] = r.kf_stamp / 1e9
             r.cov = cov
+            r.cal_key = None  # a new calibration variable at the next odometry factor, from r.cal / r.cal_cov
         try:
             self.smoother.update(factors, values, stamps)
         except RuntimeError:

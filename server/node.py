@@ -33,7 +33,7 @@ from tagswarm.runtime.lockstep import Participant
 from tagswarm.runtime.presence import Presence, RunEnd, silence_ns
 from tagswarm.runtime.process import serve_node
 from tagswarm.server import journal as jr
-from tagswarm.server import outputs
+from tagswarm.server import odomcal, outputs
 from tagswarm.server.config import ServerConfig, build_config
 from tagswarm.server.estimator import Estimator, apply_input
 from tagswarm.server.fusion import Fusion, FusionParams
@@ -63,7 +63,7 @@ def make_fusion(config: ServerConfig) -> Fusion:
     wheel = s.agent.odom_wheel_sigma if s.server.odom_wheel_sigma is None else s.server.odom_wheel_sigma
     params = FusionParams(wheel_base_m=s.robot.wheel_base_m, odom_wheel_sigma=wheel,
                           odom_scale_sigma=s.server.odom_scale_sigma, obs_sigma_floor_m=s.server.obs_sigma_floor_m,
-                          lag_s=config.lag_s)
+                          odom_calibration=s.server.odom_calibration, lag_s=config.lag_s)
     landmarks = {lm.id: (lm.x_m, lm.y_m, lm.yaw_rad) for lm in s.landmarks}
     return Fusion(params, s.map.origin_id, s.robot_ids, landmarks)
 
@@ -515,6 +515,10 @@ class ServerNode:
         self._publish_status()
         log.info("server stopping at t=%.2f s: %s", self.time_ns / 1e9,
                  {k: v for k, v in self.fusion.counters.items()})
+        if isinstance(self.fusion, Fusion) and self.fusion.p.odom_calibration:
+            for rid, r in self.fusion.robots.items():
+                if r.cal_key is not None:
+                    log.info("%s", odomcal.summary(rid, r.cal, r.cal_cov))
         return 0
 
     def close(self) -> None:

@@ -22,6 +22,11 @@ class FusionParams:
     wheel_base_m: float = 0.22
     odom_wheel_sigma: float = 0.02  # sqrt(m), wheel-travel noise ([server] odom_wheel_sigma, else the agents')
     odom_scale_sigma: float = 0.02  # extra per-metre systematic share (wheel radius/base miscalibration)
+    # each robot's wheel radii and base as variables of the graph (server/odomcal.py), known beforehand to
+    # these shares; the systematic share above then only covers what that model leaves out
+    odom_calibration: bool = False
+    odom_cal_sigma_radius: float = 0.01
+    odom_cal_sigma_base: float = 0.02
     # no relative observation is trusted better than this (m, position): the detector's systematic error at a
     # viewpoint, which repeated sightings do not average out ([server] obs_sigma_floor_m)
     obs_sigma_floor_m: float = 0.0

@@ -157,6 +157,10 @@ class FixedLagSmoother:
     def smootherLag(self) -> float:
         return self.lag_s
 
+    def __contains__(self, key: object) -> bool:
+        """Whether variable ``key`` is in the window."""
+        return key in self._stamps
+
     def timestamps(self) -> dict[int, float]:
         """Key -> stamp (s) of every variable in the window."""
         return dict(self._stamps)

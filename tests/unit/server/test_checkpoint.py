@@ -8,6 +8,7 @@ import functools
 import json
 import math
 import shutil
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -33,8 +34,26 @@ UNINTERRUPTED_TOL_M = 0.001
 Poses = dict[int, tuple[float, ...] | None]
 
 
+CALIBRATED = [False]  # whether the fusions of the test running calibrate odometry (server/odomcal.py)
+
+
+@pytest.fixture(scope="module", params=[False, True], ids=["plain", "calibrated"])
+def calibrated(request: pytest.FixtureRequest) -> bool:
+    """Every test twice: with the plain odometry factors, and with the calibrated ones that a
+    checkpoint saves apart from GTSAM's serialisation."""
+    return bool(request.param)
+
+
+@pytest.fixture(autouse=True)
+def _use_calibrated(calibrated: bool) -> Iterator[None]:
+    CALIBRATED[0] = calibrated
+    yield
+    CALIBRATED[0] = False
+
+
 def _fusion() -> Fusion:
-    return Fusion(FusionParams(odom_scale_sigma=0.05, lag_s=LAG_S), 0, tuple(range(N)))
+    return Fusion(FusionParams(odom_scale_sigma=0.05, lag_s=LAG_S, odom_calibration=CALIBRATED[0]), 0,
+                  tuple(range(N)))
 
 
 def _poses(f: Fusion) -> Poses:
@@ -106,7 +125,8 @@ class Live:
 
 
 @pytest.fixture(scope="module")
-def written(tmp_path_factory: pytest.TempPathFactory) -> tuple[Live, jr.Journal]:
+def written(tmp_path_factory: pytest.TempPathFactory, calibrated: bool) -> tuple[Live, jr.Journal]:
+    CALIBRATED[0] = calibrated  # (built before the function-scoped fixture sets it)
     live = Live(tmp_path_factory.mktemp("ckpt") / "j")
     return live, live.run(_stream())
 

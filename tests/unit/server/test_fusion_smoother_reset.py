@@ -6,6 +6,7 @@ import math
 
 import gtsam
 import numpy as np
+import pytest
 
 from tagswarm.server import checkpoint
 from tagswarm.server.fusion import Fusion, FusionParams
@@ -49,9 +50,11 @@ def _poison(fusion: Fusion) -> None:
                                               gtsam.noiseModel.Diagonal.Sigmas(np.array([1e-9, 1e9, 1e9]))))
 
 
-def test_a_refused_update_restarts_the_smoother_from_the_estimates() -> None:
+@pytest.mark.parametrize("calibrated", [False, True], ids=["plain", "calibrated"])
+def test_a_refused_update_restarts_the_smoother_from_the_estimates(calibrated: bool) -> None:
     sw = SyntheticSwarm(n=3, seed=3, outlier_rate=0.0)
-    fusion = Fusion(FusionParams(odom_scale_sigma=0.05), 0, tuple(range(sw.n)))
+    params = FusionParams(odom_scale_sigma=0.05, odom_calibration=calibrated)
+    fusion = Fusion(params, 0, tuple(range(sw.n)))
     _feed(fusion, sw, 0.0, 20.0)
     before = {rid: fusion.pose(rid) for rid in range(sw.n)}
     _poison(fusion)
@@ -70,7 +73,7 @@ def test_a_refused_update_restarts_the_smoother_from_the_estimates() -> None:
     assert max(_errors(fusion, sw, 59.9)) < 0.05
     # and the state after a reset checkpoints and restores like any other
     blob = checkpoint.snapshot(fusion)
-    other = Fusion(FusionParams(odom_scale_sigma=0.05), 0, tuple(range(sw.n)))
+    other = Fusion(params, 0, tuple(range(sw.n)))
     checkpoint.restore(other, blob)
     for rid in range(sw.n):
         a, b = fusion.pose(rid), other.pose(rid)

@@ -403,19 +403,18 @@ class Server(Spec, frozen=True, kw_only=True, forbid_unknown_fields=True):
     carried between sightings by odometry, no factor graph (:mod:`tagswarm.server.stitchmap`).
 
     The graph's noise model: each wheel's travel d has variance ``odom_wheel_sigma^2 |d|``
-    (unset: the agents' ``agent.odom_wheel_sigma``) plus a per-metre share
-    ``odom_scale_sigma`` (wheel radius and base miscalibration), and no relative observation
+    plus a per-metre share ``odom_scale_sigma``, and no relative observation
     is trusted better than ``obs_sigma_floor_m`` in position (the detector's systematic
-    error at one viewpoint, which repeated sightings do not average out).  The defaults
-    favour accuracy; ``odom_wheel_sigma = 0.01``, ``odom_scale_sigma = 0.01`` and
-    ``obs_sigma_floor_m = 0.02`` bring the hall's, the crowd's and the corridor's fused NEES
-    into [0.5, 2] at some cost in accuracy (README, "Scenes nobody tuned for").
+    error at one viewpoint, which repeated sightings do not average out; 0 by default).
 
-    ``odom_calibration`` makes each robot's wheel radii and wheel base variables of the graph
-    (known beforehand to 1 % and 2 %; :mod:`tagswarm.server.odomcal`): views of a robot then correct
-    its odometry between them too, and the server logs what it learnt at the end.  With it,
-    ``odom_wheel_sigma = 0.01`` and ``odom_scale_sigma = 0.005`` describe what is left (the world's
-    wheel noise): docs/benchmarks.md, "Odometry calibration in the graph", has what it changes.
+    ``odom_calibration`` (off by default) makes each robot's wheel radii and wheel base variables of
+    the graph (known beforehand to 1 % and 2 %; :mod:`tagswarm.server.odomcal`): views of a robot
+    then correct its odometry between them too, and the server logs what it learnt at the end.  The
+    two odometry sigmas then describe only what that model leaves out; unset, they are 0.01 and
+    0.01 with it, and without it the agents' ``agent.odom_wheel_sigma`` and 0.02 (wheel radius and
+    base miscalibration folded into per-increment noise, as before it existed: too wide over a few
+    seconds, so the fused NEES of the hall, the crowd and the kidnap scenes was 0.2-0.4).
+    docs/benchmarks.md, "Odometry calibration in the graph", has what it changes.
 
     The graph vouches for a placed robot (its correction says ``localised``, its agent steers on
     it, its fused trajectory is recorded) only while its fused position is surer than
@@ -429,7 +428,7 @@ class Server(Spec, frozen=True, kw_only=True, forbid_unknown_fields=True):
 
     method: Literal["graph", "stitch"] = "graph"
     odom_wheel_sigma: NonNeg | None = None
-    odom_scale_sigma: NonNeg = 0.02
+    odom_scale_sigma: NonNeg | None = None
     obs_sigma_floor_m: NonNeg = 0.0
     claim_sigma_m: NonNeg = 0.5
     odom_calibration: bool = False

@@ -60,10 +60,11 @@ def make_fusion(config: ServerConfig) -> Fusion:
     """The (empty) fusion a server with ``config`` runs; a journal replayed into it
     rebuilds that server's graph (tools and tests use this too)."""
     s = config.scenario
-    wheel = s.agent.odom_wheel_sigma if s.server.odom_wheel_sigma is None else s.server.odom_wheel_sigma
-    params = FusionParams(wheel_base_m=s.robot.wheel_base_m, odom_wheel_sigma=wheel,
-                          odom_scale_sigma=s.server.odom_scale_sigma, obs_sigma_floor_m=s.server.obs_sigma_floor_m,
-                          odom_calibration=s.server.odom_calibration, lag_s=config.lag_s)
+    cal = s.server.odom_calibration
+    wheel, scale = odomcal.odometry_sigmas(cal, s.agent.odom_wheel_sigma, s.server.odom_wheel_sigma,
+                                           s.server.odom_scale_sigma)
+    params = FusionParams(wheel_base_m=s.robot.wheel_base_m, odom_wheel_sigma=wheel, odom_scale_sigma=scale,
+                          obs_sigma_floor_m=s.server.obs_sigma_floor_m, odom_calibration=cal, lag_s=config.lag_s)
     landmarks = {lm.id: (lm.x_m, lm.y_m, lm.yaw_rad) for lm in s.landmarks}
     return Fusion(params, s.map.origin_id, s.robot_ids, landmarks)
 

@@ -108,3 +108,20 @@ def summary(rid: int, cal: NDArray[np.float64], cov: Cov | None) -> str:
     parts = [f"{name} {100 * float(cal[i]):+.2f} % (sigma {100 * float(sig[i]):.2f} %)"
              for i, name in enumerate(("left wheel radius", "right wheel radius", "wheel base"))]
     return f"robot {rid}'s odometry calibration: " + ", ".join(parts)
+
+
+#: the odometry sigmas of ``[server]`` left unset, with the calibration: the wheels' own noise (sqrt(m)) and a
+#: per-metre share for what the arc model leaves out (docs/benchmarks.md, "Odometry calibration in the graph")
+CALIBRATED_WHEEL_SIGMA = 0.01
+CALIBRATED_SCALE_SIGMA = 0.01
+#: ... and without it: the biases folded into per-increment noise
+PLAIN_SCALE_SIGMA = 0.02
+
+
+def odometry_sigmas(calibration: bool, agent_wheel: float, wheel: float | None,
+                    scale: float | None) -> tuple[float, float]:
+    """(wheel, scale) sigmas of the fusion's odometry model from ``[server]``'s (None: unset)."""
+    if calibration:
+        return (CALIBRATED_WHEEL_SIGMA if wheel is None else wheel,
+                CALIBRATED_SCALE_SIGMA if scale is None else scale)
+    return agent_wheel if wheel is None else wheel, PLAIN_SCALE_SIGMA if scale is None else scale

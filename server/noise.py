@@ -20,7 +20,7 @@ class FusionParams:
     """Tuning of the fusion; defaults suit the shipped scenarios."""
 
     wheel_base_m: float = 0.22
-    odom_wheel_sigma: float = 0.02  # sqrt(m), wheel-travel noise ([server] odom_wheel_sigma, else the agents')
+    odom_wheel_sigma: float = 0.02  # sqrt(m), wheel-travel noise (from [server]: odomcal.odometry_sigmas)
     odom_scale_sigma: float = 0.02  # extra per-metre systematic share (wheel radius/base miscalibration)
     # each robot's wheel radii and base as variables of the graph (server/odomcal.py), known beforehand to
     # these shares; the systematic share above then only covers what that model leaves out

@@ -60,8 +60,8 @@ def test_a_plain_zenoh_subscriber_sees_each_message_types_encoding() -> None:
                              (codec.encode(EXAMPLES[m.Goal]), "application/msgpack;Goal")):
             sent.append((mixed, enc, payload))
         dropping = [x for x in sent if x[0].endswith("/0/status")]  # one DROP publisher too
-        for key, _, payload in sent:
-            bus.put(key, payload, drop=(key, _, payload) in dropping)
+        for key, enc, payload in sent:
+            bus.put(key, payload, drop=(key, enc, payload) in dropping)
         received = [got.get(timeout=10) for _ in sent[len(dropping):]]
         # a DROP publisher may drop under congestion (a burst of BLOCK samples beside it, a loaded CI
         # machine: lost there once): what is checked is its encoding, so it is put again until it arrives

@@ -94,7 +94,7 @@ class Fusion:
         self.origin_id = origin_id
         self.landmarks = dict(landmarks or {})
         self.counters: Counter[str] = Counter()
-        self.graph = KeyframeGraph(params, robot_ids, self.counters)
+        self.graph = KeyframeGraph(params, robot_ids, self.counters, None if self.landmarks else origin_id)
         self._events: list[_Event] = []
         self._order = 0
         self.edges: dict[tuple[int, int], int] = {}  # (observer, target) -> last stamp

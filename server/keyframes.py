@@ -28,7 +28,7 @@ from numpy.typing import NDArray
 
 from tagswarm.protocol.geometry import Pose2, se2_between, se2_compose
 from tagswarm.server import odomcal
-from tagswarm.server.noise import Cov, FusionParams, odom_increment_cov
+from tagswarm.server.noise import Cov, FusionParams, odom_increment_cov, still_increment_cov
 from tagswarm.server.smoother import FixedLagSmoother
 
 log = logging.getLogger(__name__)
@@ -101,11 +101,14 @@ def robot_key(rid: int, chain: int, index: int) -> int:
 
 class KeyframeGraph:
     """The robots' keyframe chains, what is staged for the smoother, and the smoother.
-    ``counters`` is the fusion's (``keyframes`` is counted here)."""
+    ``counters`` is the fusion's (``keyframes`` is counted here); ``frame_holder`` is the robot
+    whose first chain holds the map frame (the origin without landmarks), None if none does."""
 
-    def __init__(self, params: FusionParams, robot_ids: tuple[int, ...], counters: Counter[str]) -> None:
+    def __init__(self, params: FusionParams, robot_ids: tuple[int, ...], counters: Counter[str],
+                 frame_holder: int | None = None) -> None:
         self.p = params
         self.counters = counters
+        self.frame_holder = frame_holder
         self.robots = {rid: Robot(odom=deque(maxlen=params.odom_buffer)) for rid in robot_ids}
         self.smoother = self._new_smoother()
         self.factors = gtsam.NonlinearFactorGraph()
@@ -168,7 +171,9 @@ class KeyframeGraph:
         key = robot_key(rid, r.chain, r.kf_index)
         if r.kf_key is not None and r.estimate is not None:
             delta = se2_between(r.kf_odom, odom_pose)
-            cov = odom_increment_cov(delta, self.p, r.slip_m - r.kf_slip_m)
+            slip = r.slip_m - r.kf_slip_m
+            held = still_increment_cov(delta, self.p, slip) if rid == self.frame_holder and r.chain == 0 else None
+            cov = odom_increment_cov(delta, self.p, slip) if held is None else held
             if disturbed is not None:
                 cov = cov + disturbed
             if self.p.odom_calibration:

@@ -94,13 +94,16 @@ class Fusion:
         self.origin_id = origin_id
         self.landmarks = dict(landmarks or {})
         self.counters: Counter[str] = Counter()
+        # without landmarks the origin robot's first chain holds the map frame (its first keyframe pinned,
+        # held while it stands, never re-localised)
         self.graph = KeyframeGraph(params, robot_ids, self.counters, None if self.landmarks else origin_id)
         self._events: list[_Event] = []
         self._order = 0
         self.edges: dict[tuple[int, int], int] = {}  # (observer, target) -> last stamp
         self.watermark_ns = -1
         self._init: dict[int, list[Candidate]] = {}
-        self.recovery = Recovery(params, origin_id, anchored_origin=not self.landmarks, counters=self.counters)
+        self.recovery = Recovery(params, origin_id, anchored_origin=self.graph.frame_holder is not None,
+                                 counters=self.counters)
         self._pair_factors: dict[tuple[int, int], PairView] = {}  # (a, b) -> the view of its newest factor
         self.relocalisations: list[RelocEvent] = []  # not yet taken by the node
 
@@ -189,7 +192,7 @@ class Fusion:
         r.odom.append((stamp_ns, pose))
         r.latest_odom = (stamp_ns, pose)
         if r.kf_key is None:
-            if rid == self.origin_id and not self.landmarks and r.chain == 0:
+            if rid == self.graph.frame_holder and r.chain == 0:
                 self.graph.new_keyframe(rid, stamp_ns, pose, initial=(0.0, 0.0, 0.0), prior=self.p.origin_sigma)
             elif r.reset_hint is not None:
                 self.graph.new_keyframe(rid, stamp_ns, pose, initial=r.reset_hint, prior=0.3)

@@ -186,7 +186,8 @@ class OdometryEstimate(Msg, frozen=True, kw_only=True, tag="odometry"):
 class Correction(Msg, frozen=True, kw_only=True, tag="correction"):
     """The server's ``map -> odom_k`` transform for one robot plus its fused pose in
     the map frame and that pose's 3x3 covariance.  ``stamp_ns`` is the simulation
-    time of the newest data the estimate includes; ``last_fix_ns`` the time of the
+    time of the pose: the newest odometry of this robot the estimate includes, which lags
+    the server's clock while that odometry is late; ``last_fix_ns`` the time of the
     newest accepted observation involving this robot (as observer or observed).
     In lockstep the server sends one every tick; in realtime one when it matters: a new
     fix, a change of localisation, ``map -> odom`` moved by 1 mm or 1 mrad, or 100 ms of

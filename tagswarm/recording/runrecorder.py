@@ -113,7 +113,9 @@ class RunRecorder:
             c = self._decode(m.Correction, it.value, it.key)
             if c is not None:
                 self._heard("server", c.stamp_ns)
-            if c is not None and c.localised:
+            # a robot whose odometry stopped (its agent gone) keeps its last stamp: one pose per instant
+            if c is not None and c.localised and (not self.fused[c.robot_id]
+                                                  or c.stamp_ns != self.fused[c.robot_id][-1][0]):
                 self.fused[c.robot_id].append((c.stamp_ns, (c.x_m, c.y_m, c.yaw_rad)))
                 self.fused_cov[c.robot_id].append((c.stamp_ns, tuple(c.cov)))
         for it in ib["obs"].drain():

@@ -86,6 +86,7 @@ def test_server_killed_mid_run_resumes_from_its_journal(tmp_path: Path) -> None:
         modes: dict[int, set[str]] = {r: set() for r in ROBOTS}
         first_after: dict[int, m.Correction] = {}
         restart_from_ns = -1
+        before: dict[int, m.Correction] = {}  # the dead server's last correction of each robot
         wall0 = 0.0
         first_wall: dict[int, float] = {}  # wall s from the restart to each robot's first new correction
 
@@ -100,7 +101,10 @@ def test_server_killed_mid_run_resumes_from_its_journal(tmp_path: Path) -> None:
                 c = codec.decode(m.Correction, it.value)
                 if c.localised:
                     last[c.robot_id] = c
-                    if restart_from_ns >= 0 and c.robot_id not in first_after:
+                    # the first that carries odometry newer than the dead server had: one sent before the new
+                    # server heard from this robot is stamped with its last pose of the old run
+                    if restart_from_ns >= 0 and c.robot_id not in first_after \
+                            and c.stamp_ns > before[c.robot_id].stamp_ns:
                         first_after[c.robot_id] = c
                         first_wall[c.robot_id] = round(time.monotonic() - wall0, 2)
             for it in status_in.drain():
@@ -153,7 +157,7 @@ def test_server_killed_mid_run_resumes_from_its_journal(tmp_path: Path) -> None:
             assert c1["frames_processed"] > c0["frames_processed"], (r, c0, c1)
             assert c1["odometry_cycles"] >= c0["odometry_cycles"], (r, c0, c1)
         # nobody corrected them meanwhile (allowing for the tick the test had not seen yet at the kill)
-        before = dict(last)
+        before.update(last)
         assert all(c.stamp_ns <= kill_ns + 1e8 for c in before.values()), (kill_ns, before)
         outage_modes = {r: sorted(modes[r]) for r in ROBOTS}
         # every agent said so in its status: on odometry alone, not searching or lost

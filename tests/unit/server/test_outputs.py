@@ -1,11 +1,16 @@
-"""Which realtime corrections the server sends (server/outputs.py: correction_due)."""
+"""Which realtime corrections the server sends and what time they carry (server/outputs.py:
+correction_due, correction)."""
 
 from __future__ import annotations
 
+import math
+
 import msgspec
+import numpy as np
 
 from tagswarm.protocol import messages as m
-from tagswarm.server.outputs import CORRECTION_KEEPALIVE_NS, correction_due
+from tagswarm.server.fusion import Fusion, FusionParams
+from tagswarm.server.outputs import CORRECTION_KEEPALIVE_NS, correction, correction_due
 
 
 def corr(stamp_ns: int, x: float = 1.0, yaw: float = 0.0, fix: int = 0, localised: bool = True) -> m.Correction:
@@ -38,3 +43,30 @@ def test_a_moved_map_to_odom_goes_out_at_once_and_a_turn_wraps() -> None:
 def test_a_restarted_worlds_earlier_clock_sends_at_once() -> None:
     last = corr(5_000_000_000)
     assert correction_due(last, msgspec.structs.replace(last, stamp_ns=33_000_000))
+
+
+def test_a_correction_is_stamped_with_the_robots_newest_odometry_not_the_servers_clock() -> None:
+    """Robot 1 drives at 0.3 m/s in view of the origin; its odometry from 3.0 s on is late (a realtime
+    link retransmitting) while the origin's keeps the clock at 3.5 s.  The fused pose is robot 1's at
+    its newest odometry applied, so that is the stamp: with the clock's, it read 15 cm off."""
+    fusion = Fusion(FusionParams(), 0, (0, 1))
+    cov = np.diag([0.01**2, 0.01**2, 0.01**2])
+    dt = round(1e9 / 30)
+    for k in range(106):
+        t = k * dt
+        fusion.add_odometry(0, t, (0.0, 0.0, 0.0), 0.0)
+        if t < 3_000_000_000:
+            x = 0.3 * t / 1e9
+            fusion.add_odometry(1, t, (x, 0.0, 0.0), x)
+            if k % 3 == 0:
+                fusion.add_observation(0, 1, t, (1.0 + x, 0.0, 0.0), cov)  # type: ignore[arg-type]
+        fusion.advance(t)
+    late_ns = fusion.latest_odom_ns(1)
+    assert 2.9e9 < late_ns < 3.0e9 and fusion.watermark_ns > 3.4e9
+    c = correction(fusion, 1, fusion.watermark_ns, 0)
+    assert c.localised and c.stamp_ns == late_ns
+    assert math.isclose(c.x_m, 1.0 + 0.3 * late_ns / 1e9, abs_tol=0.01)  # where it was then
+    assert correction(fusion, 0, fusion.watermark_ns, 0).stamp_ns == fusion.watermark_ns
+    # the server's clock when it has none of the robot's odometry (it cannot place it yet)
+    fresh = Fusion(FusionParams(), 0, (0, 1))
+    assert correction(fresh, 1, 7, 0).stamp_ns == 7 and not correction(fresh, 1, 7, 0).localised

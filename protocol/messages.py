@@ -186,8 +186,9 @@ class OdometryEstimate(Msg, frozen=True, kw_only=True, tag="odometry"):
 class Correction(Msg, frozen=True, kw_only=True, tag="correction"):
     """The server's ``map -> odom_k`` transform for one robot plus its fused pose in
     the map frame and that pose's 3x3 covariance.  ``stamp_ns`` is the simulation
-    time of the pose: the newest odometry of this robot the estimate includes, which lags
-    the server's clock while that odometry is late; ``last_fix_ns`` the time of the
+    time of the newest data the estimate includes (the server's clock), ``pose_stamp_ns``
+    the time of the fused pose: this robot's newest odometry the estimate includes, which
+    lags ``stamp_ns`` while that odometry is late (0: the same as ``stamp_ns``); ``last_fix_ns`` the time of the
     newest accepted observation involving this robot (as observer or observed).
     In lockstep the server sends one every tick; in realtime one when it matters: a new
     fix, a change of localisation, ``map -> odom`` moved by 1 mm or 1 mrad, or 100 ms of
@@ -210,6 +211,12 @@ class Correction(Msg, frozen=True, kw_only=True, tag="correction"):
     cov: tuple[float, ...]
     last_fix_ns: StampNs = 0
     localised: bool = True
+    pose_stamp_ns: StampNs = 0
+
+    @property
+    def pose_time_ns(self) -> int:
+        """Simulation time of ``x_m``, ``y_m``, ``yaw_rad`` (``pose_stamp_ns``, else ``stamp_ns``)."""
+        return self.pose_stamp_ns or self.stamp_ns
 
 
 class Goal(Msg, frozen=True, kw_only=True, tag="goal"):

@@ -68,18 +68,18 @@ def unvouched_reason(fusion: Estimator, rid: int, cov: Cov, claim_sigma_m: float
 
 
 def correction(fusion: Estimator, rid: int, time_ns: int, seq: int, claim_sigma_m: float = 0.0) -> m.Correction:
-    """Robot ``rid``'s ``map -> odom`` correction and fused pose, stamped with the newest odometry
-    of it the fusion applied (``time_ns``, the server's clock, if none or later); ``localised=False`` while the
+    """Robot ``rid``'s ``map -> odom`` correction at the server's clock ``time_ns`` and its fused pose,
+    at the newest odometry of it the fusion applied (``pose_stamp_ns``); ``localised=False`` while the
     fusion cannot place it (every pose field zero) or does not vouch for it (:func:`unvouched_reason`;
     the fields then hold the map's loose estimate)."""
     est, mo = fusion.pose(rid), fusion.map_to_odom(rid)
     cov = None if est is None else reported_cov(est[1])
     # the fused pose is the robot's at its newest odometry applied, which lags the server's clock
-    # while its odometry is late (a realtime link retransmitting): stamped with the clock, a pose
-    # 0.5 s old read 16 cm off on a patrol at 0.3 m/s
+    # while its odometry is late (a realtime link retransmitting): read at the clock's stamp, a pose
+    # 0.5 s old was 16 cm off on a patrol at 0.3 m/s.  stamp_ns stays the clock: a lockstep agent
+    # waits for the correction of each tick, also when its odometry of that tick was lost
     odom_ns = fusion.latest_odom_ns(rid)
-    if odom_ns >= 0:
-        time_ns = min(time_ns, odom_ns)
+    pose_ns = time_ns if odom_ns < 0 else min(time_ns, odom_ns)
     if est is None or mo is None or cov is None:
         return m.Correction(seq=seq, stamp_ns=time_ns, robot_id=rid, map_odom_x_m=0.0, map_odom_y_m=0.0,
                             map_odom_yaw_rad=0.0, x_m=0.0, y_m=0.0, yaw_rad=0.0, cov=(0.0,) * 9, localised=False)
@@ -87,7 +87,7 @@ def correction(fusion: Estimator, rid: int, time_ns: int, seq: int, claim_sigma_
     vouched = unvouched_reason(fusion, rid, cov, claim_sigma_m) is None
     return m.Correction(seq=seq, stamp_ns=time_ns, robot_id=rid, map_odom_x_m=mo[0], map_odom_y_m=mo[1],
                         map_odom_yaw_rad=mo[2], x_m=x, y_m=y, yaw_rad=yaw, cov=tuple(float(v) for v in cov.ravel()),
-                        last_fix_ns=fusion.last_fix_ns(rid), localised=vouched)
+                        last_fix_ns=fusion.last_fix_ns(rid), localised=vouched, pose_stamp_ns=pose_ns)
 
 
 def correction_due(last: m.Correction | None, msg: m.Correction,

@@ -115,9 +115,9 @@ class RunRecorder:
                 self._heard("server", c.stamp_ns)
             # a robot whose odometry stopped (its agent gone) keeps its last stamp: one pose per instant
             if c is not None and c.localised and (not self.fused[c.robot_id]
-                                                  or c.stamp_ns != self.fused[c.robot_id][-1][0]):
-                self.fused[c.robot_id].append((c.stamp_ns, (c.x_m, c.y_m, c.yaw_rad)))
-                self.fused_cov[c.robot_id].append((c.stamp_ns, tuple(c.cov)))
+                                                  or c.pose_time_ns != self.fused[c.robot_id][-1][0]):
+                self.fused[c.robot_id].append((c.pose_time_ns, (c.x_m, c.y_m, c.yaw_rad)))
+                self.fused_cov[c.robot_id].append((c.pose_time_ns, tuple(c.cov)))
         for it in ib["obs"].drain():
             ob = self._decode(m.RelativeObservation, it.value, it.key)
             if ob is not None:

@@ -104,7 +104,7 @@ def test_server_killed_mid_run_resumes_from_its_journal(tmp_path: Path) -> None:
                     # the first that carries odometry newer than the dead server had: one sent before the new
                     # server heard from this robot is stamped with its last pose of the old run
                     if restart_from_ns >= 0 and c.robot_id not in first_after \
-                            and c.stamp_ns > before[c.robot_id].stamp_ns:
+                            and c.pose_time_ns > before[c.robot_id].pose_time_ns:
                         first_after[c.robot_id] = c
                         first_wall[c.robot_id] = round(time.monotonic() - wall0, 2)
             for it in status_in.drain():
@@ -194,8 +194,8 @@ def test_server_killed_mid_run_resumes_from_its_journal(tmp_path: Path) -> None:
                                    (a.x_m, a.y_m, a.yaw_rad))
             predicted = se2_compose((b.map_odom_x_m, b.map_odom_y_m, b.map_odom_yaw_rad), odom_now)
             jumps[r] = _dist(predicted, (a.x_m, a.y_m, a.yaw_rad))
-            tb, ta = truth.get((r, b.stamp_ns)), truth.get((r, a.stamp_ns))
-            assert tb is not None and ta is not None, (r, b.stamp_ns, a.stamp_ns)
+            tb, ta = truth.get((r, b.pose_time_ns)), truth.get((r, a.pose_time_ns))
+            assert tb is not None and ta is not None, (r, b.pose_time_ns, a.pose_time_ns)
             err_before[r] = _dist((b.x_m, b.y_m, b.yaw_rad), tb)
             err_after[r] = _dist((a.x_m, a.y_m, a.yaw_rad), ta)
             drift[r] = _dist(predicted, ta)  # the old correction carried over the outage: odometry drift
@@ -213,8 +213,8 @@ def test_server_killed_mid_run_resumes_from_its_journal(tmp_path: Path) -> None:
         until(lambda: all(last[r].stamp_ns >= settle_ns for r in ROBOTS), 30, "no corrections after the restart")
         err_settled = {}
         for r in ROBOTS:
-            t_now = truth.get((r, last[r].stamp_ns))
-            assert t_now is not None, (r, last[r].stamp_ns)
+            t_now = truth.get((r, last[r].pose_time_ns))
+            assert t_now is not None, (r, last[r].pose_time_ns)
             err_settled[r] = _dist((last[r].x_m, last[r].y_m, last[r].yaw_rad), t_now)
         assert max(err_settled.values()) < 0.05, (err_settled, numbers)
 

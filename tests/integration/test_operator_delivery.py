@@ -48,7 +48,8 @@ def test_a_subscriber_that_joins_just_before_the_command_gets_it_every_time(
     for i in range(ROUNDS):
         with open_bus(BusConfig(connect=(ep,))) as reader:
             inbox = reader.subscribe(KEYS.world_command())
-            code = kidnap.main([str(i), str(0.25 * i), "-1.5", "--push", "--timeout", "20", *_net(ep)])
+            # --at: no world status to confirm it here, and without --at the command waits 2.5 s for one
+            code = kidnap.main([str(i), str(0.25 * i), "-1.5", "--push", "--at", "0", "--timeout", "20", *_net(ep)])
             assert code == 0, capsys.readouterr().err
             assert reader.wait_for(inbox.__len__, 10.0), f"round {i}: the command never arrived"
             items = inbox.drain()

@@ -45,10 +45,10 @@ def test_a_restarted_worlds_earlier_clock_sends_at_once() -> None:
     assert correction_due(last, msgspec.structs.replace(last, stamp_ns=33_000_000))
 
 
-def test_a_correction_is_stamped_with_the_robots_newest_odometry_not_the_servers_clock() -> None:
+def test_a_corrections_pose_is_stamped_with_the_robots_newest_odometry_not_the_servers_clock() -> None:
     """Robot 1 drives at 0.3 m/s in view of the origin; its odometry from 3.0 s on is late (a realtime
     link retransmitting) while the origin's keeps the clock at 3.5 s.  The fused pose is robot 1's at
-    its newest odometry applied, so that is the stamp: with the clock's, it read 15 cm off."""
+    its newest odometry applied, so that is its stamp: at the clock's, it read 15 cm off."""
     fusion = Fusion(FusionParams(), 0, (0, 1))
     cov = np.diag([0.01**2, 0.01**2, 0.01**2])
     dt = round(1e9 / 30)
@@ -64,9 +64,9 @@ def test_a_correction_is_stamped_with_the_robots_newest_odometry_not_the_servers
     late_ns = fusion.latest_odom_ns(1)
     assert 2.9e9 < late_ns < 3.0e9 and fusion.watermark_ns > 3.4e9
     c = correction(fusion, 1, fusion.watermark_ns, 0)
-    assert c.localised and c.stamp_ns == late_ns
+    # the message is the server's clock's (a lockstep agent waits for each tick's), the pose is older
+    assert c.localised and c.stamp_ns == fusion.watermark_ns and c.pose_stamp_ns == c.pose_time_ns == late_ns
     assert math.isclose(c.x_m, 1.0 + 0.3 * late_ns / 1e9, abs_tol=0.01)  # where it was then
-    assert correction(fusion, 0, fusion.watermark_ns, 0).stamp_ns == fusion.watermark_ns
-    # the server's clock when it has none of the robot's odometry (it cannot place it yet)
-    fresh = Fusion(FusionParams(), 0, (0, 1))
-    assert correction(fresh, 1, 7, 0).stamp_ns == 7 and not correction(fresh, 1, 7, 0).localised
+    assert correction(fusion, 0, fusion.watermark_ns, 0).pose_time_ns == fusion.watermark_ns
+    # an old sender's correction without the field: the pose is at stamp_ns
+    assert msgspec.structs.replace(c, pose_stamp_ns=0).pose_time_ns == fusion.watermark_ns

@@ -89,7 +89,7 @@ class FoxgloveViews:
                                  fg.PoseInFrame(timestamp=_stamp(ns), frame_id="arena", pose=_pose3(msg.pose))))
         elif isinstance(msg, m.Correction) and msg.localised:
             out.append(self._enc(f"{p}/robot/{msg.robot_id}/fused", fg.PoseInFrame(
-                timestamp=_stamp(ns), frame_id="map", pose=_planar(msg.x_m, msg.y_m, msg.yaw_rad))))
+                timestamp=_stamp(msg.pose_time_ns), frame_id="map", pose=_planar(msg.x_m, msg.y_m, msg.yaw_rad))))
             out.append(self._enc(f"{p}/tf", _tf(ns, "map", f"odom_{msg.robot_id}", msg.map_odom_x_m,
                                                msg.map_odom_y_m, 0.0, _yaw_quat(msg.map_odom_yaw_rad))))
         elif isinstance(msg, m.OdometryEstimate):

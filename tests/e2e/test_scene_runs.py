@@ -46,3 +46,6 @@ def test_scene_localises_every_robot(scene: str, tmp_path: Path) -> None:
     # a shelf is first seen after 7 s; warehouse: two robots placed during their first turn, at 7 s): a floor
     # here, the full-length number in the bench
     assert swarm["fused"]["time_localised"] >= 0.85
+    # from each robot's first placement on, the 99 % nearly holds already in these short runs
+    # (98.3-100 %, measured 2026-12-06): a robot that loses its place after being found fails here
+    assert swarm["fused"]["time_localised_placed"] >= 0.97

@@ -84,17 +84,19 @@ class NeighbourTracker:
         for e in sorted(entries, key=lambda e: e.robot_id):
             if e.robot_id == self.robot_id:
                 continue
+            # the pose's own time: a robot whose odometry reached the server late is that far behind the map
+            at_ns = e.pose_stamp_ns or stamp_ns
             vx = vy = 0.0
             prev = self.tracks.get(e.robot_id)
             if prev is not None and e.alive:
-                dt = (stamp_ns - prev.stamp_ns) / 1e9
+                dt = (at_ns - prev.stamp_ns) / 1e9
                 if 0 < dt <= VELOCITY_MAX_DT_S:
                     vx, vy = (e.x_m - prev.x_m) / dt, (e.y_m - prev.y_m) / dt
                     speed = math.hypot(vx, vy)
                     if speed > self.max_speed_m_s:  # a jump of the estimate, not motion
                         vx, vy = vx * self.max_speed_m_s / speed, vy * self.max_speed_m_s / speed
             var = max(e.cov[0], e.cov[4], 0.0) if len(e.cov) == 9 else 0.0
-            tracks[e.robot_id] = _Track(stamp_ns, e.x_m, e.y_m, vx, vy, math.sqrt(var), e.alive)
+            tracks[e.robot_id] = _Track(at_ns, e.x_m, e.y_m, vx, vy, math.sqrt(var), e.alive)
         self.tracks = tracks
         self.adopted_ns = stamp_ns
         self.maps_adopted += 1

@@ -229,10 +229,10 @@ class Goal(Msg, frozen=True, kw_only=True, tag="goal"):
 
 
 class MapEntry(msgspec.Struct, frozen=True, kw_only=True):
-    """One robot in the global map (map frame); ``cov`` as in :class:`Correction`
-    (position block in the robot's own axes).  ``localised`` is whether the server
-    vouches for the pose, as in the robot's :class:`Correction` (False: the map's loose
-    estimate)."""
+    """One robot in the global map (map frame); ``cov`` and ``pose_stamp_ns`` as in
+    :class:`Correction` (position block in the robot's own axes; 0: the map's
+    ``stamp_ns``).  ``localised`` is whether the server vouches for the pose, as in the
+    robot's :class:`Correction` (False: the map's loose estimate)."""
 
     robot_id: RobotId
     x_m: float
@@ -242,6 +242,7 @@ class MapEntry(msgspec.Struct, frozen=True, kw_only=True):
     last_seen_ns: StampNs
     alive: bool
     localised: bool = True
+    pose_stamp_ns: StampNs = 0
 
 
 class GlobalMap(Msg, frozen=True, kw_only=True, tag="global_map"):

@@ -29,10 +29,18 @@ CORRECTION_TURN_RAD = 1e-3
 CORRECTION_KEEPALIVE_NS = 100_000_000
 
 
+def pose_time_ns(fusion: Estimator, rid: int, time_ns: int) -> int:
+    """Simulation time of ``rid``'s fused pose at the server's clock ``time_ns``: its newest odometry
+    fused (``time_ns`` if none).  It lags the clock while that odometry is late (a realtime link
+    retransmitting): read at the clock's time, a pose 0.5 s old was 16 cm off on a patrol at 0.3 m/s."""
+    odom_ns = fusion.latest_odom_ns(rid)
+    return time_ns if odom_ns < 0 else min(time_ns, odom_ns)
+
+
 def global_map(fusion: Estimator, robot_ids: Iterable[int], origin_id: int, time_ns: int,
                latest_rx: Mapping[int, int], alive: set[int], seq: int, claim_sigma_m: float = 0.0) -> m.GlobalMap:
-    """Every placed robot of ``robot_ids`` (in that order) with its fused pose, whether the server
-    vouches for it (:func:`unvouched_reason`), when its odometry last arrived and whether its agent
+    """Every placed robot of ``robot_ids`` (in that order) with its fused pose (at :func:`pose_time_ns`),
+    whether the server vouches for it (:func:`unvouched_reason`), when its odometry last arrived and whether its agent
     is alive, and the recent observation edges."""
     entries = []
     for rid in robot_ids:
@@ -44,7 +52,8 @@ def global_map(fusion: Estimator, robot_ids: Iterable[int], origin_id: int, time
         entries.append(m.MapEntry(robot_id=rid, x_m=x, y_m=y, yaw_rad=yaw,
                                   cov=tuple(float(v) for v in cov.ravel()),
                                   last_seen_ns=max(latest_rx.get(rid, 0), 0), alive=rid in alive,
-                                  localised=unvouched_reason(fusion, rid, cov, claim_sigma_m) is None))
+                                  localised=unvouched_reason(fusion, rid, cov, claim_sigma_m) is None,
+                                  pose_stamp_ns=pose_time_ns(fusion, rid, time_ns)))
     edges = tuple(sorted(e for e, t in fusion.edges.items() if time_ns - t <= EDGE_MEMORY_NS))
     return m.GlobalMap(seq=seq, stamp_ns=time_ns, origin_id=origin_id, robots=tuple(entries), edges=edges)
 
@@ -74,12 +83,9 @@ def correction(fusion: Estimator, rid: int, time_ns: int, seq: int, claim_sigma_
     the fields then hold the map's loose estimate)."""
     est, mo = fusion.pose(rid), fusion.map_to_odom(rid)
     cov = None if est is None else reported_cov(est[1])
-    # the fused pose is the robot's at its newest odometry applied, which lags the server's clock
-    # while its odometry is late (a realtime link retransmitting): read at the clock's stamp, a pose
-    # 0.5 s old was 16 cm off on a patrol at 0.3 m/s.  stamp_ns stays the clock: a lockstep agent
-    # waits for the correction of each tick, also when its odometry of that tick was lost
-    odom_ns = fusion.latest_odom_ns(rid)
-    pose_ns = time_ns if odom_ns < 0 else min(time_ns, odom_ns)
+    # stamp_ns stays the clock: a lockstep agent waits for the correction of each tick, also when its
+    # odometry of that tick was lost
+    pose_ns = pose_time_ns(fusion, rid, time_ns)
     if est is None or mo is None or cov is None:
         return m.Correction(seq=seq, stamp_ns=time_ns, robot_id=rid, map_odom_x_m=0.0, map_odom_y_m=0.0,
                             map_odom_yaw_rad=0.0, x_m=0.0, y_m=0.0, yaw_rad=0.0, cov=(0.0,) * 9, localised=False)

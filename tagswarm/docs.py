@@ -71,6 +71,8 @@ FIELD_NOTES: Final[dict[tuple[str, str], str]] = {
     ("Correction", "x_m"): "fused pose of the robot's base, map frame",
     ("Correction", "cov"): _FUSED_COV,
     ("Correction", "last_fix_ns"): "simulation time of the newest observation involving this robot",
+    ("MapEntry", "pose_stamp_ns"): "simulation time of this pose: the robot's newest odometry fused (0: the "
+                                   "map's stamp_ns)",
     ("Correction", "pose_stamp_ns"): "simulation time of the fused pose: this robot's newest odometry fused "
                                      "(0: stamp_ns)",
     ("Correction", "localised"): "false: the server cannot place this robot yet (pose fields are zero)",

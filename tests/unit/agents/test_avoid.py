@@ -296,6 +296,22 @@ def test_tracker_extrapolates_and_uses_only_maps_it_may() -> None:
     assert t.neighbours(1_000_000_000)[0].x_m == pytest.approx(0.2)
 
 
+def test_a_map_entry_older_than_its_map_is_extrapolated_from_its_own_time() -> None:
+    """Robot 2 drives at 0.2 m/s; in the second map its pose is 0.4 s older than the map (its odometry
+    reached the server late): its speed and where it is now come from the pose's time, not the map's."""
+    t = NeighbourTracker(1, FOOT, 0.5)
+
+    def entry(x: float, pose_ns: int) -> m.MapEntry:
+        return m.MapEntry(robot_id=2, x_m=x, y_m=0.0, yaw_rad=0.0, cov=(0.0,) * 9, last_seen_ns=0, alive=True,
+                          pose_stamp_ns=pose_ns)
+
+    t.offer(1_000_000_000, [entry(0.2, 0)])  # 0: at the map's stamp
+    t.offer(2_000_000_000, [entry(0.32, 1_600_000_000)])
+    two = t.neighbours(2_000_000_000)[0]
+    assert two.vx_m_s == pytest.approx(0.2)  # 0.12 m in 0.6 s (read at the map's 1 s: 0.12 m/s)
+    assert two.x_m == pytest.approx(0.4)  # 0.32 + 0.2 m/s * 0.4 s
+
+
 def test_a_sighting_far_from_where_the_map_has_the_robot_is_contradicted() -> None:
     """The agent's own check before it counts a sighting as a fix: a copy of robot 2's cube 3 m from
     where the map has robot 2 is contradicted; a sighting within its circle and the gate is not, nor

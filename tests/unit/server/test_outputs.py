@@ -10,7 +10,7 @@ import numpy as np
 
 from tagswarm.protocol import messages as m
 from tagswarm.server.fusion import Fusion, FusionParams
-from tagswarm.server.outputs import CORRECTION_KEEPALIVE_NS, correction, correction_due
+from tagswarm.server.outputs import CORRECTION_KEEPALIVE_NS, correction, correction_due, global_map
 
 
 def corr(stamp_ns: int, x: float = 1.0, yaw: float = 0.0, fix: int = 0, localised: bool = True) -> m.Correction:
@@ -68,5 +68,8 @@ def test_a_corrections_pose_is_stamped_with_the_robots_newest_odometry_not_the_s
     assert c.localised and c.stamp_ns == fusion.watermark_ns and c.pose_stamp_ns == c.pose_time_ns == late_ns
     assert math.isclose(c.x_m, 1.0 + 0.3 * late_ns / 1e9, abs_tol=0.01)  # where it was then
     assert correction(fusion, 0, fusion.watermark_ns, 0).pose_time_ns == fusion.watermark_ns
+    # the map has every robot's pose at its own time too
+    entries = {e.robot_id: e for e in global_map(fusion, (0, 1), 0, fusion.watermark_ns, {}, {0, 1}, 0).robots}
+    assert entries[1].pose_stamp_ns == late_ns and entries[0].pose_stamp_ns == fusion.watermark_ns
     # an old sender's correction without the field: the pose is at stamp_ns
     assert msgspec.structs.replace(c, pose_stamp_ns=0).pose_time_ns == fusion.watermark_ns

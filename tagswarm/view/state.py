@@ -235,13 +235,15 @@ class ViewState:
         view = self._robot(c.robot_id)
         if view is None:
             return
-        if c.stamp_ns < view.fused_stamp_ns or (c.stamp_ns == view.fused_stamp_ns and view.fused_source == "map"):
+        # the pose's own time (Correction.pose_stamp_ns), against which its error is measured
+        at_ns = c.pose_time_ns
+        if at_ns < view.fused_stamp_ns or (at_ns == view.fused_stamp_ns and view.fused_source == "map"):
             return  # not newer than what is shown (on a tie the map's copy of the estimate stays)
         view.localised = c.localised
         if c.localised:
             view.fused = (c.x_m, c.y_m, c.yaw_rad)
             view.fused_cov = tuple(c.cov)
-            view.fused_stamp_ns, view.fused_source = c.stamp_ns, "correction"
+            view.fused_stamp_ns, view.fused_source = at_ns, "correction"
             view.last_fix_ns = max(view.last_fix_ns, c.last_fix_ns)
         self._advance(c.stamp_ns)
 
@@ -259,10 +261,10 @@ class ViewState:
             view.alive = e.alive
             if not e.localised:  # in the map, but the server does not vouch for it: not shown as localised
                 view.localised = False
-            elif g.stamp_ns >= view.fused_stamp_ns:  # on a tie the map wins: it is what the test compares with
-                view.fused = (e.x_m, e.y_m, e.yaw_rad)
+            elif (e.pose_stamp_ns or g.stamp_ns) >= view.fused_stamp_ns:  # on a tie the map wins: it is what
+                view.fused = (e.x_m, e.y_m, e.yaw_rad)                      # the test compares with
                 view.fused_cov = tuple(e.cov)
-                view.fused_stamp_ns, view.fused_source = g.stamp_ns, "map"
+                view.fused_stamp_ns, view.fused_source = e.pose_stamp_ns or g.stamp_ns, "map"
                 view.localised = True
         self._advance(g.stamp_ns)
 

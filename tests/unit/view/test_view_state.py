@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import math
 
+import msgspec
 import pytest
 
 from tagswarm.protocol import codec
@@ -114,6 +115,21 @@ def test_error_compares_with_the_truth_at_the_fused_stamp(state: ViewState) -> N
         state.apply(truth(1, x, 0.0, 0.0, stamp_ns=k * 100), KEYS.truth(1))
     state.apply(corr(1, 0.1 + 1.5 + 0.03, a2m[1], 100), KEYS.correction(1))
     assert robot(state.snapshot(), 1)["error_m"] == pytest.approx(0.03, abs=1e-6)
+
+
+def test_a_pose_older_than_its_message_is_compared_with_the_truth_at_its_own_time(state: ViewState) -> None:
+    """Robot 1's odometry reached the server late: the correction at 200 holds its pose of 100 (and
+    so does the map at 300)."""
+    a2m = arena_to_map(state.s)
+    for k, x in enumerate((0.0, 0.1, 0.2, 0.3)):
+        state.apply(truth(1, x, 0.0, 0.0, stamp_ns=k * 100), KEYS.truth(1))
+    late = msgspec.structs.replace(corr(1, 0.1 + 1.5 + 0.03, a2m[1], 200), pose_stamp_ns=100)
+    state.apply(late, KEYS.correction(1))
+    assert robot(state.snapshot(), 1)["error_m"] == pytest.approx(0.03, abs=1e-6)  # at 200: 0.07
+    g = gmap(300, (1, 0.1 + 1.5 + 0.02, a2m[1]))
+    g = msgspec.structs.replace(g, robots=(msgspec.structs.replace(g.robots[0], pose_stamp_ns=100),))
+    state.apply(g, KEYS.map())
+    assert robot(state.snapshot(), 1)["error_m"] == pytest.approx(0.02, abs=1e-6)  # at 300: 0.18
 
 
 def test_odometry_only_pose_starts_at_the_robots_start(state: ViewState) -> None:

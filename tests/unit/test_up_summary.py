@@ -10,12 +10,12 @@ from typing import Any
 import pytest
 from rich.console import Console
 
-from tagswarm.up import _controller_trouble, _summary
+from tagswarm.upsummary import print_controller_trouble, print_summary
 
 
 def _printed(metrics: dict[str, Any]) -> str:
     out = io.StringIO()
-    _summary(Console(file=out, width=400, color_system=None), metrics)
+    print_summary(Console(file=out, width=400, color_system=None), metrics)
     return out.getvalue()
 
 
@@ -112,7 +112,7 @@ def test_a_failing_or_slow_own_controller_is_named_and_a_healthy_run_prints_noth
     def printed(counters: dict[str, Any]) -> str:
         (tmp_path / "run.json").write_text(json.dumps({"counters": counters}))
         out = io.StringIO()
-        _controller_trouble(Console(file=out, width=400, color_system=None), tmp_path)
+        print_controller_trouble(Console(file=out, width=400, color_system=None), tmp_path)
         return out.getvalue()
 
     healthy = {"agent/0": {"fixes": 9}, "agent/1": {"controller_cycles": 150, "controller_errors": 0}, "server": {}}
@@ -125,7 +125,7 @@ def test_a_failing_or_slow_own_controller_is_named_and_a_healthy_run_prints_noth
     assert "the lockstep world stopped waiting for a participant alive but silent (1 time(s))" in hung
     (tmp_path / "run.json").write_text("{not json")
     out = io.StringIO()
-    _controller_trouble(Console(file=out), tmp_path)  # a run that crashed early: nothing, no traceback
+    print_controller_trouble(Console(file=out), tmp_path)  # a run that crashed early: nothing, no traceback
     assert out.getvalue() == ""
 
 
@@ -135,5 +135,5 @@ def test_never_placed_with_landmarks_blames_the_landmarks_and_a_failed_run_blame
     text = _printed(m)
     assert "never localised: robot(s) 0, 1 of 3" in text and "landmark" in text and "origin robot 0" not in text
     failed = io.StringIO()
-    _summary(Console(file=failed, width=400, color_system=None), _metrics({"0": None, "1": None}, []), failed=True)
+    print_summary(Console(file=failed, width=400, color_system=None), _metrics({"0": None, "1": None}, []), failed=True)
     assert "the run failed" in failed.getvalue() and "never placed" not in failed.getvalue()

@@ -85,7 +85,6 @@ def correction(fusion: Estimator, rid: int, time_ns: int, seq: int, claim_sigma_
     cov = None if est is None else reported_cov(est[1])
     # stamp_ns stays the clock: a lockstep agent waits for the correction of each tick, also when its
     # odometry of that tick was lost
-    pose_ns = pose_time_ns(fusion, rid, time_ns)
     if est is None or mo is None or cov is None:
         return m.Correction(seq=seq, stamp_ns=time_ns, robot_id=rid, map_odom_x_m=0.0, map_odom_y_m=0.0,
                             map_odom_yaw_rad=0.0, x_m=0.0, y_m=0.0, yaw_rad=0.0, cov=(0.0,) * 9, localised=False)
@@ -93,7 +92,8 @@ def correction(fusion: Estimator, rid: int, time_ns: int, seq: int, claim_sigma_
     vouched = unvouched_reason(fusion, rid, cov, claim_sigma_m) is None
     return m.Correction(seq=seq, stamp_ns=time_ns, robot_id=rid, map_odom_x_m=mo[0], map_odom_y_m=mo[1],
                         map_odom_yaw_rad=mo[2], x_m=x, y_m=y, yaw_rad=yaw, cov=tuple(float(v) for v in cov.ravel()),
-                        last_fix_ns=fusion.last_fix_ns(rid), localised=vouched, pose_stamp_ns=pose_ns)
+                        last_fix_ns=fusion.last_fix_ns(rid), localised=vouched,
+                        pose_stamp_ns=pose_time_ns(fusion, rid, time_ns))
 
 
 def correction_due(last: m.Correction | None, msg: m.Correction,

@@ -13,6 +13,10 @@ Security (docs/security.md): a client presents a Zenoh user/password
 (``users_file``) and may enforce an ACL (``access_control``).  Fault injection
 (``loss``, ``delay_ms`` on ``fault_keys``) impairs what this process receives;
 see :mod:`tagswarm.protocol.netfaults`.
+
+The settings (:class:`BusConfig`, in :mod:`tagswarm.protocol.busconfig`) and the inboxes
+(:class:`Inbox`, in :mod:`tagswarm.protocol.inbox`) need no Zenoh and live in their own
+modules; this one re-exports them.
 """
 
 from __future__ import annotations
@@ -23,106 +27,37 @@ import os
 import re
 import threading
 import time
-from collections import deque
 from collections.abc import Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass
-from typing import Annotated, Any, Generic, Literal, TypeVar
+from typing import Any
 
-import msgspec
 import zenoh
 
 from tagswarm.protocol import wire
+from tagswarm.protocol.busconfig import (
+    DEFAULT_LEASE_MS,
+    KEEP_ALIVE,
+    MAX_DELAY_MS,
+    MAX_LEASE_MS,
+    MIN_LEASE_MS,
+    BusConfig,
+    default_fault_keys,
+)
 from tagswarm.protocol.errors import UsageError
-from tagswarm.protocol.keys import ROOT, Keys
+from tagswarm.protocol.inbox import Inbox, Received
 from tagswarm.protocol.netfaults import NetFaults
 
+__all__ = [
+    "DEFAULT_LEASE_MS", "KEEP_ALIVE", "MAX_DELAY_MS", "MAX_LEASE_MS", "MIN_LEASE_MS", "Bus", "BusConfig", "BusError",
+    "Inbox", "Publisher", "Received", "check_key_expr", "default_fault_keys", "encoding_for", "key_matches",
+    "net_faults", "open_bus", "read_password", "zenoh_config", "zenoh_message",
+]
+
 log = logging.getLogger(__name__)
-T = TypeVar("T")
-MAX_DELAY_MS = 60_000.0
-# Zenoh link lease (transport/link/tx/lease): a process announces it to its peers, which
-# close the link, and so drop its liveliness tokens, when nothing (data or keep-alive)
-# arrived from it for that long; what counts is the lease the silent process announced.
-# A SIGKILL closes the socket and is seen in ~20 ms either way; the lease is what bounds
-# detection of a frozen, hung or partitioned process: Zenoh's 10 s default would be far
-# too late to mark an agent not alive within 2 s.  The floor is the longest a *receiving*
-# process may stall: its Zenoh receive thread runs our callbacks, which need the GIL (and
-# the lock Bus.wait_for holds), so while another thread holds the GIL in one long C call
-# (a gtsam optimisation, a pybullet scene load) or the process gets no CPU on a loaded
-# 2-core machine, the link is not read, and a stall longer than the lease drops a healthy
-# peer (measured: a 1.1 s stall drops a 1 s lease).  1500 ms detects a frozen process in
-# ~1.5 s (it sends every tick; when idle, keep-alives every 375 ms: 1.1-1.5 s) and
-# tolerates stalls 3x the longest seen in the e2e runs (0.47 s: the world loading its
-# scene right after opening its session; nodes otherwise < 0.3 s).
-DEFAULT_LEASE_MS = 1500
-MIN_LEASE_MS = 100
-MAX_LEASE_MS = 600_000
-KEEP_ALIVE = 4  # keep-alives per lease (Zenoh's default and recommendation: the lease is 4 missed ones)
 
 
 class BusError(UsageError):
     """The Zenoh session could not be configured or opened."""
-
-
-class BusConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
-    """How a process joins the Zenoh network.
-
-    ``listen``/``connect`` are Zenoh endpoints such as ``tcp/127.0.0.1:7447``.
-    Multicast scouting is off unless asked for: explicit endpoints open a
-    session in ~1 ms instead of ~0.5 s and keep test runs isolated.
-    ``config_file`` (or the ``ZENOH_CONFIG`` environment variable) names a Zenoh
-    JSON5 config that is loaded first; the fields here are applied on top.
-
-    Authentication: ``user`` and ``password_file`` (a file holding the password,
-    so it never shows in a config dump or ``ps``) are presented to the router;
-    a router given ``users_file`` (Zenoh's ``user:password`` dictionary) admits
-    only sessions that present one of its entries, and ``access_control`` (the JSON
-    of a Zenoh ``access_control`` block, see tagswarm/deploy/acl.py) limits what each user
-    may publish, subscribe, query and declare.
-
-    Fault injection (receive side, see :mod:`tagswarm.protocol.netfaults`): samples that
-    arrive on keys matching ``fault_keys`` (key expressions; empty = the
-    :func:`default_fault_keys`) are lost with probability ``loss`` (0..1) and
-    delivered ``delay_ms`` milliseconds late (± ``jitter_ms``, per-key order kept);
-    ``fault_seed`` fixes the pattern.
-
-    ``lease_ms`` is the Zenoh link lease this process announces (applied on top of a
-    config file, like the other fields): its peers drop it, and its liveliness tokens,
-    after that long without hearing from it (see :data:`DEFAULT_LEASE_MS`).
-    """
-
-    mode: Literal["peer", "client", "router"] = "peer"
-    listen: tuple[str, ...] = ()
-    connect: tuple[str, ...] = ()
-    multicast_scouting: bool = False
-    config_file: str | None = None
-    user: str | None = None
-    password_file: str | None = None
-    users_file: str | None = None
-    access_control: str | None = None
-    loss: Annotated[float, msgspec.Meta(ge=0.0, le=1.0)] = 0.0
-    delay_ms: Annotated[float, msgspec.Meta(ge=0.0, le=MAX_DELAY_MS)] = 0.0
-    jitter_ms: Annotated[float, msgspec.Meta(ge=0.0, le=MAX_DELAY_MS)] = 0.0
-    fault_keys: tuple[str, ...] = ()
-    fault_seed: int = 0
-    lease_ms: Annotated[int, msgspec.Meta(ge=MIN_LEASE_MS, le=MAX_LEASE_MS)] = DEFAULT_LEASE_MS
-
-
-def default_fault_keys() -> tuple[str, ...]:
-    """Key expressions (any run) that faults apply to unless told otherwise: small
-    must-arrive messages whose loss the system absorbs (encoders, wheel commands,
-    goals, observations, odometry, map).  A lockstep server does not wait for a lost
-    odometry message: the agent's ack of the tick, sent after it, tells it the
-    message is gone (``odometry_lost`` in its status).  Left out: the lockstep clock
-    (tick, acks, render requests: losing one stalls the run), corrections (a sync
-    point too: a lockstep agent waits up to ``agent.frame_wait_s`` for the
-    correction of the last tick, so every loss would cost that timeout; name them in
-    ``fault_keys`` to impair them, e.g. in realtime runs), camera images (already
-    DROP / newest-only), ground truth and statuses (evaluation and monitoring, not
-    the system under test)."""
-    k = Keys("any")
-    data = (k.encoders(), k.cmd(), k.goal(), k.observation(), k.odometry(), k.map())
-    return tuple(f"{ROOT}/*/{key[len(k.prefix) + 1:]}" for key in data)
 
 
 def check_key_expr(expr: str) -> str:
@@ -207,62 +142,6 @@ def net_faults(cfg: BusConfig) -> NetFaults:
                          jitter_s=cfg.jitter_ms / 1000.0)
     except ValueError as exc:
         raise BusError(f"network faults: {exc}") from None
-
-
-@dataclass
-class Received(Generic[T]):
-    """One item delivered to an :class:`Inbox`: the key it came on and its value."""
-
-    key: str
-    value: T
-
-
-class Inbox(Generic[T]):
-    """A bounded queue filled by Zenoh callbacks and drained by the node's loop.
-
-    ``newest_only`` keeps just the latest item (a ring of one): use it for
-    camera frames so that a slow consumer skips frames instead of queueing them.
-    Otherwise it is a FIFO of ``capacity`` items; items beyond that are dropped
-    and counted in ``overflow`` (a safety net, not a flow-control mechanism).
-    ``fault_dropped`` counts the samples lost to injected network faults.
-    ``wakes=False``: an arrival does not wake the loop (:meth:`Bus.wait`); for inputs the
-    loop only reads when something else woke it, so each such sample does not cost a
-    pass of the loop.
-    """
-
-    def __init__(self, wake: threading.Condition, *, newest_only: bool, capacity: int, wakes: bool = True) -> None:
-        self._items: deque[Received[T]] = deque(maxlen=1 if newest_only else capacity)
-        self._wake = wake
-        self._wakes = wakes
-        self.received = 0
-        self.overflow = 0
-        self.fault_dropped = 0
-        self._newest_only = newest_only
-
-    def put(self, key: str, value: T) -> None:
-        """Called from Zenoh threads: enqueue and wake the loop, nothing else."""
-        with self._wake:
-            if len(self._items) == self._items.maxlen and not self._newest_only:
-                self.overflow += 1
-            self._items.append(Received(key, value))
-            self.received += 1
-            if self._wakes:
-                self._wake.notify_all()
-
-    def count_fault_drop(self) -> None:
-        """Called from Zenoh threads for a sample the fault injector discarded."""
-        with self._wake:
-            self.fault_dropped += 1
-
-    def drain(self) -> list[Received[T]]:
-        """Everything queued so far, oldest first."""
-        with self._wake:
-            items = list(self._items)
-            self._items.clear()
-        return items
-
-    def __len__(self) -> int:
-        return len(self._items)
 
 
 # One Encoding object per message type, built once: "application/msgpack;<MessageType>" (protocol/wire.py).

@@ -1,4 +1,4 @@
-"""Inbox: which arrivals wake the owner's loop (protocol/bus.py)."""
+"""Inbox: which arrivals wake the owner's loop (protocol/inbox.py)."""
 
 from __future__ import annotations
 

@@ -151,7 +151,7 @@ def test_listen_mode_and_scouting() -> None:
 
 
 def test_zenoh_lease_default_env_and_cli() -> None:
-    # the default detects a frozen process within 2 s (Zenoh's own default is 10 s); see protocol/bus.py
+    # the default detects a frozen process within 2 s (Zenoh's own default is 10 s); see protocol/busconfig.py
     assert cfg().bus.lease_ms == DEFAULT_LEASE_MS
     assert 1000 <= DEFAULT_LEASE_MS <= 1800
     assert cfg(TAGSWARM_ZENOH_LEASE_MS="4000").bus.lease_ms == 4000

@@ -129,7 +129,7 @@ def test_the_graph_covers_every_module() -> None:
     for layer_name in ("protocol", "runtime", "world", "agents", "server"):
         assert any(layer(m) == layer_name for m in graph), layer_name
     assert "tagswarm.protocol.codec" in graph["tagswarm.server.node"]
-    assert "tagswarm.runtime.lockstep" in graph["tagswarm.agents.node"]
+    assert "tagswarm.runtime.lockstep" in graph["tagswarm.agents.nodestate"]
 
 
 def test_each_layer_imports_only_what_it_may() -> None:

@@ -2,8 +2,8 @@
 
 Both :class:`~tagswarm.server.fusion.Fusion` (``[server] method = "graph"``, the GTSAM
 pose graph) and :class:`~tagswarm.server.stitchmap.StitchMap` (``"stitch"``, the paper's
-chain of homogeneous transforms) satisfy :class:`Estimator`; :mod:`tagswarm.server.node`
-only chooses which one it builds.  Poses are in the map frame (metres, radians),
+chain of homogeneous transforms) satisfy :class:`Estimator`; :func:`make_estimator` builds
+the one a server's config chooses (:mod:`tagswarm.server.node` runs it).  Poses are in the map frame (metres, radians),
 covariances (3, 3) in the robot's own axes (GTSAM's tangent convention), times
 simulation nanoseconds.
 """
@@ -17,8 +17,11 @@ import numpy as np
 
 from tagswarm.protocol.geometry import Pose2
 from tagswarm.server import journal_format as jf
-from tagswarm.server.fusion import RelocEvent
+from tagswarm.server import odomcal
+from tagswarm.server.config import ServerConfig
+from tagswarm.server.fusion import Fusion, FusionParams, RelocEvent
 from tagswarm.server.noise import Cov
+from tagswarm.server.stitchmap import StitchMap
 
 
 class Estimator(Protocol):
@@ -61,3 +64,25 @@ def apply_input(est: Estimator, record: jf.Record) -> None:
         est.advance(record.watermark_ns)
     elif isinstance(record, jf.NewRun):
         est.reset()
+
+
+def make_fusion(config: ServerConfig) -> Fusion:
+    """The (empty) fusion a server with ``config`` runs; a journal replayed into it
+    rebuilds that server's graph (tools and tests use this too)."""
+    s = config.scenario
+    cal = s.server.odom_calibration
+    wheel, scale = odomcal.odometry_sigmas(cal, s.agent.odom_wheel_sigma, s.server.odom_wheel_sigma,
+                                           s.server.odom_scale_sigma)
+    params = FusionParams(wheel_base_m=s.robot.wheel_base_m, odom_wheel_sigma=wheel, odom_scale_sigma=scale,
+                          obs_sigma_floor_m=s.server.obs_sigma_floor_m, odom_calibration=cal, lag_s=config.lag_s)
+    landmarks = {lm.id: (lm.x_m, lm.y_m, lm.yaw_rad) for lm in s.landmarks}
+    return Fusion(params, s.map.origin_id, s.robot_ids, landmarks)
+
+
+def make_estimator(config: ServerConfig) -> Estimator:
+    """The (empty) map estimator of ``[server] method``: the pose graph (``graph``, see
+    :func:`make_fusion`) or the paper's stitched map (``stitch``) with the same parameters."""
+    if config.scenario.server.method == "graph":
+        return make_fusion(config)
+    f = make_fusion(config)  # (cheap: an empty graph) the same parameters, origin and landmarks
+    return StitchMap(f.p, f.origin_id, tuple(f.robots), f.landmarks)

@@ -34,11 +34,11 @@ from tagswarm.runtime.process import serve_node
 from tagswarm.server import journal as jr
 from tagswarm.server import odomcal, outputs
 from tagswarm.server.config import ServerConfig, build_config
-from tagswarm.server.estimator import Estimator
-from tagswarm.server.fusion import Fusion, FusionParams
+from tagswarm.server.estimator import Estimator, make_estimator
+from tagswarm.server.estimator import make_fusion as make_fusion  # re-exported: tests build a server's fusion from here
+from tagswarm.server.fusion import Fusion
 from tagswarm.server.intake import Intake, OdometryWait, SilentRobots
 from tagswarm.server.nodejournal import NodeJournal
-from tagswarm.server.stitchmap import StitchMap
 
 log = logging.getLogger("tagswarm.server")
 # realtime only: fresh observations trigger a fusion update at most this often (wall seconds)
@@ -54,28 +54,6 @@ RECENT_MAX = 4096
 # message costs the run, instead of ``clock.ack_timeout_s``
 ODOMETRY_GRACE_S = 0.03
 ACKS_KEPT = 8
-
-
-def make_fusion(config: ServerConfig) -> Fusion:
-    """The (empty) fusion a server with ``config`` runs; a journal replayed into it
-    rebuilds that server's graph (tools and tests use this too)."""
-    s = config.scenario
-    cal = s.server.odom_calibration
-    wheel, scale = odomcal.odometry_sigmas(cal, s.agent.odom_wheel_sigma, s.server.odom_wheel_sigma,
-                                           s.server.odom_scale_sigma)
-    params = FusionParams(wheel_base_m=s.robot.wheel_base_m, odom_wheel_sigma=wheel, odom_scale_sigma=scale,
-                          obs_sigma_floor_m=s.server.obs_sigma_floor_m, odom_calibration=cal, lag_s=config.lag_s)
-    landmarks = {lm.id: (lm.x_m, lm.y_m, lm.yaw_rad) for lm in s.landmarks}
-    return Fusion(params, s.map.origin_id, s.robot_ids, landmarks)
-
-
-def make_estimator(config: ServerConfig) -> Estimator:
-    """The (empty) map estimator of ``[server] method``: the pose graph (``graph``, see
-    :func:`make_fusion`) or the paper's stitched map (``stitch``) with the same parameters."""
-    if config.scenario.server.method == "graph":
-        return make_fusion(config)
-    f = make_fusion(config)  # (cheap: an empty graph) the same parameters, origin and landmarks
-    return StitchMap(f.p, f.origin_id, tuple(f.robots), f.landmarks)
 
 
 class ServerNode(NodeJournal):

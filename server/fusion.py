@@ -38,6 +38,7 @@ import gtsam
 import numpy as np
 
 from tagswarm.protocol.geometry import Pose2, se2_between, se2_compose, se2_inverse
+from tagswarm.server.disputes import RelocEvent, contradiction, disturbed, note_relocalisation, unplace
 from tagswarm.server.keyframes import KeyframeGraph, PairView, Robot, repeats
 from tagswarm.server.noise import (
     CHI2_3DOF_999,
@@ -50,28 +51,12 @@ from tagswarm.server.noise import (
     tangent_cov,
 )
 from tagswarm.server.placement import Candidate, Placement, choose
-from tagswarm.server.recovery import LANDMARK_WITNESS, Recovery, Verdict, consensus, views
+from tagswarm.server.recovery import LANDMARK_WITNESS, Recovery, Verdict, views
 from tagswarm.server.smoother import FixedLagSmoother
 from tagswarm.server.stitch import Edge, stitch
 
-__all__ = ["CHI2_3DOF_999", "Cov", "Fusion", "FusionParams", "inverse_cov", "odom_increment_cov", "tangent_cov"]
-
-@dataclass(frozen=True)
-class RelocEvent:
-    """A robot re-localised from a consistent set of contradicting observations:
-    map poses before and after at ``stamp_ns``, the witnesses (robot ids,
-    ``-1`` for a landmark) and how many observations agreed."""
-
-    stamp_ns: int
-    robot_id: int
-    before: Pose2
-    after: Pose2
-    evidence: int
-    observers: tuple[int, ...]
-
-    @property
-    def jump_m(self) -> float:
-        return math.dist(self.before[:2], self.after[:2])
+__all__ = ["CHI2_3DOF_999", "Cov", "Fusion", "FusionParams", "RelocEvent", "inverse_cov", "odom_increment_cov",
+           "tangent_cov"]
 
 
 @dataclass(order=True)
@@ -249,25 +234,27 @@ class Fusion:
                 # 15 cm passes the gate, and 5 s of views before the nudge held it 13 cm off)
                 admitted = True
                 self.counters["surprising_observations"] += 1
-                verdict = self._contradiction(observer, target, stamp_ns, rel, cov, po, pg, oo, go)
+                verdict = contradiction(self.robots, self.recovery, self._init, observer, target, stamp_ns, rel, cov,
+                                        po, pg, oo, go)
                 if verdict is not None:
                     # a move within the gate's reach: loosened, not re-placed (whether or not it is significant)
                     self._init.pop(verdict.suspect, None)  # placement candidates are for unplaced robots
-                    self._disturbed(verdict, stamp_ns, *sides[verdict.suspect])
+                    disturbed(self.graph, self.counters, self._pair_factors, verdict, stamp_ns, *sides[verdict.suspect])
             elif d2 > self.p.chi2_gate:
                 self.counters["rejected_gate"] += 1
-                verdict = self._contradiction(observer, target, stamp_ns, rel, cov, po, pg, oo, go)
+                verdict = contradiction(self.robots, self.recovery, self._init, observer, target, stamp_ns, rel, cov,
+                                        po, pg, oo, go)
                 if verdict is None:
                     return
                 if verdict.admit:
                     # consistent, but too small a move for a jump: an ordinary factor lets the graph correct it
                     admitted = True
                     self.counters["admitted_consistent"] += 1
-                    self._disturbed(verdict, stamp_ns, *sides[verdict.suspect])
+                    disturbed(self.graph, self.counters, self._pair_factors, verdict, stamp_ns, *sides[verdict.suspect])
                 else:
                     # re-localise the suspect: out of the map, then placed again below from the consistent set
                     before = po if verdict.suspect == observer else pg
-                    self._unplace(verdict.suspect, verdict)
+                    unplace(self.robots, self.recovery, self.counters, verdict.suspect, verdict)
                     if verdict.suspect == observer:
                         po = None
                     else:
@@ -289,7 +276,7 @@ class Fusion:
             if pl is None:
                 return
             if reloc is not None:
-                self._note_relocalisation(reloc[0], stamp_ns, reloc[1], pl.pose)
+                note_relocalisation(self.relocalisations, reloc[0], stamp_ns, reloc[1], pl.pose)
             if po is None:
                 po = pl.pose
             else:
@@ -333,63 +320,6 @@ class Fusion:
         g.accepted += 1
         self.recovery.accepted(observer, target, stamp_ns, views(observer, target, stamp_ns, rel, cov, po, pg, oo, go,
                                                                  o.cov, g.cov))
-
-    def _contradiction(self, observer: int, target: int, stamp_ns: int, rel: Pose2, cov: Cov, po: Pose2, pg: Pose2,
-                       oo: Pose2, go: Pose2) -> Verdict | None:
-        """A gated-out observation as evidence about both robots (see
-        :mod:`tagswarm.server.recovery`); the verdict if it completes a consistent set."""
-        var = {rid: float(self.robots[rid].cov[0, 0] + self.robots[rid].cov[1, 1]) / 2 for rid in (observer, target)}
-        self.recovery.disputed(observer, target, stamp_ns)
-        seen = views(observer, target, stamp_ns, rel, cov, po, pg, oo, go, self.robots[observer].cov,
-                     self.robots[target].cov)
-        for v in seen:
-            placed = se2_compose(v.cand.origin, v.odom)
-            if not self.recovery.at_decoy_site(v.suspect, placed[0], placed[1]):  # a known copy disputes nothing
-                self.recovery.shifted(v.suspect, target if v.suspect == observer else observer, stamp_ns,
-                                      math.dist(placed[:2], v.now[:2]))
-        for v in seen:
-            verdict = self.recovery.add(v.suspect, v.cand, current=(v.now, v.odom, var[v.suspect]),
-                                        witness_var_m2=v.witness_var_m2)
-            if verdict is not None:
-                if not verdict.admit:
-                    # _initial_pose adds the triggering observation itself
-                    self._init[v.suspect] = [c for c in verdict.agree if c is not v.cand]
-                return verdict
-        return None
-
-    def _disturbed(self, verdict: Verdict, stamp_ns: int, now: Pose2, odom: Pose2) -> None:
-        """The suspect of an admitted ``verdict`` was moved a little without its wheels knowing (nudged,
-        turned on the spot, slipped): a new keyframe whose odometry from the last one is loosened by the
-        move the evidence calls for, so the views after the move are not outweighed by the views before
-        it, which the odometry would otherwise carry over as if nothing had happened.  Measured: a
-        standing robot seen by three, turned 0.15 rad on the spot, kept 0.13 rad of it for 7 s with
-        the admitted views alone."""
-        rid = verdict.suspect
-        r = self.robots[rid]
-        if r.kf_key is None or stamp_ns <= r.kf_stamp:
-            return  # a late view, or a keyframe at this very instant: its factors already hang on it
-        e = se2_between(now, consensus(verdict.agree, odom))
-        self.graph.new_keyframe(rid, stamp_ns, odom, disturbed=np.diag(np.square(e)))
-        self.counters["disturbances"] += 1
-        # the views since the move repeat what the pairs' newest factors say, but those hang on keyframes
-        # before the loosened link: let the next view of each pair add its factor on this side of it
-        for pair in [pair for pair in self._pair_factors if rid in pair]:
-            del self._pair_factors[pair]
-
-    def _unplace(self, rid: int, verdict: Verdict) -> None:
-        """Take ``rid`` out of the map to be placed again: a new chain of keyframes (no
-        odometry factor across the jump), the gate off until it is established again."""
-        r = self.robots[rid]
-        r.chain += 1
-        r.kf_key, r.kf_index, r.estimate = None, -1, None
-        r.accepted = 0
-        self.recovery.forget(rid)
-        self.counters["relocalisations"] += 1
-        self.counters["relocalisation_evidence"] += len(verdict.agree)
-
-    def _note_relocalisation(self, verdict: Verdict, stamp_ns: int, before: Pose2, after: Pose2) -> None:
-        ev = RelocEvent(stamp_ns, verdict.suspect, before, after, len(verdict.agree), verdict.witnesses)
-        self.relocalisations.append(ev)
 
     def take_relocalisations(self) -> list[RelocEvent]:
         """Re-localisations since the last call, oldest first."""
@@ -481,7 +411,7 @@ class Fusion:
                 if verdict is None:
                     return
                 self._init[observer] = [c for c in verdict.agree if c is not cand]
-                self._unplace(observer, verdict)
+                unplace(self.robots, self.recovery, self.counters, observer, verdict)
                 reloc = verdict, cur
         priors = [(pose, cov_map)]
         if r.estimate is None:
@@ -491,7 +421,7 @@ class Fusion:
                 return
             initial = pl.pose
             if reloc is not None:
-                self._note_relocalisation(reloc[0], stamp_ns, reloc[1], pl.pose)
+                note_relocalisation(self.relocalisations, reloc[0], stamp_ns, reloc[1], pl.pose)
             # as for robots (see _first_factors): the chosen candidate carried forward, and the
             # trigger only if it agreed
             priors = priors if pl.trigger_agrees else []

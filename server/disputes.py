@@ -64,7 +64,7 @@ def contradiction(robots: Mapping[int, Robot], recovery: Recovery, init: dict[in
                                witness_var_m2=v.witness_var_m2)
         if verdict is not None:
             if not verdict.admit:
-                # Fusion._initial_pose adds the triggering observation itself
+                # initial_pose (placement) adds the triggering observation itself
                 init[v.suspect] = [c for c in verdict.agree if c is not v.cand]
             return verdict
     return None

@@ -50,7 +50,7 @@ from tagswarm.server.noise import (
     relative_cov,
     tangent_cov,
 )
-from tagswarm.server.placement import Candidate, Placement, choose
+from tagswarm.server.placement import Candidate, first_factors, initial_pose
 from tagswarm.server.recovery import LANDMARK_WITNESS, Recovery, Verdict, views
 from tagswarm.server.smoother import FixedLagSmoother
 from tagswarm.server.stitch import Edge, stitch
@@ -271,8 +271,8 @@ class Fusion:
             # rank candidates by the position uncertainty they give the new robot: placing the
             # observer goes through the inverse, where the yaw error is levered by the range
             spread = inverse_cov(rel, cov) if po is None else cov
-            pl = self._initial_pose(new, stamp_ns, placed, odom_new, float(spread[0, 0] + spread[1, 1]),
-                                    (observer, target, rel, cov))
+            pl = initial_pose(self._init, self.p, self.counters, new, stamp_ns, placed, odom_new,
+                              float(spread[0, 0] + spread[1, 1]), (observer, target, rel, cov))
             if pl is None:
                 return
             if reloc is not None:
@@ -282,7 +282,8 @@ class Fusion:
             else:
                 pg = pl.pose
             assert po is not None and pg is not None
-            meas = self._first_factors(new, pl, stamp_ns, {observer: (po, oo), target: (pg, go)}, meas)
+            meas = first_factors(self.graph, self.p, self.counters, new, pl, stamp_ns,
+                                 {observer: (po, oo), target: (pg, go)}, meas)
         assert po is not None and pg is not None
         anchors = {observer: self.graph.anchor(observer, stamp_ns, oo, po),
                    target: self.graph.anchor(target, stamp_ns, go, pg)}
@@ -325,52 +326,6 @@ class Fusion:
         """Re-localisations since the last call, oldest first."""
         out, self.relocalisations = self.relocalisations, []
         return out
-
-    def _first_factors(self, new: int, pl: Placement, stamp_ns: int, now: dict[int, tuple[Pose2, Pose2]],
-                       meas: list[tuple[int, int, Pose2, Cov]]) -> list[tuple[int, int, Pose2, Cov]]:
-        """The measurements that tie a just-placed robot into the graph (``now``: map pose
-        and odometry pose at ``stamp_ns`` of the robots of the triggering observation).
-        The start pose comes from the most certain agreeing candidate, so that candidate,
-        carried forward to now by odometry, becomes a factor; the triggering observation
-        joins it only if it agreed.  (Adding the trigger alone let one disagreeing
-        observation, e.g. a frontal face's yaw levered by the range, set the pose.)"""
-        out = list(meas) if pl.trigger_agrees else []
-        if not pl.trigger_agrees:
-            self.counters["init_trigger_dropped"] += 1
-        if pl.best is pl.trigger:
-            return out
-        b_obs, b_tgt, b_rel, b_cov = pl.best.meas
-        poses = {rid: pose for rid, (pose, _) in now.items()}
-        growth = np.zeros((3, 3))
-        for rid in (b_obs, b_tgt):
-            then, odom_now = self.graph.odom_at(rid, pl.best.stamp_ns), self.graph.odom_at(rid, stamp_ns)
-            if then is not None and odom_now is not None:
-                growth += odom_increment_cov(se2_between(then, odom_now), self.p)
-            if rid not in poses:
-                r = self.robots[rid]
-                if r.estimate is None or odom_now is None:
-                    return list(meas)  # cannot carry the candidate forward: fall back to the trigger
-                poses[rid] = se2_compose(r.estimate, se2_between(r.kf_odom, odom_now))
-        out.append((b_obs, b_tgt, se2_between(poses[b_obs], poses[b_tgt]), tangent_cov(b_rel, b_cov) + growth))
-        return out
-
-    def _initial_pose(self, rid: int, stamp_ns: int, placed: Pose2, odom_pose: Pose2, trace: float,
-                      meas: tuple) -> Placement | None:  # type: ignore[type-arg]
-        """Collect stitched placements of an unplaced robot; once ``init_min`` recent
-        ones agree, return the most certain one carried forward by odometry to now."""
-        cands = [c for c in self._init.setdefault(rid, []) if stamp_ns - c.stamp_ns < self.p.init_window_s * 1e9]
-        # express every candidate as the pose of the odometry origin, so they compare across time
-        trigger = Candidate(stamp_ns, se2_compose(placed, se2_inverse(odom_pose)), trace, meas)
-        cands.append(trigger)
-        self._init[rid] = cands
-        chosen = choose(cands, self.p)
-        if chosen is None:
-            self.counters["deferred_init"] += 1
-            return None
-        best, agree = chosen
-        self.counters["init_discarded"] += len(cands) - len(agree)
-        del self._init[rid]
-        return Placement(se2_compose(best.origin, odom_pose), best, trigger, any(c is trigger for c in agree))
 
     def _rel_cov(self, o: Robot, g: Robot, rel: Pose2) -> Cov:
         """Covariance of the predicted ``rel`` = observer⁻¹ ⊕ target: the observer's heading error
@@ -415,14 +370,14 @@ class Fusion:
                 reloc = verdict, cur
         priors = [(pose, cov_map)]
         if r.estimate is None:
-            pl = self._initial_pose(observer, stamp_ns, pose, oo, float(cov_map[0, 0] + cov_map[1, 1]),
-                                    (pose, cov_map))
+            pl = initial_pose(self._init, self.p, self.counters, observer, stamp_ns, pose, oo,
+                              float(cov_map[0, 0] + cov_map[1, 1]), (pose, cov_map))
             if pl is None:
                 return
             initial = pl.pose
             if reloc is not None:
                 note_relocalisation(self.relocalisations, reloc[0], stamp_ns, reloc[1], pl.pose)
-            # as for robots (see _first_factors): the chosen candidate carried forward, and the
+            # as for robots (see placement.first_factors): the chosen candidate carried forward, and the
             # trigger only if it agreed
             priors = priors if pl.trigger_agrees else []
             if pl.best is not pl.trigger:

@@ -12,6 +12,7 @@ and a rebuilt one go through the very same restore.  Times are simulation ns.
 from __future__ import annotations
 
 import logging
+from abc import ABC, abstractmethod
 from collections import Counter, deque
 
 from tagswarm.protocol.scenario import Scenario
@@ -26,7 +27,7 @@ from tagswarm.server.intake import SilentRobots
 log = logging.getLogger("tagswarm.server")  # the node's logger: these are its log lines
 
 
-class NodeJournal:
+class NodeJournal(ABC):
     """The journal methods of :class:`~tagswarm.server.node.ServerNode`, on the node's
     state (declared here, set up by the node)."""
 
@@ -46,9 +47,9 @@ class NodeJournal:
     _checkpoint_every_ns: int
     _next_checkpoint_ns: int
 
+    @abstractmethod
     def _publish_relocalisations(self) -> None:
         """The node's: it sends the re-localisations an update made."""
-        raise NotImplementedError
 
     def _open_journal(self) -> jr.Journal:
         """Open (and replay) the journal; a journal of another map is a usage error

@@ -446,7 +446,17 @@ def main() -> int:
             runs.append((dur * (6.0 if sc == "crowd" else 1.0), ("method", (sc, me)),
                          lambda sc=sc, me=me, dur=dur: methods.method_run(up, work, sc, me, dur)))
         runs.sort(key=lambda r: -r[0])
-        done = dict(zip([key for _, key, _ in runs], _parallel(a.jobs, [fn for _, _, fn in runs]), strict=True))
+        walls: dict[tuple[str, Any], float] = {}
+
+        def timed(key: tuple[str, Any], fn: Any) -> Any:
+            t0 = time.monotonic()
+            try:
+                return fn()
+            finally:
+                walls[key] = time.monotonic() - t0
+
+        done = dict(zip([key for _, key, _ in runs],
+                        _parallel(a.jobs, [lambda k=key, f=fn: timed(k, f) for _, key, fn in runs]), strict=True))
     static = {label: [done[(label, seed)] for seed in range(n)]
               for label, _, n in static_groups(a.trials, a.single_tag_trials)}
     result["static"] = summarise_static(static["whole cube"])
@@ -472,6 +482,15 @@ def main() -> int:
         methods.plot(by_method, me, a.out.parent / f"{a.out.stem}_methods_{me}.png")
     result["dynamic_summary"] = summarise_dynamic(result["dynamic"] + result.get("ablations", []))
     result["wall_time_s"] = time.monotonic() - t_start
+    # where the time goes, for the make-bench budget: wall seconds per group of runs (summed over
+    # runs, which overlap --jobs at a time) and the longest runs
+    groups: dict[str, dict[str, float]] = {}
+    for (group, _), w in walls.items():
+        g = groups.setdefault(group, {"runs": 0, "wall_s": 0.0})
+        g["runs"], g["wall_s"] = g["runs"] + 1, round(g["wall_s"] + w, 1)
+    result["run_wall_s"] = {"jobs": a.jobs, "by_group": groups,
+                            "longest": [[str(k), round(w, 1)] for k, w in
+                                        sorted(walls.items(), key=lambda kv: -kv[1])[:10]]}
     plot_dynamic(result["dynamic_summary"], a.out.parent / f"{a.out.stem}_dynamic.png")
     a.out.parent.mkdir(parents=True, exist_ok=True)
     a.out.write_text(json.dumps(result, indent=2))

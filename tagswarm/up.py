@@ -40,10 +40,9 @@ from tagswarm.runtime.config import (
     bus_from,
     scenario_from,
 )
-from tagswarm.runtime.process import child_env, run_main, setup_logging
+from tagswarm.runtime.process import run_main, setup_logging
+from tagswarm.upchildren import Child, Stopping, net_flags, replay_end_s, script
 from tagswarm.upsummary import print_controller_trouble, print_summary
-
-BIN = Path(sys.executable).parent
 
 
 def free_endpoint() -> str:
@@ -51,15 +50,6 @@ def free_endpoint() -> str:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return f"tcp/127.0.0.1:{s.getsockname()[1]}"
-
-
-def _script(name: str) -> list[str]:
-    path = BIN / name
-    if path.exists():
-        return [str(path)]
-    module = {"tagswarm-world": "tagswarm.world.node", "tagswarm-agent": "tagswarm.agents.node",
-              "tagswarm-server": "tagswarm.server.node"}[name]
-    return [sys.executable, "-m", module]
 
 
 def parser() -> OneLineParser:
@@ -116,22 +106,6 @@ def agent_modules(specs: Sequence[str], robot_ids: Sequence[int], scenario: Scen
                 make(factory, ControllerConfig(rid, scenario, run), module)
             out[rid] = module
     return out
-
-
-class Child(procgroup.Child):
-    """One child process (leading its own process group) and its log file; if ``tagswarm up``
-    dies without stopping it (SIGKILL, a test's timeout), the reaper takes it down."""
-
-    def __init__(self, name: str, argv: list[str], log: Path) -> None:
-        super().__init__(name, argv, log, child_env(os.environ, keep=("TAGSWARM_VIEW_HOST",)))
-        self.log = log
-
-    def stop(self, grace_s: float = 10.0) -> None:
-        super().stop(grace_s)
-
-    def tail(self, n: int = 15) -> str:
-        lines = self.log.read_text(errors="replace").splitlines()
-        return "\n".join(lines[-n:])
 
 
 def resolve(args: Any, env: dict[str, str]) -> Scenario:
@@ -229,7 +203,7 @@ def run_up(scenario: Scenario, out: Path, endpoint: str, run: str, *, live: bool
     may_die = {f"agent/{r}" for r in scenario.robots.may_die}
     t0 = time.monotonic()
     recording = None
-    view_child: Child | None = None  # never ends on its own: stopped (first) once the run is over (_Stopping)
+    view_child: Child | None = None  # never ends on its own: stopped (first) once the run is over (Stopping)
     try:
         # this process is the run's Zenoh router and every child its client: each link is one its client
         # re-opens by itself.  In the peer mesh up ran before, a link made by Zenoh's gossip that dropped
@@ -238,7 +212,7 @@ def run_up(scenario: Scenario, out: Path, endpoint: str, run: str, *, live: bool
         # hub outlives every child, so their last messages after the world's end still arrive, and its
         # recorder is subscribed before anything starts
         with open_bus(BusConfig(mode="router", listen=(endpoint,), config_file=zenoh_config_file)) as bus, \
-                _Stopping(children):
+                Stopping(children):
             rec = RunRecorder(bus, Keys(run), scenario)
             if record is not None:
                 from tagswarm.recording.record import start_recording
@@ -249,17 +223,17 @@ def run_up(scenario: Scenario, out: Path, endpoint: str, run: str, *, live: bool
             # map); a run folder is rewritten, and a journal of an earlier run would be refused by the server
             journal = out / "server.journal"
             journal.unlink(missing_ok=True)
-            children.append(Child("server", [*_script("tagswarm-server"), *common, *client, "--journal",
+            children.append(Child("server", [*script("tagswarm-server"), *common, *client, "--journal",
                                              str(journal)], logs / "server.log"))
             for rid in scenario.robot_ids:
                 own = ["--agent-module", controllers[rid]] if controllers and rid in controllers else []
-                children.append(Child(f"agent/{rid}", [*_script("tagswarm-agent"), *common, *client,
+                children.append(Child(f"agent/{rid}", [*script("tagswarm-agent"), *common, *client,
                                                        "--robot-id", str(rid), *own], logs / f"agent{rid}.log"))
             # a replay plays the world; it also waits for this process's token (up/0) so the run folder
             # misses nothing
             world_cmd = [sys.executable, "-m", "tagswarm.recording.replay", str(replay), "--lockstep",
-                         "--wait-for", "up/0", "--duration", repr(_replay_end_s(scenario))] if replay \
-                else _script("tagswarm-world")
+                         "--wait-for", "up/0", "--duration", repr(replay_end_s(scenario))] if replay \
+                else script("tagswarm-world")
             if view is not None:  # a read-only tool: never impaired by child_args, it sees what the run publishes
                 view_child = Child("view", [sys.executable, "-m", "tagswarm.view.view", "--scenario",
                                             str(scen_file), "--run", run, *client, "--port", str(view)],
@@ -334,28 +308,6 @@ def run_up(scenario: Scenario, out: Path, endpoint: str, run: str, *, live: bool
     return code
 
 
-def _replay_end_s(scenario: Scenario) -> float:
-    """How much of a recording ``up --replay`` plays: as far as a world would run for the scenario's
-    duration (its last step is the first one past the duration)."""
-    return scenario.duration_s + 1.5 / scenario.clock.tick_hz
-
-
-class _Stopping:
-    """Stops ``children`` (a list filled later) on exit, inside the bus's ``with``, so they end while
-    their router (this process) still forwards their last messages: the live view first (browsers
-    see its WebSocket close as soon as the run is over), then the others in start order."""
-
-    def __init__(self, children: list[Child]) -> None:
-        self.children = children
-
-    def __enter__(self) -> _Stopping:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        for c in sorted(self.children, key=lambda c: c.name != "view"):
-            c.stop()
-
-
 class _Null:
     def __enter__(self) -> _Null:
         return self
@@ -365,26 +317,6 @@ class _Null:
 
     def update(self, *_: object) -> None:
         return None
-
-
-def net_flags(net: BusConfig, log_level: str | None = None) -> list[str]:
-    """The fault-injection, Zenoh lease and log-level settings ``up`` resolved (flags over
-    ``TAGSWARM_*``), as flags for its children, whose environment holds no ``TAGSWARM_*`` (see
-    :func:`child_env`); ``up``'s own recorder is never impaired."""
-    default = BusConfig()
-    out: list[str] = []
-    for flag, value, base in (("--net-loss", net.loss, default.loss),
-                              ("--net-delay-ms", net.delay_ms, default.delay_ms),
-                              ("--net-jitter-ms", net.jitter_ms, default.jitter_ms),
-                              ("--net-seed", net.fault_seed, default.fault_seed),
-                              ("--zenoh-lease-ms", net.lease_ms, default.lease_ms)):
-        if value != base:
-            out += [flag, str(value)]
-    for key in net.fault_keys:
-        out += ["--net-fault-keys", key]
-    if log_level is not None:
-        out += ["--log-level", log_level]
-    return out
 
 
 def main(argv: Sequence[str] | None = None) -> int:

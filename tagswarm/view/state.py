@@ -30,11 +30,10 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from dataclasses import dataclass, field
 from typing import Any, Final
 
 from tagswarm.evaluation.covframe import ELLIPSE_SCALE_95, covariance_ellipse
-from tagswarm.evaluation.localised import LOCALISED_HOLD_S, LOCALISED_M, LocalisedClock
+from tagswarm.evaluation.localised import LOCALISED_HOLD_S, LOCALISED_M
 from tagswarm.protocol import messages as m
 from tagswarm.protocol.geometry import Pose2, se2_compose, se2_inverse
 from tagswarm.protocol.keys import Keys
@@ -42,6 +41,7 @@ from tagswarm.protocol.layout import arena_to_map, footprint_radius, start_poses
 from tagswarm.protocol.scenario import Scenario
 from tagswarm.runtime import streams
 from tagswarm.view.events import MARKER_TTL_S, EventLog
+from tagswarm.view.robotview import RobotView, Sighting
 
 __all__ = ["EDGE_TTL_NS", "ELLIPSE_SCALE_95", "MAX_ROBOTS", "RobotView", "ViewState", "covariance_ellipse"]
 
@@ -51,54 +51,11 @@ EDGE_TTL_NS: Final = 1_000_000_000
 MAX_ROBOTS: Final = 256
 #: Wall-clock window (s) over which the real-time factor is measured.
 RTF_WINDOW_S: Final = 3.0
-#: Ground-truth history kept per robot to compare a fused pose with the truth at the same stamp.
-TRUTH_HISTORY: Final = 240
 
 
 def _num(x: float, digits: int = 6) -> float | None:
     """A JSON-safe float (``None`` for NaN/inf), rounded to ``digits`` decimals (1 µm for metres)."""
     return round(x, digits) if math.isfinite(x) else None
-
-
-@dataclass
-class RobotView:
-    """What the view knows about one robot; poses (x_m, y_m, yaw_rad) in the map frame."""
-
-    robot_id: int
-    truth: Pose2 | None = None
-    truth_history: deque[tuple[int, Pose2]] = field(default_factory=lambda: deque(maxlen=TRUTH_HISTORY))
-    fused: Pose2 | None = None
-    fused_cov: tuple[float, ...] = ()
-    fused_stamp_ns: int = -1
-    fused_source: str = ""  # "map" (GlobalMap entry) or "correction"
-    localised: bool | None = None
-    last_fix_ns: int = 0
-    odom: Pose2 | None = None
-    odom_distance_m: float = 0.0
-    mode: str | None = None
-    alive: bool | None = None
-    counters: dict[str, int] = field(default_factory=dict)
-    localised_clock: LocalisedClock = field(default_factory=LocalisedClock)
-    relocalisations: int = 0
-
-    def truth_at(self, stamp_ns: int) -> Pose2 | None:
-        """The newest ground truth at or before ``stamp_ns`` (None if none is kept)."""
-        for t, p in reversed(self.truth_history):
-            if t <= stamp_ns:
-                return p
-        return None
-
-
-@dataclass(frozen=True)
-class Sighting:
-    """The newest observation of one target by one observer (target pose in the observer's base frame)."""
-
-    observer: int
-    kind: str
-    target: int
-    stamp_ns: int
-    x_m: float
-    y_m: float
 
 
 class ViewState:

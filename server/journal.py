@@ -13,7 +13,9 @@ poses and fusion parameters come from the scenario; the header record stores
 them so that a journal is never replayed into a different map.
 
 The file format (magic, length + CRC32 framing, the record structs) and its
-reader live in :mod:`tagswarm.server.journal_format` and are re-exported here.  A crash can
+reader live in :mod:`tagswarm.server.journal_format`, what the records mean to the
+fusion (:func:`apply`, :func:`header_for`, the record counters) in
+:mod:`tagswarm.server.journal_records`; both are re-exported here.  A crash can
 leave a torn last frame (power loss mid-write); reading stops at the first bad
 frame, and :class:`Journal` truncates the file there before appending again.
 Writes go to the OS at every :meth:`Journal.flush` (so a SIGKILLed server loses
@@ -37,18 +39,15 @@ never rewritten or split: it stays the single source of truth.
 
 from __future__ import annotations
 
-import dataclasses
 import fcntl
 import logging
 import os
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
 
 from tagswarm.protocol.errors import UsageError
 from tagswarm.server import checkpoint as ckpt
-from tagswarm.server.estimator import apply_input
 from tagswarm.server.fusion import Fusion
 from tagswarm.server.journal_format import (
     MAGIC,
@@ -69,35 +68,24 @@ from tagswarm.server.journal_format import (
     read_journal,
     write_index,
 )
+from tagswarm.server.journal_records import COUNTED, _count, _mismatch, apply, header_for
 from tagswarm.server.journal_sync import Syncer, fsync_dir
 
 CheckpointError = ckpt.CheckpointError
 
 __all__ = [
-    "MAGIC", "MAX_RECORD_BYTES", "VERSION", "Advance", "Checkpoint", "CheckpointError", "Header", "Journal",
+    "COUNTED", "MAGIC", "MAX_RECORD_BYTES", "VERSION", "Advance", "Checkpoint", "CheckpointError", "Header", "Journal",
     "JournalError", "NewRun",
     "Observation", "Odometry", "Reader", "Record", "RobotId", "StampNs", "apply", "frame", "header_for",
     "make_checkpoint", "read_journal",
 ]
 
 log = logging.getLogger("tagswarm.server.journal")
-# the record counters a checkpoint carries (everything in the file before it)
-COUNTED = ("records", "odometry", "observations", "advances", "new_runs", "checkpoints")
 INDEX_KEEP = 2  # checkpoint offsets kept in the side file: the newest, and one to fall back to
 
 
 class JournalError(UsageError, ValueError):
     """The journal cannot be used (not a journal, or written for another map); one line."""
-
-
-def apply(fusion: Fusion, record: Record) -> None:
-    """Make the :class:`Fusion` call a record stands for (the live server and the
-    replay both go through here, so they cannot diverge): a checkpoint restores the
-    fusion's state, every other record is an input (:func:`~tagswarm.server.estimator.apply_input`)."""
-    if isinstance(record, Checkpoint):
-        ckpt.restore(fusion, record.fusion)
-    else:
-        apply_input(fusion, record)
 
 
 def make_checkpoint(journal: Journal, fusion: Fusion, node: dict[str, int], latest_rx: dict[int, int]) -> Checkpoint:
@@ -106,33 +94,6 @@ def make_checkpoint(journal: Journal, fusion: Fusion, node: dict[str, int], late
     own fusion, so the live state and any later rebuild go through the same restore."""
     return Checkpoint(seq=journal.last_seq + 1, watermark_ns=fusion.watermark_ns, counts=journal.record_counts(),
                       node=dict(node), latest_rx=dict(latest_rx), fusion=ckpt.snapshot(fusion))
-
-
-def _count(counters: dict[str, int], record: Record) -> None:
-    """Count one record (not the header) into ``counters``."""
-    if isinstance(record, Advance):
-        counters["advances"] += 1
-    elif isinstance(record, NewRun):
-        counters["new_runs"] += 1
-    elif isinstance(record, Checkpoint):
-        counters["checkpoints"] += 1
-    elif isinstance(record, Odometry | Observation):
-        counters["records"] += 1
-        counters["odometry" if isinstance(record, Odometry) else "observations"] += 1
-
-
-def _mismatch(want: Header, got: Header) -> str | None:
-    """First difference between the journal's header and this server's, or None."""
-    if got.version != want.version:
-        return f"format version {got.version} (this server writes {want.version})"
-    for name in ("run", "origin_id", "robot_ids", "landmarks", "params"):
-        a, b = getattr(got, name), getattr(want, name)
-        if a != b:
-            if name == "params":
-                diff = sorted(k for k in set(a) | set(b) if a.get(k) != b.get(k))
-                return f"fusion parameters differ ({', '.join(diff)})"
-            return f"{name} {a!r} (this server: {b!r})"
-    return None
 
 
 class Journal:
@@ -419,11 +380,3 @@ class Journal:
         out = {prefix + k: v for k, v in self.counters.items()}
         out[prefix + "replay_ms"] = round(self.replay_s * 1e3)
         return out
-
-
-def header_for(run: str, fusion: Fusion) -> Header:
-    """The header a server with this ``fusion`` writes (and expects)."""
-    params: dict[str, Any] = {k: float(v) for k, v in dataclasses.asdict(fusion.p).items()}
-    return Header(run=run, origin_id=fusion.origin_id, robot_ids=tuple(sorted(fusion.robots)),
-                  landmarks={k: (float(v[0]), float(v[1]), float(v[2])) for k, v in fusion.landmarks.items()},
-                  params=params)

@@ -69,8 +69,6 @@ class _StreakGains:
                        out(fx * x, fy * y))
         self.translation = tuple(float(np.sqrt((su * su + sv * sv).max())) for su, sv in translation)
         self.r2_max = float((x * x + y * y).max())
-        # the largest stretch of a render displacement into the output (the inverse Jacobian's operator
-        # norm) times the focal length: what turns a normalised-coordinate error into output pixels
         # the inverse Jacobian's worst condition number: a map that nearly folds (a strong barrel lens's
         # corners) stretches a small change of the flow's direction into a large one of the streak
         sq, det = a * a + b * b + c * c + e * e, np.abs(a * e - b * c)

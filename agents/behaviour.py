@@ -121,7 +121,7 @@ class Behaviour:
     robot: Robot
     arena_to_map: Pose2 = (0.0, 0.0, 0.0)
     leapfrog_team: tuple[int, ...] = ()
-    static_obstacles: tuple[Box, ...] = ()  # map frame (tagswarm.agents.avoid.static_boxes)
+    static_obstacles: tuple[Box, ...] = ()  # map frame (tagswarm.agents.avoidgeom.static_boxes)
     anchor: bool = False  # its first pose is the map frame: turning would only blur the frame, it never looks around
     mode: Mode = Mode.ODOMETRY
     counter: int = 0

@@ -45,7 +45,7 @@ agent started); metres, radians, seconds.  Relative observations are in this
 robot's base_link frame (x forward, y left).  Covariances are 3x3 row-major of
 (x_m, y_m, yaw_rad).
 
-The data crossing the API (:class:`Twist`, :class:`WheelSpeeds`, :class:`GoalRequest`,
+The data crossing the API (:class:`Twist`, :class:`WheelSpeeds`, :class:`Command`, :class:`GoalRequest`,
 :class:`ControllerConfig`, :class:`ControlInput`, :func:`gray`, :func:`control_input`) is
 defined in :mod:`tagswarm.agents.controllerdata`; this module re-exports it: import it from here.
 """

@@ -1,8 +1,9 @@
 """The data of the controller API (pure code, no I/O; :mod:`tagswarm.agents.controller`
 re-exports every name: import them from there): the commands a controller returns
-(:class:`Twist`, :class:`WheelSpeeds`), what it is made with (:class:`ControllerConfig`), what
-it gets each control cycle (:class:`ControlInput`, with :class:`GoalRequest` and the camera
-frames, see :func:`gray`) and how the agent builds that from its state (:func:`control_input`).
+(:class:`Twist`, :class:`WheelSpeeds`, :class:`Command` their union), what it is made with
+(:class:`ControllerConfig`), what it gets each control cycle (:class:`ControlInput`, with
+:class:`GoalRequest` and the camera frames, see :func:`gray`) and how the agent builds that
+from its state (:func:`control_input`).
 
 Frames and units: map frame when localised, else the robot's odometry frame; metres, radians,
 seconds; relative observations in this robot's base_link frame (x forward, y left); covariances

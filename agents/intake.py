@@ -16,8 +16,8 @@ from collections.abc import Iterable, Iterator
 from typing import Any, TypeVar
 
 from tagswarm.protocol import messages as m
-from tagswarm.protocol.bus import Received
 from tagswarm.protocol.geometry import worst_axis_sigma_m
+from tagswarm.protocol.inbox import Received
 from tagswarm.runtime import streams
 
 M = TypeVar("M", m.Correction, m.Goal, m.WheelCommand)

@@ -85,7 +85,7 @@ class NeighbourTracker:
             if e.robot_id == self.robot_id:
                 continue
             # the pose's own time: a robot whose odometry reached the server late is that far behind the map
-            at_ns = e.pose_time_ns(stamp_ns)
+            at_ns = e.pose_time_at(stamp_ns)
             vx = vy = 0.0
             prev = self.tracks.get(e.robot_id)
             if prev is not None and e.alive:

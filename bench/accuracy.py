@@ -487,7 +487,9 @@ def main() -> int:
     groups: dict[str, dict[str, float]] = {}
     for (group, _), w in walls.items():
         g = groups.setdefault(group, {"runs": 0, "wall_s": 0.0})
-        g["runs"], g["wall_s"] = g["runs"] + 1, round(g["wall_s"] + w, 1)
+        g["runs"], g["wall_s"] = g["runs"] + 1, g["wall_s"] + w
+    for g in groups.values():
+        g["wall_s"] = round(g["wall_s"], 1)
     result["run_wall_s"] = {"jobs": a.jobs, "by_group": groups,
                             "longest": [[str(k), round(w, 1)] for k, w in
                                         sorted(walls.items(), key=lambda kv: -kv[1])[:10]]}

@@ -244,7 +244,7 @@ class MapEntry(msgspec.Struct, frozen=True, kw_only=True):
     localised: bool = True
     pose_stamp_ns: StampNs = 0
 
-    def pose_time_ns(self, map_stamp_ns: int) -> int:
+    def pose_time_at(self, map_stamp_ns: int) -> int:
         """Simulation time of ``x_m``, ``y_m``, ``yaw_rad`` (``pose_stamp_ns``, else the
         ``stamp_ns`` of the :class:`GlobalMap` holding this entry)."""
         return self.pose_stamp_ns or map_stamp_ns

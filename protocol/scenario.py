@@ -7,7 +7,9 @@ Types and ranges are checked by msgspec; cross-field rules by :func:`validate`.
 Every problem is reported as a :class:`ScenarioError` with a one-line message
 naming the field.  The section structs (:class:`Scenario`, :class:`Arena`,
 :class:`Robot`, :class:`Camera`, ...) and :class:`ScenarioError` are defined in
-:mod:`tagswarm.protocol.scenario_schema` and re-exported here; this module loads,
+:mod:`tagswarm.protocol.scenario_schema` (the camera sections in
+:mod:`tagswarm.protocol.scenario_camera`, their base in :mod:`tagswarm.protocol.scenario_spec`)
+and re-exported here; this module loads,
 overrides and validates them (with the geometry of :mod:`tagswarm.protocol.layout`).
 """
 

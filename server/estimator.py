@@ -48,7 +48,7 @@ class Estimator(Protocol):
 
 def apply_input(est: Estimator, record: jf.Record) -> None:
     """Make the estimator call an input ``record`` stands for (the journal's replay,
-    :func:`tagswarm.server.journal.apply`, adds checkpoints; they are the graph's own
+    :func:`tagswarm.server.journal_records.apply`, adds checkpoints; they are the graph's own
     state and ignored here)."""
     if isinstance(record, jf.Odometry):
         est.add_odometry(record.robot_id, record.stamp_ns, (record.x_m, record.y_m, record.yaw_rad),

@@ -16,7 +16,7 @@ from collections import Counter
 from collections.abc import Container, Iterator, Mapping, Sequence
 
 from tagswarm.protocol import messages as m
-from tagswarm.protocol.bus import Received
+from tagswarm.protocol.inbox import Received
 from tagswarm.protocol.keys import Keys
 from tagswarm.runtime import streams
 from tagswarm.server import journal as jr

@@ -11,7 +11,7 @@ import os
 import sys
 from pathlib import Path
 
-from tagswarm.protocol.bus import BusConfig
+from tagswarm.protocol.busconfig import BusConfig
 from tagswarm.protocol.scenario import Scenario
 from tagswarm.runtime import procgroup
 from tagswarm.runtime.process import child_env

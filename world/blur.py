@@ -19,7 +19,6 @@ from numpy.typing import NDArray
 
 from tagswarm.protocol.geometry import Mat
 from tagswarm.world.streakbound import FLOW_GRID_PX as FLOW_GRID_PX
-from tagswarm.world.streakbound import MAX_BOUND_CONDITION as MAX_BOUND_CONDITION
 from tagswarm.world.streakbound import _inverse_map_jacobian as _inverse_map_jacobian
 from tagswarm.world.streakbound import streak_bound as streak_bound
 

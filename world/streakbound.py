@@ -104,7 +104,7 @@ MAX_BOUND_CONDITION: Final = 10.0
 
 def streak_bound(map_x: F32, map_y: F32, K: Mat, twist: Sequence[float], tau_s: float,
                  depth_min_m: float | None) -> float:
-    """An upper bound of the streak :func:`exposure_maps` measures (output px, over the whole
+    """An upper bound of the streak :func:`tagswarm.world.blur.exposure_maps` measures (output px, over the whole
     exposure, ``tau_s`` its half) for a camera moving with ``twist`` (optical frame; v, w) whose
     nearest grid sample is ``depth_min_m`` away (None: no translation).  The first-order motion
     field is linear in the twist: the rotation's worst grid point about the twist's own axis,

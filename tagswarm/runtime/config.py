@@ -2,7 +2,7 @@
 
 Precedence, lowest first: the scenario TOML, ``TAGSWARM_*`` environment
 variables, command-line flags.  Everything funnels into dotted scenario
-overrides (``clock.mode=lockstep``) plus a :class:`~tagswarm.protocol.bus.BusConfig`, so
+overrides (``clock.mode=lockstep``) plus a :class:`~tagswarm.protocol.busconfig.BusConfig`, so
 each process builds one frozen config object up front.  Errors become
 :class:`ConfigError` (one line, naming the field);
 :func:`tagswarm.runtime.process.run_main` turns them into exit code 2.

@@ -218,10 +218,10 @@ class ViewState:
             view.alive = e.alive
             if not e.localised:  # in the map, but the server does not vouch for it: not shown as localised
                 view.localised = False
-            elif e.pose_time_ns(g.stamp_ns) >= view.fused_stamp_ns:  # on a tie the map wins: it is what
+            elif e.pose_time_at(g.stamp_ns) >= view.fused_stamp_ns:  # on a tie the map wins: it is what
                 view.fused = (e.x_m, e.y_m, e.yaw_rad)                      # the test compares with
                 view.fused_cov = tuple(e.cov)
-                view.fused_stamp_ns, view.fused_source = e.pose_time_ns(g.stamp_ns), "map"
+                view.fused_stamp_ns, view.fused_source = e.pose_time_at(g.stamp_ns), "map"
                 view.localised = True
         self._advance(g.stamp_ns)
 

@@ -4,7 +4,7 @@ the server within 2 s of wall time, through the Zenoh lease alone.
 A SIGKILL closes the agent's TCP sockets, so its peers see its liveliness token vanish
 at once (~20 ms; test_agent_restart.py).  A frozen process -- stopped, hung, or cut off
 by a partition -- keeps its sockets open and just goes silent: only the link lease it
-announced (``BusConfig.lease_ms``, default :data:`~tagswarm.protocol.bus.DEFAULT_LEASE_MS`)
+announced (``BusConfig.lease_ms``, default :data:`~tagswarm.protocol.busconfig.DEFAULT_LEASE_MS`)
 tells its peers it is gone, and Zenoh's own default lease would take 10 s.  So the
 detection here must come after the stop by most of a lease (nothing else can notice
 a silent process) and before 2 s.  Then the frozen agent is SIGKILLed and the others

@@ -73,5 +73,5 @@ def test_a_corrections_pose_is_stamped_with_the_robots_newest_odometry_not_the_s
     assert entries[1].pose_stamp_ns == late_ns and entries[0].pose_stamp_ns == fusion.watermark_ns
     # an old sender's correction without the field: the pose is at stamp_ns
     assert msgspec.structs.replace(c, pose_stamp_ns=0).pose_time_ns == fusion.watermark_ns
-    assert entries[1].pose_time_ns(fusion.watermark_ns) == late_ns
-    assert msgspec.structs.replace(entries[1], pose_stamp_ns=0).pose_time_ns(123) == 123  # an old map: its stamp
+    assert entries[1].pose_time_at(fusion.watermark_ns) == late_ns
+    assert msgspec.structs.replace(entries[1], pose_stamp_ns=0).pose_time_at(123) == 123  # an old map: its stamp

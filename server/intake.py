@@ -7,13 +7,14 @@ in the payload is not the one of its key) or from a robot outside the roster.  W
 is handed on as journal records (map frame is not involved: odometry is in the robot's own
 odom frame, observations in the observer's base_link; metres, radians, simulation ns).
 No fusion state lives here; :mod:`tagswarm.server.node` decides what to do with a record.
-:class:`OdometryWait` is the lockstep bookkeeping of whose odometry of a tick is still to come.
+:class:`OdometryWait` is the lockstep bookkeeping of whose odometry of a tick is still to come,
+:class:`AckLog` of which ticks an agent has acknowledged.
 """
 
 from __future__ import annotations
 
 from collections import Counter
-from collections.abc import Container, Iterator, Mapping, Sequence
+from collections.abc import Container, Iterable, Iterator, Mapping, Sequence
 
 from tagswarm.protocol import messages as m
 from tagswarm.protocol.inbox import Received
@@ -122,6 +123,47 @@ class OdometryWait:
         """The live robots whose agent acked the tick but whose odometry of it never came."""
         return [r for r in sorted(alive)
                 if latest_rx.get(r, -1) < self.stamp_ns and (self.step, self.stamp_ns) in acked[r]]
+
+
+class AckLog:
+    """Lockstep: the ``(step, stamp_ns)`` of one agent's tick acks that a wait may still ask
+    about (:class:`OdometryWait` only ever looks up the tick being waited for).
+
+    Bounded against a flood, but never at the cost of the genuine ack of the tick being waited
+    for: acks are kept once each, those of steps before the waited tick are forgotten
+    (:meth:`forget_before`), and when more than ``capacity`` remain the one of the *latest*
+    step goes.  A forged ack of a far future step (it passes the intake: its participant
+    matches its key) thus leaves first, however often it is sent; a first-in-first-out
+    buffer let 72 copies of one push the real ack out, and the tick then waited
+    ``clock.ack_timeout_s`` for it."""
+
+    def __init__(self, capacity: int) -> None:
+        if capacity < 1:
+            raise ValueError(f"capacity must be >= 1, got {capacity}")
+        self.capacity = capacity
+        self._acks: set[tuple[int, int]] = set()
+
+    def __contains__(self, ack: object) -> bool:
+        return ack in self._acks
+
+    def __len__(self) -> int:
+        return len(self._acks)
+
+    def extend(self, acks: Iterable[tuple[int, int]]) -> None:
+        """Keep each ``(step, stamp_ns)`` of ``acks`` (dropping the latest steps beyond capacity)."""
+        for ack in acks:
+            self._acks.add(ack)
+            if len(self._acks) > self.capacity:
+                self._acks.remove(max(self._acks))
+
+    def forget_before(self, step: int) -> None:
+        """Forget the acks of steps before ``step`` (the tick now waited for: ticks are waited for in order)."""
+        self._acks = {a for a in self._acks if a[0] >= step}
+
+    def forget_after(self, step: int) -> None:
+        """Forget the acks of steps after ``step``: a restarted world's clock starts again, and the old
+        run's later acks would otherwise excuse the new run's ticks of the same step."""
+        self._acks = {a for a in self._acks if a[0] <= step}
 
 
 class SilentRobots:

@@ -37,7 +37,7 @@ from tagswarm.server.config import ServerConfig, build_config
 from tagswarm.server.estimator import Estimator, make_estimator
 from tagswarm.server.estimator import make_fusion as make_fusion  # re-exported: tests build a server's fusion from here
 from tagswarm.server.fusion import Fusion
-from tagswarm.server.intake import Intake, OdometryWait, SilentRobots
+from tagswarm.server.intake import AckLog, Intake, OdometryWait, SilentRobots
 from tagswarm.server.nodejournal import NodeJournal
 
 log = logging.getLogger("tagswarm.server")
@@ -53,7 +53,7 @@ RECENT_MAX = 4096
 # (e.g. right after start-up, while the peers are still meshing); it bounds what a lost odometry
 # message costs the run, instead of ``clock.ack_timeout_s``
 ODOMETRY_GRACE_S = 0.03
-ACKS_KEPT = 8
+ACKS_KEPT = 64  # per agent; see AckLog
 
 
 class ServerNode(NodeJournal):
@@ -98,9 +98,8 @@ class ServerNode(NodeJournal):
         self.tick_in = bus.subscribe(self.keys.tick())
         # each roster agent's tick acks (lockstep): they tell a lost odometry message from a late one
         self.ack_in = {rid: bus.subscribe(self.keys.ack(f"agent/{rid}")) for rid in sorted(self.roster)}
-        # robot -> (step, stamp_ns) of its agent's newest acks (a few: forged ones cannot push out the one
-        # of the tick being waited for as easily)
-        self.acked: dict[int, deque[tuple[int, int]]] = {rid: deque(maxlen=ACKS_KEPT) for rid in self.roster}
+        # robot -> (step, stamp_ns) of its agent's acks from the tick being waited for on
+        self.acked: dict[int, AckLog] = {rid: AckLog(ACKS_KEPT) for rid in self.roster}
         self.silent = SilentRobots(self.s.clock.ack_stall_after)
         self.odometry_grace_s = ODOMETRY_GRACE_S + config.bus.delay_ms / 1e3
         self.alive_in = bus.watch_liveliness(self.keys.alive_role("agent"))
@@ -189,6 +188,8 @@ class ServerNode(NodeJournal):
             self.counters["world_restarts"] += 1
             self.counters["restart_carried"] += len(carried)
             self._sent.clear()
+            for acks in self.acked.values():
+                acks.forget_after(tick.step)
             record = jr.NewRun(run_id=tick.run_id)
             if self.journal is not None:
                 self.journal.append(record)
@@ -318,6 +319,8 @@ class ServerNode(NodeJournal):
         (``odometry_wait_timeouts``), as the world waits for its ack, and after
         ``clock.ack_stall_after`` such waits in a row not at all until its odometry comes again
         (``odometry_stalls``; :class:`~tagswarm.server.intake.SilentRobots`)."""
+        for acks in self.acked.values():
+            acks.forget_before(tick.step)
         wait = OdometryWait(tick.step, tick.stamp_ns, self.odometry_grace_s,
                             time.monotonic() + self.s.clock.ack_timeout_s, set(tick.cameras_of()))
         done = [False]

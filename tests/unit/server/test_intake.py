@@ -11,7 +11,7 @@ from tagswarm.protocol import messages as m
 from tagswarm.protocol.bus import Received
 from tagswarm.protocol.keys import Keys
 from tagswarm.runtime import streams
-from tagswarm.server.intake import Intake, OdometryWait
+from tagswarm.server.intake import AckLog, Intake, OdometryWait
 
 KEYS = Keys("t")
 COV = (0.01, 0.0, 0.0, 0.0, 0.01, 0.0, 0.0, 0.0, 0.01)
@@ -107,3 +107,29 @@ def test_a_robot_with_frames_in_the_tick_is_waited_for_until_its_ack() -> None:
     # without frames in the tick the odometry alone settles it, as before
     assert OdometryWait(step=4, stamp_ns=400, grace_s=0.03, deadline=10.0).settled(0.0, {0, 1}, latest,
                                                                                   {0: deque(), 1: deque()})
+
+
+def test_a_flood_of_forged_future_acks_never_pushes_out_the_genuine_one() -> None:
+    # the injection test's flood: 72 copies of an ack of step 10**9 on agent 1's own key (its participant
+    # matches, so the intake passes it) arrived just after the real ack of the waited tick; an 8-slot FIFO
+    # then forgot the real one and the tick waited clock.ack_timeout_s for it
+    log = AckLog(capacity=8)
+    log.extend([(33, 1_100)])
+    log.extend([(10**9, 0)] * 72)
+    assert (33, 1_100) in log and len(log) == 2
+    # distinct forged steps beyond capacity: the latest steps go, the waited one stays
+    log.extend((10**9 + i, i) for i in range(100))
+    assert (33, 1_100) in log and len(log) == 8
+    wait = OdometryWait(step=33, stamp_ns=1_100, grace_s=0.03, deadline=10.0, with_frames={1})
+    assert wait.settled(0.0, {1}, {1: 1_100}, {1: log})
+
+
+def test_ack_log_forgets_ticks_already_waited_for_and_a_restarted_worlds_later_steps() -> None:
+    log = AckLog(capacity=4)
+    log.extend([(3, 300), (4, 400), (5, 500)])
+    log.forget_before(4)
+    assert (3, 300) not in log and (4, 400) in log and (5, 500) in log
+    log.extend([(6, 600), (7, 700), (8, 800)])  # one too many: the latest step goes
+    assert len(log) == 4 and (8, 800) not in log and (4, 400) in log
+    log.forget_after(5)  # the world restarted at step 5: the old run's steps 6, 7 would excuse the new run's
+    assert (4, 400) in log and (5, 500) in log and len(log) == 2

@@ -145,7 +145,9 @@ class StartPose(Spec, frozen=True, kw_only=True, forbid_unknown_fields=True):
 class Robots(Spec, frozen=True, kw_only=True, forbid_unknown_fields=True):
     """How many robots and where they start.  ``placement``: ``ring`` (evenly on a
     circle of ``ring_radius_m`` facing its centre), ``grid`` (evenly spread with
-    seeded random headings), ``random`` (seeded, non-overlapping) or
+    seeded random headings), ``random`` (seeded, non-overlapping; in both the
+    origin robot is then turned to see the most robots:
+    :func:`tagswarm.protocol.layout.start_poses`) or
     ``explicit`` (``start`` lists one pose per robot; a longer list is cut to
     ``count``, and robots beyond a shorter one are placed at free poses with a
     default mission: :mod:`tagswarm.protocol.robotfill`)."""

@@ -11,7 +11,7 @@ import numpy as np
 
 from tagswarm.protocol.freespace import segment_box_distance, sight_blocked
 from tagswarm.protocol.geometry import se2_compose, se2_inverse
-from tagswarm.protocol.readrange import reading_range_m
+from tagswarm.protocol.readrange import camera_range_m, reading_range_m
 from tagswarm.protocol.scenario_schema import Arena, Robot, Scenario
 
 
@@ -80,24 +80,27 @@ def _origin_turned(s: Scenario, poses: list[tuple[float, float, float]]) -> tupl
 def in_view(s: Scenario, poses: list[tuple[float, float, float]], k: int,
             yaw_rad: float | None = None) -> list[tuple[int, float]]:
     """The robots robot ``k`` sees from ``poses[k]`` (or from its position turned to ``yaw_rad``)
-    with any of its cameras: within reading range, in sight (nothing as tall as the cubes'
-    centre between) and ``VIEW_EDGE_MARGIN_DEG`` inside a camera's horizontal field of view.
-    Each as (robot, bearing off the nearest camera's axis in radians).  Arena frame."""
+    with any of its cameras: in sight (nothing as tall as the cubes' centre between), within
+    that camera's reading range and ``VIEW_EDGE_MARGIN_DEG`` inside its horizontal field of
+    view (at most half of half of it).  Each as (robot, bearing off the axis of the nearest
+    camera that sees it, radians).  Arena frame."""
     return _in_view(s, _reachable(s, poses, k), poses[k][2] if yaw_rad is None else yaw_rad)
 
 
 def _in_view(s: Scenario, reachable: dict[int, tuple[float, float]], yaw: float) -> list[tuple[int, float]]:
+    cams = [(math.radians(c.yaw_deg), math.radians(c.hfov_deg / 2.0 - min(VIEW_EDGE_MARGIN_DEG, c.hfov_deg / 4.0)),
+             camera_range_m(s, c)) for c in s.robot.cameras]
     out = []
-    for j, (bearing, _) in reachable.items():
-        off, half = min((abs(_wrap(bearing - yaw - math.radians(c.yaw_deg))), c.hfov_deg / 2.0)
-                        for c in s.robot.cameras)
-        if off <= math.radians(half - VIEW_EDGE_MARGIN_DEG):
-            out.append((j, off))
+    for j, (bearing, d) in reachable.items():
+        offs = [off for axis, half, reach in cams
+                if d <= reach and (off := abs(_wrap(bearing - yaw - axis))) <= half]
+        if offs:
+            out.append((j, min(offs)))
     return out
 
 
 def _reachable(s: Scenario, poses: list[tuple[float, float, float]], k: int) -> dict[int, tuple[float, float]]:
-    """robot -> (bearing rad, distance m) of the robots within reading range of robot ``k`` and in sight."""
+    """robot -> (bearing rad, distance m) of the robots within reading range of robot ``k``'s rig and in sight."""
     reach, tall = reading_range_m(s), s.robot.cube_center_z_m
     x, y, _ = poses[k]
     out = {}
@@ -112,19 +115,18 @@ def origin_heading(s: Scenario, poses: list[tuple[float, float, float]]) -> floa
     """The heading (rad, arena frame) at which the origin robot's cameras see the most robots
     of ``poses`` (:func:`in_view`); among equals, the one that holds them nearest the cameras'
     axes (a cube at the image's edge is read less often), then the first from -pi.  None if no
-    robot is in reach and sight from where it stands: any heading is as good."""
-    reachable = _reachable(s, poses, s.map.origin_id)
-    if not s.robot.cameras or not reachable:
+    heading lets it see anyone: any heading is then as good."""
+    if not s.robot.cameras:
         return None
-    best: tuple[tuple[int, float], float] | None = None
+    reachable = _reachable(s, poses, s.map.origin_id)
+    best: tuple[tuple[int, float], float] = ((0, 0.0), 0.0)
     for step in range(360):
         yaw = -math.pi + math.radians(step)
         seen = _in_view(s, reachable, yaw)
         score = (len(seen), -sum(off for _, off in seen))
-        if best is None or score > best[0]:
+        if score[0] and (best[0][0] == 0 or score > best[0]):
             best = (score, yaw)
-    assert best is not None
-    return best[1]
+    return best[1] if best[0][0] else None
 
 
 def _grid_cells(s: Scenario, n: int, wx: float, wy: float, min_clear: float) -> list[tuple[float, float]]:

@@ -4,8 +4,8 @@ types): what :mod:`tagswarm.protocol.sightlines` and the start poses of
 
 Reading range is an estimate: a cube is read while its tags span at least ``MIN_TAG_PX``
 pixels (about where half the frames still decode, for the ideal camera and the realistic one
-with its noise and lens: bench/lens_range.py), capped by ``agent.max_range_m``; the widest
-camera of a rig counts.  Metres.
+with its noise and lens: bench/lens_range.py), capped by ``agent.max_range_m``; of a rig,
+the camera that reads farthest counts.  Metres.
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ from typing import Final
 
 from tagswarm.protocol.scenario_schema import Camera, Scenario, lens_of
 
-__all__ = ["MIN_TAG_PX", "reading_range_m"]
+__all__ = ["MIN_TAG_PX", "camera_range_m", "reading_range_m"]
 
 #: a tag this many pixels wide is read in about half the frames (bench/lens_range.py, 320x240, 60 deg,
 #: cube straight ahead: the ideal camera reads 7 of 12 at 4.0 m and none at 4.5 m, ~4.2 m; the realistic
@@ -32,8 +32,11 @@ def _focal_px(cam: Camera, preset: str) -> float:
     return cam.width / 2.0 / math.tan(half)
 
 
+def camera_range_m(s: Scenario, cam: Camera) -> float:
+    """How far (m) camera ``cam`` of a robot reads another robot's cube, about (see the module docstring)."""
+    return min(_focal_px(cam, s.camera.preset) * s.tags.size_m / MIN_TAG_PX[s.camera.preset], s.agent.max_range_m)
+
+
 def reading_range_m(s: Scenario) -> float:
-    """How far (m) a robot's best camera reads another robot's cube, about (see the module docstring)."""
-    px = MIN_TAG_PX[s.camera.preset]
-    best = max(_focal_px(c, s.camera.preset) for c in s.robot.cameras) * s.tags.size_m / px
-    return min(best, s.agent.max_range_m)
+    """How far (m) the camera of a robot's rig that reads farthest reads another robot's cube, about."""
+    return max(camera_range_m(s, c) for c in s.robot.cameras)

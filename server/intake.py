@@ -130,18 +130,21 @@ class AckLog:
     about (:class:`OdometryWait` only ever looks up the tick being waited for).
 
     Bounded against a flood, but never at the cost of the genuine ack of the tick being waited
-    for: acks are kept once each, those of steps before the waited tick are forgotten
-    (:meth:`forget_before`), and when more than ``capacity`` remain the one of the *latest*
-    step goes.  A forged ack of a far future step (it passes the intake: its participant
-    matches its key) thus leaves first, however often it is sent; a first-in-first-out
-    buffer let 72 copies of one push the real ack out, and the tick then waited
-    ``clock.ack_timeout_s`` for it."""
+    for.  Once :meth:`expect` names that tick (its step, stamp and the clock's step ``dt_ns``),
+    only acks that could be genuine are kept: of that step or a later one, stamped where the
+    world's clock puts that step (``stamp_ns`` = step x ``dt_ns``, the lockstep world's time).
+    Each is kept once, and beyond ``capacity`` the one of the *latest* step goes, so the
+    waited tick's own ack, the earliest possible, is never pushed out.  A forged ack (it passes
+    the intake: its participant matches its key) can then only be of a far future step, and
+    leaves first however often it is sent; a first-in-first-out buffer let 72 copies of one
+    push the real ack out, and the tick then waited ``clock.ack_timeout_s`` for it."""
 
     def __init__(self, capacity: int) -> None:
         if capacity < 1:
             raise ValueError(f"capacity must be >= 1, got {capacity}")
         self.capacity = capacity
         self._acks: set[tuple[int, int]] = set()
+        self._expected: tuple[int, int, int] | None = None  # (step, stamp_ns, dt_ns) of the waited tick
 
     def __contains__(self, ack: object) -> bool:
         return ack in self._acks
@@ -149,20 +152,32 @@ class AckLog:
     def __len__(self) -> int:
         return len(self._acks)
 
+    def _plausible(self, ack: tuple[int, int]) -> bool:
+        if self._expected is None:
+            return True
+        step, stamp, dt = self._expected
+        return ack[0] >= step and ack[1] == stamp + (ack[0] - step) * dt
+
     def extend(self, acks: Iterable[tuple[int, int]]) -> None:
-        """Keep each ``(step, stamp_ns)`` of ``acks`` (dropping the latest steps beyond capacity)."""
+        """Keep each plausible ``(step, stamp_ns)`` of ``acks`` (dropping the latest steps beyond capacity)."""
         for ack in acks:
+            if not self._plausible(ack):
+                continue
             self._acks.add(ack)
             if len(self._acks) > self.capacity:
                 self._acks.remove(max(self._acks))
 
-    def forget_before(self, step: int) -> None:
-        """Forget the acks of steps before ``step`` (the tick now waited for: ticks are waited for in order)."""
-        self._acks = {a for a in self._acks if a[0] >= step}
+    def expect(self, step: int, stamp_ns: int, dt_ns: int) -> None:
+        """The tick now waited for (ticks are waited for in order): forget the acks that cannot be of
+        it or of a later tick of the same clock."""
+        self._expected = (step, stamp_ns, dt_ns)
+        self._acks = {a for a in self._acks if self._plausible(a)}
 
-    def forget_after(self, step: int) -> None:
-        """Forget the acks of steps after ``step``: a restarted world's clock starts again, and the old
-        run's later acks would otherwise excuse the new run's ticks of the same step."""
+    def restart(self, step: int) -> None:
+        """A restarted world's first tick, ``step``: its clock starts again, so forget the acks of later
+        steps (the old run's: they would excuse the new run's ticks of the same step) and the old
+        expectation."""
+        self._expected = None
         self._acks = {a for a in self._acks if a[0] <= step}
 
 

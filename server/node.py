@@ -140,10 +140,7 @@ class ServerNode(NodeJournal):
                     log.info("robot %d's agent is gone; its last pose stays in the map", agent)
         # acks before odometry: an agent's odometry of a tick was enqueued before its ack of that tick
         # (one session, one receive thread), so it is drained below, however late this drain runs
-        for rid, inbox in self.ack_in.items():
-            # only ever compared with the tick being waited for: an ack of any other step (a forged one
-            # of a future step too) excuses no odometry
-            self.acked[rid].extend(self.intake.acks(rid, inbox.drain()))
+        self._drain_acks()
         for key, od, seq in self.intake.odometry(self.odom_in.drain()):
             sender = od.robot_id
             if od.stamp_ns <= self.fusion.latest_odom_ns(sender) and not self._world_left():
@@ -169,6 +166,12 @@ class ServerNode(NodeJournal):
             self.bus.reply(q.value, self.keys.map(), codec.encode(self.global_map()))
             self.counters["map_queries"] += 1
 
+    def _drain_acks(self) -> None:
+        for rid, inbox in self.ack_in.items():
+            # only ever compared with the tick being waited for: an ack of any other step (a forged one
+            # of a future step too) excuses no odometry
+            self.acked[rid].extend(self.intake.acks(rid, inbox.drain()))
+
     def _accept_tick(self, tick: m.Tick) -> bool:
         """Whether ``tick`` belongs to the world run we follow.  A new run_id after the
         world's liveliness token vanished is a restarted world (clock back at 0): start
@@ -188,8 +191,9 @@ class ServerNode(NodeJournal):
             self.counters["world_restarts"] += 1
             self.counters["restart_carried"] += len(carried)
             self._sent.clear()
+            self._drain_acks()  # the old run's last acks, still queued, go with the rest of it
             for acks in self.acked.values():
-                acks.forget_after(tick.step)
+                acks.restart(tick.step)
             record = jr.NewRun(run_id=tick.run_id)
             if self.journal is not None:
                 self.journal.append(record)
@@ -320,7 +324,7 @@ class ServerNode(NodeJournal):
         ``clock.ack_stall_after`` such waits in a row not at all until its odometry comes again
         (``odometry_stalls``; :class:`~tagswarm.server.intake.SilentRobots`)."""
         for acks in self.acked.values():
-            acks.forget_before(tick.step)
+            acks.expect(tick.step, tick.stamp_ns, tick.dt_ns)
         wait = OdometryWait(tick.step, tick.stamp_ns, self.odometry_grace_s,
                             time.monotonic() + self.s.clock.ack_timeout_s, set(tick.cameras_of()))
         done = [False]

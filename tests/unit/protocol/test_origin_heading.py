@@ -89,3 +89,37 @@ def test_an_explicit_origin_that_sees_nobody_is_told_how_to_face_the_swarm(tmp_p
     assert robotfill.blind_origin_note(load_scenario(str(path))) is None
     for name in ("paper", "hall", "crowd", "corridor", "kidnap"):
         assert robotfill.blind_origin_note(load_scenario(name)) is None, name
+
+
+def _pair(*overrides: str) -> Scenario:
+    """Robot 0 at the arena's centre facing +x, robot 1 2 m away at a bearing of 12 deg."""
+    b = math.radians(12.0)
+    return load_scenario("paper", ['robots.placement="explicit"', "robots.count=2", "missions=[]",
+                                   f"robots.start=[{{x_m=0.0, y_m=0.0, yaw_rad=0.0}}, "
+                                   f"{{x_m={2 * math.cos(b)}, y_m={2 * math.sin(b)}}}]", *overrides])
+
+
+def test_each_camera_of_a_rig_sees_through_its_own_field_and_range() -> None:
+    # 12 deg off the narrow camera's axis is outside its 10 deg half field; the wide one, turned 30 deg, holds it
+    rig = _pair('robot.cameras=[{name="narrow", hfov_deg=20.0}, {name="wide", hfov_deg=100.0, yaw_deg=30.0}]')
+    assert layout.in_view(rig, layout.start_poses(rig), 0) == [(1, pytest.approx(math.radians(18.0)))]
+    assert layout.in_view(_pair('robot.cameras=[{hfov_deg=20.0}]'), layout.start_poses(_pair()), 0) == []
+    # a 120 deg lens at 320x240 reads to about 2 m (protocol/readrange.py): robot 1 at 2.0 m is just beyond it,
+    # though the rig's 640x480 camera reads farther
+    wide_low = _pair('camera.preset="realistic"', 'robot.cameras=[{name="wide", hfov_deg=120.0}, '
+                     '{name="far", width=640, height=480, hfov_deg=60.0, yaw_deg=180.0}]')
+    assert layout.in_view(wide_low, layout.start_poses(wide_low), 0) == []
+
+
+def test_an_obstacle_as_tall_as_the_cubes_hides_a_robot_a_low_one_does_not() -> None:
+    mid = "x_m=1.0, y_m=0.21, size_x_m=0.1, size_y_m=0.4"
+    tall = _pair(f"arena.obstacles=[{{{mid}, size_z_m=1.0}}]")
+    low = _pair(f"arena.obstacles=[{{{mid}, size_z_m=0.05}}]")
+    assert layout.in_view(tall, layout.start_poses(tall), 0) == []
+    assert [j for j, _ in layout.in_view(low, layout.start_poses(low), 0)] == [1]
+
+
+def test_a_field_of_view_narrower_than_twice_the_margin_still_sees_straight_ahead() -> None:
+    s = _pair("robot.cameras=[{hfov_deg=6.0}]")
+    assert layout.in_view(s, layout.start_poses(s), 0, math.radians(12.0)) == [(1, pytest.approx(0.0, abs=1e-9))]
+    assert layout.in_view(s, layout.start_poses(s), 0) == []

@@ -14,6 +14,7 @@ from tagswarm.runtime import streams
 from tagswarm.server.intake import AckLog, Intake, OdometryWait
 
 KEYS = Keys("t")
+DT = 33_333_333  # a lockstep clock step (ns): a tick of step k is stamped k * DT
 COV = (0.01, 0.0, 0.0, 0.0, 0.01, 0.0, 0.0, 0.0, 0.01)
 
 
@@ -114,22 +115,35 @@ def test_a_flood_of_forged_future_acks_never_pushes_out_the_genuine_one() -> Non
     # matches, so the intake passes it) arrived just after the real ack of the waited tick; an 8-slot FIFO
     # then forgot the real one and the tick waited clock.ack_timeout_s for it
     log = AckLog(capacity=8)
-    log.extend([(33, 1_100)])
+    log.extend([(33, 33 * DT)])
     log.extend([(10**9, 0)] * 72)
-    assert (33, 1_100) in log and len(log) == 2
-    # distinct forged steps beyond capacity: the latest steps go, the waited one stays
-    log.extend((10**9 + i, i) for i in range(100))
-    assert (33, 1_100) in log and len(log) == 8
-    wait = OdometryWait(step=33, stamp_ns=1_100, grace_s=0.03, deadline=10.0, with_frames={1})
-    assert wait.settled(0.0, {1}, {1: 1_100}, {1: log})
+    assert (33, 33 * DT) in log and len(log) == 2
+    log.expect(33, 33 * DT, DT)  # the wait for tick 33 begins: (10**9, 0) is not where the clock puts it
+    assert (33, 33 * DT) in log and len(log) == 1
+    # distinct plausible future acks beyond capacity: the latest steps go, the waited one stays
+    log.extend((34 + i, (34 + i) * DT) for i in range(100))
+    assert (33, 33 * DT) in log and len(log) == 8 and (41, 41 * DT) not in log
+    wait = OdometryWait(step=33, stamp_ns=33 * DT, grace_s=0.03, deadline=10.0, with_frames={1})
+    assert wait.settled(0.0, {1}, {1: 33 * DT}, {1: log})
 
 
-def test_ack_log_forgets_ticks_already_waited_for_and_a_restarted_worlds_later_steps() -> None:
+def test_forged_acks_of_the_waited_step_or_earlier_ones_are_dropped_while_it_is_waited_for() -> None:
+    # 64 forged acks of the waited step with smaller stamps, or of earlier steps, arriving during the wait
+    # would have been smaller than the real one and pushed it out as the largest
+    log = AckLog(capacity=8)
+    log.expect(33, 33 * DT, DT)
+    log.extend([(33, 33 * DT)])
+    log.extend((33, i) for i in range(64))
+    log.extend((i, i * DT) for i in range(33))
+    assert len(log) == 1 and (33, 33 * DT) in log
+
+
+def test_ack_log_on_a_restarted_world_forgets_the_old_runs_later_steps() -> None:
     log = AckLog(capacity=4)
-    log.extend([(3, 300), (4, 400), (5, 500)])
-    log.forget_before(4)
-    assert (3, 300) not in log and (4, 400) in log and (5, 500) in log
-    log.extend([(6, 600), (7, 700), (8, 800)])  # one too many: the latest step goes
-    assert len(log) == 4 and (8, 800) not in log and (4, 400) in log
-    log.forget_after(5)  # the world restarted at step 5: the old run's steps 6, 7 would excuse the new run's
-    assert (4, 400) in log and (5, 500) in log and len(log) == 2
+    log.expect(40, 40 * DT, DT)
+    log.extend([(40, 40 * DT), (41, 41 * DT)])
+    log.restart(2)  # the new run's first tick is step 2: the old run's 40 and 41 would excuse its own
+    assert len(log) == 0
+    log.extend([(1, 1 * DT), (2, 2 * DT)])  # no expectation until the new run's first wait
+    log.expect(2, 2 * DT, DT)
+    assert (2, 2 * DT) in log and (1, DT) not in log

@@ -147,3 +147,14 @@ def test_ack_log_on_a_restarted_world_forgets_the_old_runs_later_steps() -> None
     log.extend([(1, 1 * DT), (2, 2 * DT)])  # no expectation until the new run's first wait
     log.expect(2, 2 * DT, DT)
     assert (2, 2 * DT) in log and (1, DT) not in log
+
+
+def test_a_restarted_worlds_first_ack_that_overtakes_its_first_tick_is_kept() -> None:
+    # the old run waits for tick 300; the new world's agents ack its tick 0 before the server sees that tick
+    log = AckLog(capacity=8)
+    log.expect(300, 300 * DT, DT)
+    log.extend([(0, 0)])
+    assert (0, 0) not in log  # not an ack of the old run's waited tick or a later one
+    log.restart(0)
+    log.expect(0, 0, DT)
+    assert (0, 0) in log

@@ -7,12 +7,13 @@ from __future__ import annotations
 import functools
 import math
 
+import msgspec
 import numpy as np
 
 from tagswarm.protocol.freespace import segment_box_distance, sight_blocked
 from tagswarm.protocol.geometry import se2_compose, se2_inverse
 from tagswarm.protocol.readrange import camera_range_m, reading_range_m
-from tagswarm.protocol.scenario_schema import Arena, Robot, Scenario
+from tagswarm.protocol.scenario_schema import Arena, Robot, Scenario, StartPose
 
 
 def footprint_radius(robot: Robot) -> float:
@@ -36,6 +37,18 @@ def start_poses(s: Scenario) -> list[tuple[float, float, float]]:
     faced a wall, fused RMSE 10.2 cm and 53 % of the time localised; facing two of its
     neighbours, 1.2 cm and 95.7 %)."""
     return list(_start_poses(s))
+
+
+def pinned(s: Scenario) -> Scenario:
+    """``s`` with the start poses a ``grid`` or ``random`` placement draws written out as an
+    ``explicit`` start list (any other scenario unchanged): a run folder's ``scenario.json`` and a
+    recording then hold where the robots really started, so that re-evaluating or replaying them
+    with a later version, whose draw may differ (the origin heading since 2026-12-06), keeps the
+    map frame they ran in."""
+    if s.robots.placement not in ("grid", "random"):
+        return s
+    start = tuple(StartPose(x_m=x, y_m=y, yaw_rad=yaw) for x, y, yaw in start_poses(s))
+    return msgspec.structs.replace(s, robots=msgspec.structs.replace(s.robots, placement="explicit", start=start))
 
 
 @functools.lru_cache(maxsize=32)  # a controller may ask for the map frame every step; scenarios are frozen
@@ -119,14 +132,14 @@ def origin_heading(s: Scenario, poses: list[tuple[float, float, float]]) -> floa
     if not s.robot.cameras:
         return None
     reachable = _reachable(s, poses, s.map.origin_id)
-    best: tuple[tuple[int, float], float] = ((0, 0.0), 0.0)
+    best: tuple[tuple[int, float], float] | None = None
     for step in range(360):
         yaw = -math.pi + math.radians(step)
         seen = _in_view(s, reachable, yaw)
         score = (len(seen), -sum(off for _, off in seen))
-        if score[0] and (best[0][0] == 0 or score > best[0]):
+        if score[0] and (best is None or score > best[0]):
             best = (score, yaw)
-    return best[1] if best[0][0] else None
+    return None if best is None else best[1]
 
 
 def _grid_cells(s: Scenario, n: int, wx: float, wy: float, min_clear: float) -> list[tuple[float, float]]:

@@ -29,6 +29,7 @@ from rich.table import Table
 from tagswarm.agents.controller import ControllerConfig, load_factory, make
 from tagswarm.protocol.bus import BusConfig, BusError, open_bus, zenoh_config
 from tagswarm.protocol.keys import Keys
+from tagswarm.protocol.layout import pinned
 from tagswarm.protocol.scenario import Scenario
 from tagswarm.recording.runrecorder import RunRecorder
 from tagswarm.runtime import procgroup
@@ -187,6 +188,7 @@ def run_up(scenario: Scenario, out: Path, endpoint: str, run: str, *, live: bool
     ``controllers``: robot id -> ``--agent-module`` of its agent (the others run the built-in behaviour);
     ``zenoh_config_file``: a Zenoh JSON5 config for the router and every child (their mode and endpoints
     are set on top of it)."""
+    scenario = pinned(scenario)  # the run folder and the recording keep the poses drawn today
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:

@@ -52,6 +52,7 @@ from tagswarm.deploy.hostprobe import Probe
 from tagswarm.protocol.bus import Bus, BusConfig, open_bus
 from tagswarm.protocol.errors import TagswarmError
 from tagswarm.protocol.keys import Keys
+from tagswarm.protocol.layout import pinned
 from tagswarm.protocol.scenario import Scenario
 from tagswarm.runtime import procgroup
 from tagswarm.runtime.config import ConfigError, OneLineParser, add_common_args, scenario_from
@@ -75,7 +76,7 @@ class MultiHost:
                  loss: float = 0.0, rate_mbit: float | None = None, lease_ms: int | None = None,
                  latency: bool = False, report: bool = True, spread_ms: float = 0.0, jitter_ms: float = 0.0) -> None:
         self.out = out.resolve()
-        self.scenario = resolve(scenario)
+        self.scenario = pinned(resolve(scenario))  # scenario.json keeps the poses drawn today
         self.topo = netns.plan(netns.new_prefix(), host_names(self.scenario.robot_ids))
         self.run = run or f"mh{self.topo.prefix[3:]}"
         self.keys = Keys(self.run)

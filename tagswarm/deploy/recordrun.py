@@ -38,6 +38,7 @@ import msgspec
 from tagswarm.deploy import acl, claims
 from tagswarm.protocol.bus import Bus, Inbox, open_bus
 from tagswarm.protocol.keys import Keys
+from tagswarm.protocol.layout import pinned
 from tagswarm.protocol.scenario import Scenario
 from tagswarm.recording.runrecorder import RunRecorder
 from tagswarm.runtime.config import ConfigError, Invocation, OneLineParser, add_common_args
@@ -161,7 +162,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise ConfigError("--linger must be >= 0 seconds")
         setup_logging(inv.log_level("INFO"), "record-run")
         run = inv.run()
-        scenario = inv.scenario()
+        scenario = pinned(inv.scenario())  # scenario.json keeps the poses drawn today
         book = claims.ClaimBook(scenario.robot_ids, claims.read_passwords(args.claims)) if args.claims else None
         if args.out is not None:
             out: Path = args.out

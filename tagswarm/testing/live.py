@@ -36,7 +36,7 @@ from tagswarm.protocol import messages as m
 from tagswarm.protocol.bus import Bus, BusConfig, BusError, open_bus
 from tagswarm.protocol.errors import TagswarmError
 from tagswarm.protocol.keys import ROOT, Keys
-from tagswarm.protocol.layout import map_to_arena_xy, stand_problem
+from tagswarm.protocol.layout import map_to_arena_xy, pinned, stand_problem
 from tagswarm.recording.runrecorder import RunRecorder
 from tagswarm.runtime.process import child_env
 from tagswarm.runtime.procgroup import Child
@@ -61,7 +61,7 @@ class LiveSwarm:
     def __init__(self, spec: SwarmSpec, run_dir: Path, run_id: str, *, launch: bool = True,
                  grace_s: float = 5.0) -> None:
         self.spec, self.run_dir, self.run_id, self.grace_s = spec, Path(run_dir), run_id, grace_s
-        self.scenario = spec.build_scenario()
+        self.scenario = pinned(spec.build_scenario())  # scenario.json keeps the poses drawn today
         self.keys = Keys(run_id)
         (self.run_dir / "logs").mkdir(parents=True, exist_ok=True)
         self.scenario_file = self.run_dir / "scenario.json"

@@ -8,6 +8,7 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+import msgspec
 import pytest
 
 from tagswarm.protocol import layout, robotfill
@@ -69,7 +70,27 @@ def test_the_origin_faces_the_most_robots_and_only_it_turns(tmp_path: Path, plac
     assert robotfill.blind_origin_note(s) is None
 
 
-def test_the_origin_is_not_turned_when_landmarks_hold_the_map(tmp_path: Path) -> None:
+@pytest.mark.parametrize("placement", ["grid", "random"])
+def test_a_run_folder_keeps_the_drawn_poses_not_the_draw(tmp_path: Path, placement: str) -> None:
+    # a run folder's scenario.json said "grid" and seed 23: re-evaluated or replayed after the origin heading
+    # came in, the origin turned 2.3 rad and the map frame with it.  Pinned, it keeps the poses it ran with.
+    s = _scene(tmp_path, placement)
+    pinned = layout.pinned(s)
+    assert pinned.robots.placement == "explicit" and len(pinned.robots.start) == s.robots.count
+    path = tmp_path / "scenario.json"
+    path.write_bytes(msgspec.json.encode(pinned))
+    again = load_scenario(str(path))
+    assert layout.start_poses(again) == layout.start_poses(s)  # exact: JSON floats round-trip
+    assert layout.arena_to_map(again) == layout.arena_to_map(s)
+    # the draw that a later version makes no longer matters: the file holds the poses themselves
+    redrawn = load_scenario(str(path), ["seed=24"])
+    assert layout.start_poses(redrawn) == layout.start_poses(s)
+    assert layout.start_poses(load_scenario(str(tmp_path / "storeroom.toml"), ["seed=24"])) != layout.start_poses(s)
+    for name in ("paper", "hall"):  # explicit scenes (and rings) are written as they are
+        assert layout.pinned(load_scenario(name)) == load_scenario(name)
+
+
+def test_the_origin_is_not_turned_when_landmarks_hold_the_map() -> None:
     s = load_scenario("landmarks", ['robots.placement="grid"'])
     plain = load_scenario("landmarks", ['robots.placement="grid"', "map.origin_id=1"])
     assert layout.start_poses(s) == layout.start_poses(plain)  # nobody anchors the map: nobody turns

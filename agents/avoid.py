@@ -185,10 +185,13 @@ class Avoider:
     # ------------------------------------------------------------------ control
     def command(self, *, pose: Pose2, target: tuple[float, float], steer: Callable[[Pose2], tuple[float, float]],
                 v_max: float, w_max: float, neighbours: Sequence[Neighbour], boxes: Sequence[Box],
-                t_s: float, pos_sigma_m: float | None = None) -> tuple[float, float]:
+                t_s: float, pos_sigma_m: float | None = None, round_boxes: bool = True) -> tuple[float, float]:
         """The twist (v_m_s, w_rad_s) to drive towards ``target`` from ``pose``; ``steer`` is the
         go-to-goal controller (pose -> twist), whose command is kept whenever the path it is about
-        to drive is clear (see the module docstring).  ``pos_sigma_m`` is the robot's own
+        to drive is clear (see the module docstring).  ``round_boxes`` False: a box on the straight
+        way is not driven round by its corner (the target is a planned way's carrot, which already
+        goes round it: the corner on the preferred side led a robot away from its way out of a pocket).
+        ``pos_sigma_m`` is the robot's own
         position sigma (m, None if unknown): walls and obstacles, whose geometry is known exactly,
         are kept ``sigma_k`` of it farther (at most ``MAX_SIGMA_MARGIN_M``), so a robot that slipped
         out of everyone's view does not drive into a shelf it believes 20 cm away.  The other
@@ -257,7 +260,7 @@ class Avoider:
         # controller's path, which may turn first and drive later: it stays as judged)
         ok[:-1] |= v[:-1] == 0.0
         scale = max(v_max * self.horizon_s, 1e-6)
-        aim = self._via(pose, target, neighbours, boxes, reach) or target
+        aim = self._via(pose, target, neighbours, boxes if round_boxes else (), reach) or target
         end_dist = np.hypot(aim[0] - x[:, -1], aim[1] - y[:, -1])
         off = np.arctan2(aim[1] - y[:, -1], aim[0] - x[:, -1]) - th[:, -1]
         heading = np.abs((off + math.pi) % (2.0 * math.pi) - math.pi)
@@ -315,15 +318,17 @@ class Avoider:
             first = float(steps[hit[0]])
             c, s_ = math.cos(b.yaw_rad), math.sin(b.yaw_rad)
             goal_bearing = math.atan2(gy, gx)
-            best_off = math.inf
+            # the corner furthest round on the preferred side (side -1: the right, clockwise, like the tangent
+            # to a robot above): choosing the one furthest round the other way sent a robot going through a
+            # door to the far end of the wall beside it, against the room's wall
+            best_off = -math.inf
             for kx, ky in ((1, 1), (1, -1), (-1, 1), (-1, -1)):
                 lx, ly = kx * (b.half_x_m + rho), ky * (b.half_y_m + rho)
                 cx, cy = b.x_m + c * lx - s_ * ly - px, b.y_m + s_ * lx + c * ly - py
                 bearing = math.atan2(cy, cx)
                 rel = (bearing - goal_bearing + math.pi) % (2 * math.pi) - math.pi
-                if self.side * rel < best_off:  # furthest round on the preferred side
+                if self.side * rel > best_off:
                     best_off, heading = self.side * rel, bearing
-            best_off = -best_off
         if not math.isfinite(first):
             return None
         far = max(length, 0.5)

@@ -63,8 +63,9 @@ from enum import StrEnum
 from functools import cached_property
 
 from tagswarm.agents.avoid import Avoider, Box, Neighbour
+from tagswarm.agents.gates import Gate, gates, must_wait
 from tagswarm.agents.makeway import MakeWay
-from tagswarm.agents.route import Grid, Route, plan, static_grid
+from tagswarm.agents.route import Grid, Route, blocked, plan, static_grid
 from tagswarm.protocol.geometry import Pose2, wrap_angle
 from tagswarm.protocol.geometry import se2_compose as compose
 from tagswarm.protocol.layout import footprint_radius
@@ -77,6 +78,12 @@ TURN_ON_PASSED_RAD = 0.3
 TURN_ON_GAIN = 3.0
 #: a way round the room keeps this much beyond the avoidance's clearance, so the avoidance lets the robot follow it
 KEEP_MARGIN_M = 0.05
+#: a goal the room offers no way to is planned for again this much later (a search that finds none has gone
+#: through every cell of the room: 0.2 s in a 10 m x 10 m one)
+ROUTE_RETRY_S = 5.0
+#: a robot waits outside a narrow passage at most this long (s) before it goes on anyway (the avoidance's
+#: giving way then decides): the robot it waits for may have stopped in it without showing as standing
+GATE_MAX_WAIT_S = 15.0
 
 
 class Mode(StrEnum):
@@ -147,7 +154,10 @@ class Behaviour:
     loose_cycles: int = 0  # cycles with only a loose pose (placed by the server, not vouched for)
     on_loose: bool = False  # the last cycle drove on a loose pose
     avoider: Avoider = field(init=False, repr=False)
-    route: Route | None = field(default=None, repr=False)  # a way round the room after a stall (agents.route)
+    route: Route | None = field(default=None, repr=False)  # a way through the room (agents.route)
+    _no_way: tuple[tuple[float, float], float] | None = field(default=None, repr=False)  # (goal, until t_s)
+    gate_waits: int = 0  # times it stopped outside a narrow passage for a robot coming through (agents.gates)
+    _gate_since: float | None = field(default=None, repr=False)  # when the current wait began (t_s)
     _goal: tuple[float, float] | None = field(default=None, repr=False)  # the target the route leads to
     make_way: MakeWay = field(init=False, repr=False)  # a station keeper steps aside (agents.makeway)
 
@@ -179,6 +189,40 @@ class Behaviour:
         points = None if grid is None else plan(grid, (pose[0], pose[1]), goal, neighbours, self._keep_m)
         self.route = None if points is None or len(points) < 2 else Route(goal, points)
         return self.route is not None
+
+    @cached_property
+    def _gates(self) -> tuple[Gate, ...]:
+        """The room's passages too narrow for two robots to pass in (:mod:`tagswarm.agents.gates`)."""
+        return gates(self.static_obstacles, footprint_radius(self.robot), self.cfg.avoid_clearance_m)
+
+    def _gate_wait(self, pose: Pose2, aim: tuple[float, float], target: tuple[float, float], t_s: float) -> bool:
+        """Whether to stand outside a narrow passage this cycle, on the way to ``aim`` (``target``'s carrot),
+        while another robot comes through (at most ``GATE_MAX_WAIT_S`` in a row)."""
+        reach = math.dist(pose[:2], target)
+        if not self._gates or must_wait(self._gates, pose, aim, self.robot_id, self._neighbours,
+                                        footprint_radius(self.robot), reach) is None:
+            self._gate_since = None
+            return False
+        if self._gate_since is None:
+            self._gate_since = t_s
+            self.gate_waits += 1
+        return t_s - self._gate_since < GATE_MAX_WAIT_S
+
+    def _route_through_room(self, pose: Pose2, target: tuple[float, float], t_s: float) -> None:
+        """A way through the room's walls and obstacles (not the robots: the avoidance passes them) when
+        the straight way to ``target`` runs into one; planned once per target, again after ``ROUTE_RETRY_S``
+        if the room offered none (the avoidance alone steers meanwhile)."""
+        if (self.route is not None and self.route.goal == target) or (
+                self._no_way is not None and self._no_way[0] == target and t_s < self._no_way[1]):
+            return
+        grid = self._room
+        start = (pose[0], pose[1])
+        need = footprint_radius(self.robot) + self.cfg.avoid_clearance_m
+        if grid is None or not blocked(self.static_obstacles, start, target, need):
+            return
+        points = plan(grid, start, target, (), self._keep_m)
+        self.route = None if points is None or len(points) < 2 else Route(target, points)
+        self._no_way = (target, t_s + ROUTE_RETRY_S) if self.route is None else None
 
     def set_goal(self, x_m: float, y_m: float, tolerance_m: float) -> None:
         """A run-time goal (map frame) replaces the mission until reached."""
@@ -349,14 +393,19 @@ class Behaviour:
         if not self.cfg.avoid:
             return self.steer(map_pose, target, factor)
         self._goal, aim = target, target
-        if self.route is not None:  # a way round after a stall: its carrot, until the goal itself is near
+        self._route_through_room(map_pose, target, t_s)
+        if self.route is not None:  # a way through the room: its carrot, until the goal itself is near
             carrot = self.route.carrot(map_pose[0], map_pose[1]) if self.route.goal == target else None
             self.route = None if carrot is None else self.route
             aim = carrot or target
+
+        if self._gate_wait(map_pose, aim, target, t_s):
+            return 0.0, 0.0
 
         def steer(p: Pose2) -> tuple[float, float]:
             return self.steer(p, aim, factor)
 
         return self.avoider.command(pose=map_pose, target=aim, steer=steer, v_max=self.cfg.max_speed_m_s * factor,
                                     w_max=self.cfg.max_turn_rad_s * factor, neighbours=self._neighbours,
-                                    boxes=self.static_obstacles, t_s=t_s, pos_sigma_m=self._pos_sigma)
+                                    boxes=self.static_obstacles, t_s=t_s, pos_sigma_m=self._pos_sigma,
+                                    round_boxes=aim == target)

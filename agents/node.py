@@ -160,6 +160,7 @@ class AgentNode(NodeState):
                    server_alive=int(self.server_alive), avoiding_cycles=b.avoider.cycles_avoiding,
                    avoid_yields=b.avoider.yields, avoid_side_flips=b.avoider.side_flips,
                    avoid_reroutes=b.avoider.reroutes, avoid_steps_aside=b.make_way.steps_aside,
+                   avoid_gate_waits=b.gate_waits,
                    maps_used=self.neighbours.maps_adopted, slip_events=self.slip.events, frames_received=received,
                    slip_mm=round(self.slip.slip_m * 1000), cpu_frames_us=round(self._cpu_frames_s * 1e6),
                    cpu_detect_pose_us=round(self.vision.detect_pose_cpu_s * 1e6),

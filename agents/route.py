@@ -9,6 +9,10 @@ to (or after giving way twice at one place), :func:`plan` searches the room itse
 ``RESOLUTION_M`` cells over the walls' extent, a cell closed where the robot's centre would
 be nearer than ``keep_m`` (the caller's: footprint, clearance and a margin) to a wall, an
 obstacle or another robot as the map has it now (each a disc of its radius).
+The same search runs, without the robots, whenever the straight way to a goal runs into a wall or an
+obstacle (:func:`blocked`; the caller's: :mod:`tagswarm.agents.behaviour`): the avoidance's preferred side
+round a box cannot tell a door from a dead end (two rooms joined by a 1 m door: a robot going through it
+avoided the robot coming the other way, then followed the dividing wall to the room's far wall).
 The path found is followed through :class:`Route`, whose carrot (a point
 ``LOOKAHEAD_M`` along it) replaces the goal for the go-to-goal controller while the
 avoidance still keeps the clearance.
@@ -35,12 +39,14 @@ MAX_CELLS = 250_000  # a room larger than 50 m x 50 m at 0.1 m is not planned (t
 
 @dataclass(frozen=True)
 class Grid:
-    """The room's cells: ``free`` (ny, nx) bool over [x0, x0 + nx·res) × [y0, y0 + ny·res)."""
+    """The room's cells: ``free`` (ny, nx) bool over [x0, x0 + nx·res) × [y0, y0 + ny·res), and
+    ``clear`` (ny, nx) the distance (m) from each cell's centre to the nearest box."""
 
     x0: float
     y0: float
     res: float
     free: np.ndarray
+    clear: np.ndarray
 
     def cell(self, x: float, y: float) -> tuple[int, int]:
         ny, nx = self.free.shape
@@ -56,20 +62,35 @@ def static_grid(boxes: Sequence[Box], keep_m: float, res: float = RESOLUTION_M) 
     if not boxes:
         return None
     xs, ys = [], []
-    for b in boxes:
-        r = math.hypot(b.half_x_m, b.half_y_m)
-        xs += [b.x_m - r, b.x_m + r]
-        ys += [b.y_m - r, b.y_m + r]
+    for b in boxes:  # the boxes' own corners: a circle round a long wall would grid four times its room
+        c, s = math.cos(b.yaw_rad), math.sin(b.yaw_rad)
+        for kx, ky in ((1, 1), (1, -1), (-1, 1), (-1, -1)):
+            xs.append(b.x_m + c * kx * b.half_x_m - s * ky * b.half_y_m)
+            ys.append(b.y_m + s * kx * b.half_x_m + c * ky * b.half_y_m)
     nx, ny = math.ceil((max(xs) - min(xs)) / res), math.ceil((max(ys) - min(ys)) / res)
     if nx * ny > MAX_CELLS:
         return None
     cx = min(xs) + (np.arange(nx) + 0.5) * res
     cy = min(ys) + (np.arange(ny) + 0.5) * res
     gx, gy = np.meshgrid(cx, cy)
-    free = np.ones((ny, nx), bool)
+    clear = np.full((ny, nx), np.inf)
     for b in boxes:
-        free &= box_distance(b, gx, gy) > keep_m
-    return Grid(min(xs), min(ys), res, free)
+        clear = np.minimum(clear, box_distance(b, gx, gy))
+    return Grid(min(xs), min(ys), res, clear > keep_m, clear)
+
+
+def blocked(boxes: Sequence[Box], start: tuple[float, float], goal: tuple[float, float], keep_m: float,
+            step_m: float = 0.05) -> bool:
+    """Whether the straight way from ``start`` to ``goal`` (map frame, m) passes nearer than ``keep_m`` to
+    a box anywhere but within ``keep_m`` of its two ends (a robot may start, and a goal may lie, beside a
+    wall: the avoidance handles that room)."""
+    length = math.dist(start, goal)
+    if length <= 2.0 * keep_m or not boxes:
+        return False
+    t = np.arange(keep_m, length - keep_m + 1e-9, step_m, dtype=np.float64) / length
+    x: np.ndarray = start[0] + t * (goal[0] - start[0])
+    y: np.ndarray = start[1] + t * (goal[1] - start[1])
+    return any(bool(np.any(box_distance(b, x, y) < keep_m)) for b in boxes)
 
 
 def plan(grid: Grid, start: tuple[float, float], goal: tuple[float, float], others: Sequence[Neighbour],
@@ -77,14 +98,19 @@ def plan(grid: Grid, start: tuple[float, float], goal: tuple[float, float], othe
     """Cell centres (map frame) from ``start`` to ``goal`` around the grid's closed cells and the
     discs of ``others`` (their radius plus ``keep_m``), or None if there is no way.  The start and
     goal cells are open whatever is there (the robot stands in the first; the goal may lie
-    within a clearance, as a waypoint beside a wall does)."""
+    within a clearance, as a waypoint beside a wall does), and so are the cells within ``keep_m``
+    of either that are no nearer to a box than it (within a cell): the way from the open room to
+    a goal beside a wall (only its own cell open, it was cut off: the search then went through
+    every cell of the room, 0.2 s in a 10 m x 10 m one)."""
     free = grid.free.copy()
     ny, nx = free.shape
     iy, ix = np.mgrid[0:ny, 0:nx]
     px, py = grid.x0 + (ix + 0.5) * grid.res, grid.y0 + (iy + 0.5) * grid.res
+    s, g = grid.cell(*start), grid.cell(*goal)
+    for end, cell in ((start, s), (goal, g)):
+        free |= (np.hypot(px - end[0], py - end[1]) <= keep_m) & (grid.clear >= grid.clear[cell] - grid.res)
     for nb in others:
         free &= np.hypot(px - nb.x_m, py - nb.y_m) > nb.radius_m + keep_m
-    s, g = grid.cell(*start), grid.cell(*goal)
     free[s] = free[g] = True
     h = np.hypot(px - goal[0], py - goal[1]) / grid.res
     steps = [(-1, 0, 1.0), (1, 0, 1.0), (0, -1, 1.0), (0, 1, 1.0),
@@ -93,8 +119,12 @@ def plan(grid: Grid, start: tuple[float, float], goal: tuple[float, float], othe
     came: dict[tuple[int, int], tuple[int, int]] = {}
     heap = [(float(h[s]), 0, s)]
     pushed = 0
+    expanded: set[tuple[int, int]] = set()
     while heap:
         _, _, c = heapq.heappop(heap)
+        if c in expanded:
+            continue  # a stale entry: reached again more cheaply since it was pushed
+        expanded.add(c)
         if c == g:
             path = [c]
             while path[-1] in came:

@@ -119,10 +119,11 @@ the true initial pose, so its error is pure drift).
     ``counters.world``; counted by the world, see its docs); each ``null`` if the
     world reported no ``contacts_*`` counter at all (a name missing from a world
     that reported some counts 0).
-  - ``fixes``, ``searches``, ``lost_events``, ``avoid_side_flips``, ``avoid_steps_aside``: sums of
-    the agents' counters (visual fixes; re-localisation rotations started; full sweeps that found
-    nobody; avoidance stalls with no way round found; station keepers stepping aside for a robot
-    they blocked); ``null`` if no agent reported counters.
+  - ``fixes``, ``searches``, ``lost_events``, ``avoid_side_flips``, ``avoid_steps_aside``,
+    ``avoid_gate_waits``: sums of the agents' counters (visual fixes; re-localisation rotations
+    started; full sweeps that found nobody; avoidance stalls with no way round found; station
+    keepers stepping aside for a robot they blocked; waits outside a passage too narrow for two while
+    another robot came through it); ``null`` if no agent reported counters.
   - ``time_lost_s``: total seconds spent in mode ``lost`` (see ``mode_time_s``).
   - ``mode_time_s``: ``{mode: seconds}`` summed over robots.
 - ``robots``: ``{"<k>": {...}}`` per robot:
@@ -135,7 +136,8 @@ the true initial pose, so its error is pure drift).
     ``frames_skipped``, ``avoid_yields``, ``avoid_reroutes``, ``avoid_side_flips``
     (stalls of the collision avoidance: gave way, followed a way round the room,
     found none and tried the other side), ``avoid_steps_aside`` (a station keeper stepped
-    aside for a robot it blocked): that agent's counters from ``run.json``
+    aside for a robot it blocked), ``avoid_gate_waits`` (waited outside a narrow passage for a robot
+    coming through, :mod:`tagswarm.agents.gates`): that agent's counters from ``run.json``
     (a name missing from a reported counter set counts 0; all ``null`` if the agent
     reported none).
   - ``fused.time_localised`` / ``odom.time_localised``: that robot's share of its

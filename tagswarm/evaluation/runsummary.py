@@ -16,9 +16,9 @@ from typing import Any
 from tagswarm.evaluation.runfolder import ModeSample, RunData
 
 AGENT_COUNTERS = ("fixes", "searches", "lost_events", "frames_processed", "frames_skipped", "avoid_yields",
-                  "avoid_reroutes", "avoid_side_flips", "avoid_steps_aside")
+                  "avoid_reroutes", "avoid_side_flips", "avoid_steps_aside", "avoid_gate_waits")
 """Per-robot counters copied from the agent's status (``run.json`` ``counters["agent/<k>"]``)."""
-SWARM_COUNTERS = ("fixes", "searches", "lost_events", "avoid_side_flips", "avoid_steps_aside")
+SWARM_COUNTERS = ("fixes", "searches", "lost_events", "avoid_side_flips", "avoid_steps_aside", "avoid_gate_waits")
 """Counters summed over robots into ``swarm``."""
 
 

@@ -388,18 +388,30 @@ POCKET = (Box(1.0, 0.0, 0.0, 0.05, 1.0), Box(0.25, 1.0, 0.0, 0.75, 0.05), Box(0.
           Box(-4.0, 0.0, 0.0, 0.05, 4.0))
 
 
-@pytest.mark.parametrize("replan", [True, False])
-def test_a_robot_in_a_pocket_finds_the_way_round_once_stalled(replan: bool) -> None:
+def _no_room_route(b: Behaviour) -> None:
+    b._route_through_room = lambda *_: None  # type: ignore[method-assign]
+
+
+@pytest.mark.parametrize("variant", ["as_built", "after_a_stall", "avoidance_alone"])
+def test_a_robot_in_a_pocket_finds_the_way_round(variant: str) -> None:
+    """The back wall of the pocket stands on the straight way to the goal: the robot plans its way
+    round the room at once; without that, once its avoidance stalls; the local avoidance alone never
+    gets out (both sides of the back wall look the same)."""
     w = World({1: ((0.0, 0.0, 0.0), hold(1), (3.0, 0.0))}, boxes=POCKET, exact=True)
-    if not replan:
-        w.beh[1].avoider.replan = None  # the local avoidance alone: both sides of the back wall look the same
-    w.run(60.0)
     b = w.beh[1]
+    if variant != "as_built":
+        _no_room_route(b)
+    if variant == "avoidance_alone":
+        b.avoider.replan = None
+    w.run(60.0)
     assert min(float(box_distance(box, p[0], p[1])) for box in POCKET for p in w.paths[1]) > FOOT
-    if replan:
-        assert b.done and b.avoider.reroutes == 1 and math.dist(w.pose[1][:2], (3.0, 0.0)) < 0.15
-    else:
+    if variant == "avoidance_alone":
         assert not b.done and math.dist(w.pose[1][:2], (0.0, 0.0)) < 1.0
+        return
+    assert b.done and math.dist(w.pose[1][:2], (3.0, 0.0)) < 0.15
+    assert b.avoider.reroutes == (0 if variant == "as_built" else 1)
+    arrived = next(k for k, p in enumerate(w.paths[1]) if math.dist(p[:2], (3.0, 0.0)) < 0.15) * DT
+    assert arrived < (25.0 if variant == "as_built" else 60.0), arrived
 
 
 # an 8 x 8 m room split by a wall at x = 0 with two 1 m doors: a near one at y 0.5..1.5 and a far one at
@@ -408,18 +420,17 @@ DOORS = (Box(0.0, 2.75, 0.0, 0.05, 1.25), Box(0.0, -1.0, 0.0, 0.05, 1.5), Box(0.
          *POCKET[3:])
 
 
-@pytest.mark.parametrize("variant", ["as_built", "never_gives_up", "flicker_restarts_clock"])
+@pytest.mark.parametrize("variant", ["as_built", "never_gives_up"])
 def test_a_robot_stops_giving_way_to_a_station_keeper_in_the_door_and_takes_the_other(
         variant: str, monkeypatch: pytest.MonkeyPatch) -> None:
     """Robot 0 holds station in the near door; robot 1 (a higher id, so it gives way) wants through.
     Backing away for robot 0 is waiting for ever: after MAX_YIELDS at one place robot 1 looks for a
-    way round and takes the far door.  Beside the door its go-to-goal turn (clear) and the avoiding
-    turn back alternate every cycle; were a single clear cycle to restart the stall clock, it would
-    never even stall."""
+    way round and takes the far door.  (Beside the door its go-to-goal turn and an avoiding turn
+    back used to alternate every cycle, each clear cycle restarting the stall clock, hence
+    ``CLEAR_RESET_S``; that turn back went for the wall's far corner, on the wrong side, and no
+    longer happens here.)"""
     if variant == "never_gives_up":
         monkeypatch.setattr(avoid, "MAX_YIELDS", 1000)
-    if variant == "flicker_restarts_clock":
-        monkeypatch.setattr(avoid, "CLEAR_RESET_S", 0.0)
     w = World({0: ((0.0, 1.0, 0.0), hold(0), None), 1: ((-2.0, 1.0, 0.0), hold(1), (2.0, 1.0))},
               boxes=DOORS, exact=True).run(90.0)
     b = w.beh[1]
@@ -430,10 +441,62 @@ def test_a_robot_stops_giving_way_to_a_station_keeper_in_the_door_and_takes_the_
         assert b.avoider.yields == avoid.MAX_YIELDS and b.avoider.reroutes >= 1
         assert b.done and math.dist(w.pose[1][:2], (2.0, 1.0)) < 0.15
         assert min(p[1] for p in w.paths[1]) < -2.5  # through the far door
-    elif variant == "never_gives_up":
-        assert not b.done and b.avoider.yields >= 4 and b.avoider.reroutes == 0 and w.pose[1][0] < 0.0
     else:
-        assert not b.done and b.avoider.yields == 0 and w.pose[1][0] < 0.0
+        assert not b.done and b.avoider.yields >= 4 and b.avoider.reroutes == 0 and w.pose[1][0] < 0.0
+
+
+# two rooms (10 x 6 m) joined by a 1 m door in the wall at x = 0, y -0.5 .. 0.5
+TWO_ROOMS = (Box(0.0, 3.0, 0.0, 5.0, 0.05), Box(0.0, -3.0, 0.0, 5.0, 0.05), Box(5.0, 0.0, 0.0, 0.05, 3.0),
+             Box(-5.0, 0.0, 0.0, 0.05, 3.0), Box(0.0, -1.75, 0.0, 0.1, 1.25), Box(0.0, 1.75, 0.0, 0.1, 1.25))
+
+
+def _crossings(path: list[Pose2]) -> int:
+    side = [p[0] > 0.0 for p in path]
+    return sum(a != b for a, b in itertools.pairwise(side))
+
+
+def _longest_stand_s(path: list[Pose2]) -> float:
+    """The longest time (s) a robot stood (moved under 2 cm/s) in one go."""
+    best = run = 0.0
+    for a, b in itertools.pairwise(path):
+        run = run + DT if math.dist(a[:2], b[:2]) < 0.02 * DT else 0.0
+        best = max(best, run)
+    return best
+
+
+@pytest.mark.parametrize("exact", [True, False])
+@pytest.mark.parametrize("gates", [True, False])
+def test_two_patrols_cross_a_door_in_turn(gates: bool, exact: bool) -> None:
+    """Two patrols swap rooms through the door, in opposite directions.  Robot 3 waits outside while
+    robot 2 comes through (agents/gates.py); without that they met in the door and stood face to face
+    until one stalled and backed away (12 s in a lockstep run of this room, 37-42 s here)."""
+    p2 = Mission(robot=2, kind="patrol", waypoints=((-2.0, 0.0), (2.5, 0.0)))
+    p3 = Mission(robot=3, kind="patrol", waypoints=((2.0, 0.3), (-2.5, 0.3)))
+    w = World({2: ((-2.0, 0.0, 0.0), p2, None), 3: ((2.0, 0.3, math.pi), p3, None)}, boxes=TWO_ROOMS,
+              exact=exact)
+    if not gates:
+        for b in w.beh.values():
+            b._gates = ()  # type: ignore[misc]
+    w.run(60.0)
+    crossings = {rid: _crossings(w.paths[rid]) for rid in w.beh}
+    stood = {rid: _longest_stand_s(w.paths[rid]) for rid in w.beh}
+    assert min(float(box_distance(box, p[0], p[1])) for box in TWO_ROOMS for path in w.paths.values()
+               for p in path) > FOOT
+    assert w.min_dist >= CLEAR - 0.02, w.min_dist
+    if gates:
+        assert sum(crossings.values()) >= 5 and max(stood.values()) < 12.0, (crossings, stood)
+        assert w.beh[3].gate_waits >= 1 and w.beh[2].gate_waits == 0  # the lower id goes first
+    else:
+        assert max(stood.values()) > 30.0, (crossings, stood)
+
+
+def test_a_robot_beside_a_wall_goes_round_by_the_door_not_along_the_wall_to_the_room_s_end() -> None:
+    """Robot 1 stands in the east room beside the wall, north of the door, its goal in the west room: the
+    straight way runs into the wall.  It plans its way through the door; the avoidance's corner of the
+    wall on its preferred side (the north end, against the room's wall) used to lead it into that corner."""
+    w = World({1: ((0.5, 1.2, math.pi), hold(1), (-2.5, 0.3))}, boxes=TWO_ROOMS, exact=True).run(30.0)
+    assert w.beh[1].done and math.dist(w.pose[1][:2], (-2.5, 0.3)) < 0.15
+    assert max(p[1] for p in w.paths[1]) < 1.5
 
 
 # the same room with the near door only: no way round

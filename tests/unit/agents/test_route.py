@@ -6,7 +6,7 @@ import itertools
 import math
 
 from tagswarm.agents.avoid import Box, Neighbour, box_distance
-from tagswarm.agents.route import RESOLUTION_M, Route, plan, static_grid
+from tagswarm.agents.route import RESOLUTION_M, Route, blocked, plan, static_grid
 
 ROOM = (Box(0.0, 3.0, 0.0, 4.0, 0.05), Box(0.0, -3.0, 0.0, 4.0, 0.05), Box(4.0, 0.0, 0.0, 0.05, 3.0),
         Box(-4.0, 0.0, 0.0, 0.05, 3.0))
@@ -53,3 +53,15 @@ def test_the_carrot_runs_ahead_along_the_route_and_ends_near_the_goal() -> None:
     for y in range(1, 15):
         assert route.carrot(3.0, y / 10) is not None
     assert route.carrot(3.0, 1.5) is None  # the end is nearer than the lookahead: head for the goal itself
+
+
+def test_a_straight_way_is_blocked_where_it_passes_a_box_closer_than_asked_not_at_its_ends() -> None:
+    keep = 0.29
+    assert not blocked((*ROOM, SHELF), (-2.0, 2.7), (-2.0, -2.0), keep)  # along the west side, clear
+    assert blocked((*ROOM, SHELF), (-2.0, -1.0), (2.0, -1.0), keep)  # through the shelf
+    assert blocked((*ROOM, SHELF), (-1.0, 2.6), (1.0, 2.6), keep)  # past the shelf's end, 0.1 m from it
+    assert not blocked(ROOM, (-1.0, 2.6), (1.0, 2.6), keep)  # 0.35 m from the room's wall
+    # a robot that starts, and a goal that lies, beside a wall: the avoidance handles that room
+    assert not blocked(ROOM, (-3.8, 0.0), (3.8, 0.0), keep)
+    assert not blocked(ROOM, (0.0, 2.8), (0.0, 2.8 - 2 * keep), keep)  # too short to have a middle
+    assert not blocked((), (-2.0, -1.0), (2.0, -1.0), keep)

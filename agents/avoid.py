@@ -18,7 +18,8 @@ up to it.  Turning in place is always admissible (the footprint is a circle
 about ``base_link``), so nobody's searching rotation is ever stopped.
 
 Deadlocks: every robot prefers to keep the others on its left (``side`` -1),
-so two robots driving at each other head-on both veer right and pass.  A robot
+so two robots driving at each other head-on both veer right and pass; a robot whose
+right side a wall or obstacle closes is passed on its left.  A robot
 that makes no progress while avoiding for ``stall_s`` backs away for a while if
 a robot with a lower id is close (priority by id: it goes first; after ``MAX_YIELDS``
 at one place it stops giving way there: that robot is not leaving), else tries
@@ -185,12 +186,16 @@ class Avoider:
     # ------------------------------------------------------------------ control
     def command(self, *, pose: Pose2, target: tuple[float, float], steer: Callable[[Pose2], tuple[float, float]],
                 v_max: float, w_max: float, neighbours: Sequence[Neighbour], boxes: Sequence[Box],
-                t_s: float, pos_sigma_m: float | None = None, round_boxes: bool = True) -> tuple[float, float]:
+                t_s: float, pos_sigma_m: float | None = None, round_boxes: bool = True,
+                round_robots: bool = True) -> tuple[float, float]:
         """The twist (v_m_s, w_rad_s) to drive towards ``target`` from ``pose``; ``steer`` is the
         go-to-goal controller (pose -> twist), whose command is kept whenever the path it is about
         to drive is clear (see the module docstring).  ``round_boxes`` False: a box on the straight
         way is not driven round by its corner (the target is a planned way's carrot, which already
-        goes round it: the corner on the preferred side led a robot away from its way out of a pocket).
+        goes round it: the corner on the preferred side led a robot away from its way out of a pocket);
+        ``round_robots`` False: nor a robot by its tangent (the carrot's way goes round the robots too: the
+        tangent on the preferred side of a station keeper beside a wall pointed into the wall, and a patrol
+        stood between them for 15 s).
         ``pos_sigma_m`` is the robot's own
         position sigma (m, None if unknown): walls and obstacles, whose geometry is known exactly,
         are kept ``sigma_k`` of it farther (at most ``MAX_SIGMA_MARGIN_M``), so a robot that slipped
@@ -260,7 +265,7 @@ class Avoider:
         # controller's path, which may turn first and drive later: it stays as judged)
         ok[:-1] |= v[:-1] == 0.0
         scale = max(v_max * self.horizon_s, 1e-6)
-        aim = self._via(pose, target, neighbours, boxes if round_boxes else (), reach) or target
+        aim = self._via(pose, target, neighbours if round_robots else (), boxes, reach, round_boxes) or target
         end_dist = np.hypot(aim[0] - x[:, -1], aim[1] - y[:, -1])
         off = np.arctan2(aim[1] - y[:, -1], aim[0] - x[:, -1]) - th[:, -1]
         heading = np.abs((off + math.pi) % (2.0 * math.pi) - math.pi)
@@ -269,15 +274,24 @@ class Avoider:
                 + 0.1 * heading / math.pi
                 + soft * 0.6 * tight  # room kept from everything
                 + soft * 0.3 * wrong_side
-                + 0.08 * np.maximum(0.0, -self.side * w) / max(w_max, 1e-6)  # turning to the unpreferred side
+                # turning to the unpreferred side while driving: turning on the spot passes nobody (with it, a patrol
+                # facing away from its way round a station keeper beside a wall stood still rather than turn back)
+                + 0.08 * np.maximum(0.0, -self.side * w) * (v > 0.0) / max(w_max, 1e-6)
                 + 0.05 * np.abs(w - self._last_w) / max(w_max, 1e-6))
         cost = np.where(ok, cost, np.inf)
         best = int(np.argmin(cost))  # first minimum: ties resolve the same way every run
         self._last_w = float(w[best])
         return float(v[best]), float(w[best])
 
+    def _side_free(self, nb: Neighbour, ux: float, uy: float, side: int, boxes: Sequence[Box]) -> bool:
+        """Whether a robot going along (ux, uy) past ``nb`` on ``side`` keeps its clearance from the walls and
+        obstacles there: a station keeper beside a wall is passed on its open side, whatever the preference."""
+        r = self._required(nb)
+        x, y = nb.x_m - side * r * uy, nb.y_m + side * r * ux
+        return all(float(box_distance(b, x, y)) >= self.footprint_m + self.clearance_m for b in boxes)
+
     def _via(self, pose: Pose2, target: tuple[float, float], neighbours: Sequence[Neighbour],
-             boxes: Sequence[Box], reach: float) -> tuple[float, float] | None:
+             boxes: Sequence[Box], reach: float, round_boxes: bool = True) -> tuple[float, float] | None:
         """Where to head instead of the goal when the straight way to it is blocked within reach:
         past the first obstacle on it, on the preferred side (a tangent to the robot's circle, or
         the box's corner), so that a robot standing on the way or a shelf across it is driven
@@ -303,12 +317,15 @@ class Avoider:
             if entry < first:
                 d = math.hypot(cx, cy)
                 bearing = math.atan2(cy, cx)
-                # tangent on the preferred side; from inside the room, along its edge
-                heading = bearing + self.side * (math.asin(rho / d) if d > rho else math.pi / 2)
+                side = self.side
+                if not self._side_free(nb, ux, uy, side, boxes) and self._side_free(nb, ux, uy, -side, boxes):
+                    side = -side
+                # tangent on that side; from inside the room, along its edge
+                heading = bearing + side * (math.asin(rho / d) if d > rho else math.pi / 2)
                 first = entry
         steps: Arr = np.arange(0.0, min(length, reach) + 1e-9, 0.05, dtype=np.float64)
         sx, sy = px + ux * steps, py + uy * steps
-        for b in boxes:
+        for b in boxes if round_boxes else ():
             rho = self._static_required(b, target) + SOFT_GAP_M
             if float(box_distance(b, target[0], target[1])) <= rho:
                 continue

@@ -187,7 +187,7 @@ class Behaviour:
         goal = self._goal or target
         grid = self._room
         points = None if grid is None else plan(grid, (pose[0], pose[1]), goal, neighbours, self._keep_m)
-        self.route = None if points is None or len(points) < 2 else Route(goal, points)
+        self.route = None if points is None or len(points) < 2 else Route(goal, points, around_robots=True)
         return self.route is not None
 
     @cached_property
@@ -408,4 +408,5 @@ class Behaviour:
         return self.avoider.command(pose=map_pose, target=aim, steer=steer, v_max=self.cfg.max_speed_m_s * factor,
                                     w_max=self.cfg.max_turn_rad_s * factor, neighbours=self._neighbours,
                                     boxes=self.static_obstacles, t_s=t_s, pos_sigma_m=self._pos_sigma,
-                                    round_boxes=aim == target)
+                                    round_boxes=aim == target,
+                                    round_robots=aim == target or not (self.route and self.route.around_robots))

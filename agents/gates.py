@@ -100,10 +100,11 @@ def must_wait(gs: Sequence[Gate], pose: tuple[float, float, float], aim: tuple[f
               neighbours: Sequence[Neighbour], foot_m: float, reach_m: float = math.inf) -> Gate | None:
     """The gate a robot at ``pose`` heading for ``aim`` should wait outside of, or None.  It waits when
     its way enters a gate within ``LOOK_M`` (and it is not in it already) while another robot is in that
-    gate moving against it, or came out of it and has not passed yet (moving against it, ahead and
-    nearer than the gate), or is coming to it (moving, within ``COMING_M`` of its centre, heading for
-    it, from the other side) with a lower id.  Its way is the ray towards ``aim`` (a way's carrot may be
-    nearer than the gate), as far as ``reach_m`` (its goal's distance)."""
+    gate moving against it, or came out of it and has not passed yet (moving against it, ahead, nearer
+    than the gate and within the gate's half width and a footprint's diameter of its way), or is coming
+    to it (moving, within ``COMING_M`` of its centre, heading for it, from the other side) with a lower id.
+    Its way is the ray towards ``aim`` (a way's carrot may be nearer than the gate), as far as ``reach_m``
+    (its goal's distance)."""
     px, py = pose[0], pose[1]
     length = math.hypot(aim[0] - px, aim[1] - py)
     if length < 1e-9:
@@ -124,8 +125,11 @@ def must_wait(gs: Sequence[Gate], pose: tuple[float, float, float], aim: tuple[f
                     return g  # in it, coming this way
                 continue
             rx, ry = nb.x_m - px, nb.y_m - py
-            if against and rx * ux + ry * uy > 0.0 and math.hypot(rx, ry) < math.dist(g.centre, (px, py)):
-                return g  # out of it between here and the gate, not past yet: two moving face to face stall
+            if (against and rx * ux + ry * uy > 0.0 and math.hypot(rx, ry) < math.dist(g.centre, (px, py))
+                    and abs(rx * uy - ry * ux) < g.gap_m / 2 + 2 * foot_m):
+                # out of it on this way, between here and the gate, not past yet: two moving face to face stall
+                # (one 1.9 m to the side going the other way held a patrol in the depot for 15 s)
+                return g
             to_x, to_y = g.centre[0] - nb.x_m, g.centre[1] - nb.y_m
             if (against and nb.robot_id < robot_id and math.hypot(to_x, to_y) < COMING_M
                     and nb.vx_m_s * to_x + nb.vy_m_s * to_y > 0.0):

@@ -146,11 +146,13 @@ def plan(grid: Grid, start: tuple[float, float], goal: tuple[float, float], othe
 
 @dataclass
 class Route:
-    """A planned way to ``goal`` being followed; :meth:`carrot` once per cycle."""
+    """A planned way to ``goal`` being followed; :meth:`carrot` once per cycle.  ``around_robots``: planned
+    round the robots the map had as well as the walls (after a stall)."""
 
     goal: tuple[float, float]
     points: list[tuple[float, float]]
     index: int = field(default=0)
+    around_robots: bool = False
 
     def carrot(self, x_m: float, y_m: float) -> tuple[float, float] | None:
         """Where to head from (x_m, y_m): ``LOOKAHEAD_M`` along the path from its point nearest to

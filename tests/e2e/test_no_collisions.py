@@ -1,6 +1,6 @@
 """Robots avoid each other in a real lockstep run of ``tagswarm up``: the grid case
 where robot 3's patrol runs through the spot where robot 4 holds station (without
-avoidance robot 3 pushed robot 4 1.4 m in 30 s)."""
+avoidance robot 3 pushed robot 4 1.4 m in 30 s), and two patrols that cross one door."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from tagswarm.protocol.layout import footprint_radius
+from tagswarm.protocol.layout import footprint_radius, map_to_arena_xy
 from tagswarm.protocol.scenario import load_scenario
 from tests.harness import script
 
@@ -50,3 +50,28 @@ def test_grid_of_eight_has_no_robot_robot_contact(tmp_path: Path) -> None:
     assert sum(math.dist(p, q) for p, q in itertools.pairwise(path3)) > 2.0
     agent3 = run["counters"]["agent/3"]
     assert agent3["avoiding_cycles"] > 0 and agent3["maps_used"] > 10
+
+
+TWO_ROOMS = Path(__file__).with_name("tworooms_as_written.toml")
+
+
+def test_two_patrols_cross_one_door_in_turn(tmp_path: Path) -> None:
+    # robot 2 goes east through the 1 m door while robot 3 comes west: robot 3 waits outside until robot 2 has
+    # come through and passed it (agents/gates.py). Before, they met in the door and stood face to face from 8 s
+    # to 20 s, and robot 3 reached the west room only at 29 s
+    out = tmp_path / "run"
+    res = subprocess.run([script("tagswarm"), "up", "--scenario", str(TWO_ROOMS), "--duration", "25", "--clock",
+                          "lockstep", "--out", str(out), "--no-live", "--no-report"],
+                         capture_output=True, text=True, timeout=600)
+    assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
+    run = json.loads((out / "run.json").read_text())
+    world = run["counters"]["world"]
+    assert [world.get(f"contacts_{k}", 0) for k in ("robot_robot", "robot_obstacle", "robot_wall")] == [0, 0, 0]
+    s = load_scenario(str(TWO_ROOMS))
+    x = {rid: {t: map_to_arena_xy(s, *p)[0] for t, p in _truth(out, rid).items()} for rid in (2, 3)}
+    assert max(v for t, v in x[2].items() if t <= 12.0) > 1.0, "robot 2 did not come through by 12 s"
+    at24 = x[3][min(x[3], key=lambda t: abs(t - 24.0))]
+    assert at24 < -1.0, f"robot 3 at x = {at24:.2f} m at 24 s: not through the door"
+    agents = {rid: run["counters"][f"agent/{rid}"] for rid in (2, 3)}
+    assert agents[3]["avoid_gate_waits"] >= 1 and agents[2]["avoid_gate_waits"] == 0, agents
+    assert all(a["avoid_yields"] == 0 and a["avoid_side_flips"] == 0 for a in agents.values()), agents

@@ -76,6 +76,7 @@ WEST = (-2.5, 0.0)
     (_nb(9, -1.0, 0.1, 0.3, 0.0), False),  # ... a higher id: it waits, this one goes
     (_nb(1, -1.0, 0.1, -0.3, 0.0), False),  # on the other side going away
     (_nb(9, 0.7, 0.2, 0.3, 0.0), True),  # out of it, between here and the door, not past yet
+    (_nb(9, 0.7, 1.6, 0.3, 0.0), False),  # ... but 1.6 m to the side of this way: not on it
     (_nb(9, EAST_MOUTH[0] + 0.5, 0.3, 0.3, 0.0), False),  # out of it and past
 ])
 def test_who_waits_outside_the_door(other: Neighbour, waits: bool) -> None:

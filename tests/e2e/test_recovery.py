@@ -167,5 +167,11 @@ def test_a_pushed_robot_sure_of_itself_is_put_right_and_moves_nobody_it_sees(tmp
     assert all(r["robot"] == 1 for r in m["relocalisations"]), m["relocalisations"]  # nobody it sees is moved
     errors = {rid: _final_error(run, rid) for rid in range(10)}
     assert max(errors.values()) < 0.05, errors
-    seen = {(rid, t): round(_error_at(run, rid, t), 3) for rid in (4, 5, 8) for t in (26.0, 27.0, 28.0, 29.0)}
+    # the robots robot 1 sees after the push (4, 5 and 8 when the test was written; robot 8's patrol now goes
+    # round the pillar by a planned way and leaves its view at 20 s, drifting 8 cm unseen)
+    with (run / "observations.csv").open() as fh:
+        after = {int(r["target_id"]) for r in csv.DictReader(fh)
+                 if r["observer"] == "1" and r["target_kind"] == "robot" and float(r["stamp_ns"]) >= 25.5e9}
+    assert after >= {4, 5}, after
+    seen = {(rid, t): round(_error_at(run, rid, t), 3) for rid in sorted(after) for t in (26.0, 27.0, 28.0, 29.0)}
     assert max(seen.values()) < 0.05, seen

@@ -63,6 +63,13 @@ def static_boxes(s: Scenario) -> tuple[Box, ...]:
     return tuple(out)
 
 
+def box_corners(b: Box) -> list[tuple[float, float]]:
+    """The box's four corners (m, the boxes' frame)."""
+    c, s = math.cos(b.yaw_rad), math.sin(b.yaw_rad)
+    return [(b.x_m + c * kx * b.half_x_m - s * ky * b.half_y_m, b.y_m + s * kx * b.half_x_m + c * ky * b.half_y_m)
+            for kx, ky in ((1, 1), (1, -1), (-1, 1), (-1, -1))]
+
+
 def box_distance(b: Box, x: Arr | float, y: Arr | float) -> Arr:
     """Signed distance (m) from points to the box's boundary, negative inside."""
     c, s = math.cos(b.yaw_rad), math.sin(b.yaw_rad)

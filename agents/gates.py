@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from tagswarm.agents.avoidgeom import Box, Neighbour, box_distance
+from tagswarm.agents.avoidgeom import Box, Neighbour, box_corners, box_distance
 
 #: a robot counts as moving (towards a gate, or through one) above this speed (m/s): the map's
 #: velocities of a robot standing still scatter by a few mm/s
@@ -46,12 +46,6 @@ class Gate:
     centre: tuple[float, float]
 
 
-def _corners(b: Box) -> list[tuple[float, float]]:
-    c, s = math.cos(b.yaw_rad), math.sin(b.yaw_rad)
-    return [(b.x_m + c * kx * b.half_x_m - s * ky * b.half_y_m, b.y_m + s * kx * b.half_x_m + c * ky * b.half_y_m)
-            for kx, ky in ((1, 1), (1, -1), (-1, 1), (-1, -1))]
-
-
 def _closest_on(b: Box, x: float, y: float) -> tuple[float, float]:
     """The point of box ``b`` nearest to (x, y)."""
     c, s = math.cos(b.yaw_rad), math.sin(b.yaw_rad)
@@ -66,7 +60,7 @@ def box_gap(a: Box, b: Box) -> tuple[float, tuple[float, float]]:
     points (for two disjoint convex polygons the nearest pair has a corner of one of them)."""
     best = (math.inf, (0.0, 0.0))
     for one, other in ((a, b), (b, a)):
-        for x, y in _corners(one):
+        for x, y in box_corners(one):
             d = float(box_distance(other, x, y))
             if d < best[0]:
                 px, py = _closest_on(other, x, y)

@@ -31,6 +31,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from tagswarm.agents.avoid import Box, Neighbour, box_distance
+from tagswarm.agents.avoidgeom import box_corners
 
 RESOLUTION_M = 0.1
 LOOKAHEAD_M = 0.6  # the carrot: this far along the path from the nearest point not yet passed
@@ -61,12 +62,9 @@ def static_grid(boxes: Sequence[Box], keep_m: float, res: float = RESOLUTION_M) 
     boxes span too large a room to grid (or there are none)."""
     if not boxes:
         return None
-    xs, ys = [], []
-    for b in boxes:  # the boxes' own corners: a circle round a long wall would grid four times its room
-        c, s = math.cos(b.yaw_rad), math.sin(b.yaw_rad)
-        for kx, ky in ((1, 1), (1, -1), (-1, 1), (-1, -1)):
-            xs.append(b.x_m + c * kx * b.half_x_m - s * ky * b.half_y_m)
-            ys.append(b.y_m + s * kx * b.half_x_m + c * ky * b.half_y_m)
+    # the boxes' own corners: a circle round a long wall would grid four times its room
+    corners = [p for b in boxes for p in box_corners(b)]
+    xs, ys = [x for x, _ in corners], [y for _, y in corners]
     nx, ny = math.ceil((max(xs) - min(xs)) / res), math.ceil((max(ys) - min(ys)) / res)
     if nx * ny > MAX_CELLS:
         return None

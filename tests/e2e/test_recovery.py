@@ -137,14 +137,6 @@ def test_a_depot_bay_dropped_at_random_ends_with_every_robot_within_10cm(tmp_pat
     run = _up(tmp_path / "run", "--scenario", str(scene), "--duration", "30")
     errors = {rid: _final_error(run, rid) for rid in range(8)}
     assert max(errors.values()) < 0.10, errors
-    # the run folder holds the poses the grid drew, not the draw (protocol/layout.pinned)
-    robots = json.loads((run / "scenario.json").read_text())["robots"]
-    assert robots["placement"] == "explicit" and len(robots["start"]) == 8
-    firsts = [np.loadtxt(run / "trajectories" / f"truth_{rid}.tum", ndmin=2)[0] for rid in (0, 5)]
-    assert firsts[0][1:4] == pytest.approx([0.0, 0.0, 0.0], abs=1e-3)  # truth in the map frame: the origin's start
-    start0, start5 = robots["start"][0], robots["start"][5]
-    d = math.hypot(start5["x_m"] - start0["x_m"], start5["y_m"] - start0["y_m"])
-    assert math.hypot(firsts[1][1], firsts[1][2]) == pytest.approx(d, abs=1e-3)
     m = json.loads((run / "metrics.json").read_text())
     # every robot in somebody's view (or seeing somebody) within the last second; a patrol out of everyone's view
     # drifts on its odometry (robot 6: 8-20 cm at times between 11 and 27 s, depending on its route)

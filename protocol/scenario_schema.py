@@ -315,13 +315,13 @@ class Server(Spec, frozen=True, kw_only=True, forbid_unknown_fields=True):
     is trusted better than ``obs_sigma_floor_m`` in position (the detector's systematic
     error at one viewpoint, which repeated sightings do not average out; 0 by default).
 
-    ``odom_calibration`` (off by default) makes each robot's wheel radii and wheel base variables of
+    ``odom_calibration`` (on by default) makes each robot's wheel radii and wheel base variables of
     the graph (known beforehand to 1 % and 2 %; :mod:`tagswarm.server.odomcal`): views of a robot
     then correct its odometry between them too, and the server logs what it learnt at the end.  The
     two odometry sigmas then describe only what that model leaves out; unset, they are 0.01 and
-    0.01 with it, and without it the agents' ``agent.odom_wheel_sigma`` and 0.02 (wheel radius and
+    0.01 with it, and with ``false`` the agents' ``agent.odom_wheel_sigma`` and 0.02 (wheel radius and
     base miscalibration folded into per-increment noise, as before it existed: too wide over a few
-    seconds, so the fused NEES of the hall, the crowd and the kidnap scenes was 0.2-0.4).
+    seconds, so the fused NEES of most scenes was 0.2-0.4, conservative).
     docs/benchmarks.md, "Odometry calibration in the graph", has what it changes.
 
     The graph vouches for a placed robot (its correction says ``localised``, its agent steers on
@@ -339,7 +339,7 @@ class Server(Spec, frozen=True, kw_only=True, forbid_unknown_fields=True):
     odom_scale_sigma: NonNeg | None = None
     obs_sigma_floor_m: NonNeg = 0.0
     claim_sigma_m: NonNeg = 0.5
-    odom_calibration: bool = False
+    odom_calibration: bool = True
 
 
 class Event(Spec, frozen=True, kw_only=True, forbid_unknown_fields=True):

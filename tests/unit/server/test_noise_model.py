@@ -18,13 +18,13 @@ def _config(*overrides: str) -> ServerConfig:
 
 
 def test_unset_server_noise_follows_the_agents_odometry_model_without_calibration() -> None:
-    p = make_fusion(_config("agent.odom_wheel_sigma=0.03")).p  # calibration off by default
+    p = make_fusion(_config("agent.odom_wheel_sigma=0.03", "server.odom_calibration=false")).p
     assert (p.odom_wheel_sigma, p.odom_scale_sigma, p.obs_sigma_floor_m) == (0.03, 0.02, 0.0)
     assert not p.odom_calibration
 
 
 def test_with_the_calibration_unset_server_noise_is_the_wheels_own() -> None:
-    p = make_fusion(_config("agent.odom_wheel_sigma=0.03", "server.odom_calibration=true")).p
+    p = make_fusion(_config("agent.odom_wheel_sigma=0.03")).p  # calibration on by default
     assert (p.odom_wheel_sigma, p.odom_scale_sigma, p.obs_sigma_floor_m, p.odom_calibration) == \
         (0.01, 0.01, 0.0, True)
 

@@ -44,7 +44,7 @@ import numpy as np
 
 from tagswarm.protocol.errors import TagswarmError
 from tagswarm.protocol.geometry import Pose2
-from tagswarm.server import odomcal
+from tagswarm.server import odomcal, rangebias
 from tagswarm.server.fusion import Fusion, _Event
 from tagswarm.server.keyframes import PairView, Robot
 from tagswarm.server.placement import Candidate
@@ -142,6 +142,11 @@ class FusionState(msgspec.Struct, frozen=True, kw_only=True):
     # the calibrated odometry factors among them (GTSAM cannot serialise them): (position among the live
     # factors, keyframe a, keyframe b, calibration key, increment (3), covariance (9)); absent in older snapshots
     cal_factors: list[tuple[int, int, int, int, P3, tuple[float, ...]]] = []
+    # the view factors through the shared range bias (server/rangebias.py), likewise: (position, keyframe a,
+    # keyframe b, bias key, da (3), view (3), db (3), covariance (9)); and the bias variable's (key or None,
+    # generation, estimate, variance or None, stamp s); absent in older snapshots
+    view_factors: list[tuple[int, int, int, int, P3, P3, P3, tuple[float, ...]]] = []
+    bias: tuple[int | None, int, float, float | None, float] = (None, 0, 0.0, None, 0.0)
     theta: str  # gtsam Values.serialize() of the smoother's linearisation point
     stamps: list[tuple[int, float]]  # (key, seconds) of every variable in the smoother
 
@@ -199,20 +204,20 @@ def _candidate_state(c: Candidate) -> CandidateState:
     return CandidateState(c.stamp_ns, _p3(c.origin), float(c.trace), "landmark", (), (*_p3(pose), *_flat(cov_map)))
 
 
-def _live_factors(smoother: FixedLagSmoother) -> tuple[gtsam.NonlinearFactorGraph, list[tuple[int, int, int]]]:
+def _live_factors(smoother: FixedLagSmoother) -> tuple[gtsam.NonlinearFactorGraph, list[tuple[int, int, int, int]]]:
     """The smoother's factors without the empty slots marginalisation leaves behind, and apart from
-    them its calibrated odometry factors (Python ones) as (position among the live factors,
-    keyframe a, keyframe b)."""
+    them its Python factors (calibrated odometry, views through the range bias) as (position among
+    the live factors, keyframe a, keyframe b, third key)."""
     graph = smoother.getFactors()
     out = gtsam.NonlinearFactorGraph()
-    custom: list[tuple[int, int, int]] = []
+    custom: list[tuple[int, int, int, int]] = []
     live = 0
     for i in range(graph.size()):
         if graph.exists(i):
             f = graph.at(i)
             if isinstance(f, gtsam.CustomFactor):
                 keys = f.keys()
-                custom.append((live, int(keys[0]), int(keys[1])))
+                custom.append((live, int(keys[0]), int(keys[1]), int(keys[2])))
             else:
                 out.add(f)
             live += 1
@@ -227,11 +232,18 @@ def snapshot(fusion: Fusion) -> bytes:
     keep_from = fusion.watermark_ns - int((fusion.p.init_window_s + ODOM_MARGIN_S) * 1e9)
     stamps = [(int(k), float(t)) for k, t in sorted(fusion.smoother.timestamps().items())]
     live, custom = _live_factors(fusion.smoother) if stamps else (gtsam.NonlinearFactorGraph(), [])
-    cal = fusion.graph.cal_factors
+    g = fusion.graph
+    cal, views = g.cal_factors, {ab: iter(v) for ab, v in g.view_factors.items()}
+    cal_factors, view_factors = [], []
     try:
-        cal_factors = [(i, a, b, cal[(a, b)][0], _p3(cal[(a, b)][1]), _flat(cal[(a, b)][2])) for i, a, b in custom]
-    except KeyError as exc:
-        raise RuntimeError(f"a calibrated odometry factor the fusion does not know of: {exc}") from None
+        for i, a, b, k in custom:
+            if rangebias.is_bias_key(k):
+                kb, da, rel, db, cov = next(views[(a, b)])
+                view_factors.append((i, a, b, kb, _p3(da), _p3(rel), _p3(db), _flat(cov)))
+            else:
+                cal_factors.append((i, a, b, cal[(a, b)][0], _p3(cal[(a, b)][1]), _flat(cal[(a, b)][2])))
+    except (KeyError, StopIteration) as exc:
+        raise RuntimeError(f"a Python factor the fusion does not know of: {exc!r}") from None
     state = FusionState(
         robots={rid: _robot_state(r, keep_from) for rid, r in fusion.robots.items()},
         events=[_event_state(ev) for ev in fusion._events],  # heap order as is: a valid heap again
@@ -252,7 +264,8 @@ def snapshot(fusion: Fusion) -> bytes:
         shifts={rid: [(int(t), int(w), float(d)) for t, w, d in q] for rid, q in fusion.recovery.shifts.items()},
         pair_views=[(a, b, v.chain_a, v.chain_b, _p3(v.odom_a), _p3(v.odom_b), _p3(v.rel))
                     for (a, b), v in fusion._pair_factors.items()],
-        factors=live.serialize() if stamps else "", cal_factors=cal_factors,
+        factors=live.serialize() if stamps else "", cal_factors=cal_factors, view_factors=view_factors,
+        bias=(g.bias_key, g.bias_gen, float(g.bias), g.bias_var, float(g.bias_stamp)),
         theta=fusion.smoother.getLinearizationPoint().serialize() if stamps else "", stamps=stamps)
     return zlib.compress(_ENC.encode(state), ZLIB_LEVEL)
 
@@ -315,17 +328,17 @@ def restore(fusion: Fusion, blob: bytes | FusionState) -> None:
     if unknown:
         raise CheckpointError(f"checkpoint holds robots {sorted(unknown)} outside the roster")
     graph, theta, stamps = _smoother_input(state)
-    if state.cal_factors:  # back into their places: the order of the factors is iSAM2's order of elimination
-        merged, plain = gtsam.NonlinearFactorGraph(), iter(range(graph.size()))
-        custom = {i: (a, b, c, delta, cov) for i, a, b, c, delta, cov in state.cal_factors}
-        for i in range(graph.size() + len(custom)):
-            if i in custom:
-                a, b, c, delta, cov = custom[i]
-                merged.add(odomcal.factor(a, b, c, delta, _mat(cov), fusion.p.wheel_base_m))
-            else:
-                merged.add(graph.at(next(plain)))
-        graph = merged
     new = Fusion(fusion.p, fusion.origin_id, tuple(fusion.robots), fusion.landmarks)  # built aside
+    if state.cal_factors or state.view_factors:  # back into their places: the order is iSAM2's order of elimination
+        merged, plain = gtsam.NonlinearFactorGraph(), iter(range(graph.size()))
+        custom: dict[int, gtsam.NonlinearFactor] = {
+            i: odomcal.factor(a, b, c, delta, _mat(cov), fusion.p.wheel_base_m)
+            for i, a, b, c, delta, cov in state.cal_factors}
+        custom.update({i: rangebias.factor(a, b, kb, da, rel, db, new.graph.robust(_mat(cov)))
+                       for i, a, b, kb, da, rel, db, cov in state.view_factors})
+        for i in range(graph.size() + len(custom)):
+            merged.add(custom[i] if i in custom else graph.at(next(plain)))
+        graph = merged
     for rid, rs in state.robots.items():
         new.robots[rid] = _robot(rs, new.p.odom_buffer)
     new._events = [_event(e) for e in state.events]
@@ -346,6 +359,9 @@ def restore(fusion: Fusion, blob: bytes | FusionState) -> None:
     new.recovery.disputes = {rid: deque(q, maxlen=256) for rid, q in state.disputes.items()}
     new.recovery.shifts = {rid: deque(((t, w, d) for t, w, d in q), maxlen=256) for rid, q in state.shifts.items()}
     new.graph.cal_factors = {(a, b): (c, delta, _mat(cov)) for _, a, b, c, delta, cov in state.cal_factors}
+    for _, a, b, kb, da, rel, db, cov in state.view_factors:
+        new.graph.view_factors.setdefault((a, b), []).append((kb, da, rel, db, _mat(cov)))
+    new.graph.bias_key, new.graph.bias_gen, new.graph.bias, new.graph.bias_var, new.graph.bias_stamp = state.bias
     new._pair_factors = {(a, b): PairView(ca, cb, oa, ob, rel) for a, b, ca, cb, oa, ob, rel in state.pair_views}
     if state.stamps:
         try:

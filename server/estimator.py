@@ -17,7 +17,7 @@ import numpy as np
 
 from tagswarm.protocol.geometry import Pose2
 from tagswarm.server import journal_format as jf
-from tagswarm.server import odomcal
+from tagswarm.server import odomcal, rangebias
 from tagswarm.server.config import ServerConfig
 from tagswarm.server.fusion import Fusion, FusionParams, RelocEvent
 from tagswarm.server.noise import Cov
@@ -74,7 +74,8 @@ def make_fusion(config: ServerConfig) -> Fusion:
     wheel, scale = odomcal.odometry_sigmas(cal, s.agent.odom_wheel_sigma, s.server.odom_wheel_sigma,
                                            s.server.odom_scale_sigma)
     params = FusionParams(wheel_base_m=s.robot.wheel_base_m, odom_wheel_sigma=wheel, odom_scale_sigma=scale,
-                          obs_sigma_floor_m=s.server.obs_sigma_floor_m, odom_calibration=cal, lag_s=config.lag_s)
+                          obs_sigma_floor_m=s.server.obs_sigma_floor_m, odom_calibration=cal, lag_s=config.lag_s,
+                          range_bias_sigma=s.server.range_bias_sigma)
     landmarks = {lm.id: (lm.x_m, lm.y_m, lm.yaw_rad) for lm in s.landmarks}
     return Fusion(params, s.map.origin_id, s.robot_ids, landmarks)
 
@@ -86,3 +87,15 @@ def make_estimator(config: ServerConfig) -> Estimator:
         return make_fusion(config)
     f = make_fusion(config)  # (cheap: an empty graph) the same parameters, origin and landmarks
     return StitchMap(f.p, f.origin_id, tuple(f.robots), f.landmarks)
+
+
+def learnt(est: Estimator) -> list[str]:
+    """Log lines of what the graph learnt about the sensors by the end of a run: each robot's odometry
+    calibration and the views' range bias (nothing for the stitching or where they are off)."""
+    if not isinstance(est, Fusion):
+        return []
+    out = [odomcal.summary(rid, r.cal, r.cal_cov) for rid, r in est.robots.items()
+           if est.p.odom_calibration and r.cal_key is not None]
+    if est.graph.bias_key is not None:
+        out.append(rangebias.summary(est.graph.bias, est.graph.bias_var))
+    return out

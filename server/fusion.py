@@ -310,8 +310,7 @@ class Fusion:
             self._pair_factors[(a, b)] = view
             # the measurement between the two keyframes: observer's motion since its keyframe, the
             # observation, then back along the target's motion since its keyframe
-            z = se2_compose(se2_compose(da, m_rel), se2_inverse(db))
-            self.graph.add(gtsam.BetweenFactorPose2(ka, kb, gtsam.Pose2(*z), self.graph.robust(m_cov + ca + cb)))
+            self.graph.add_view(ka, kb, da, m_rel, db, m_cov + ca + cb, stamp_ns)
         o.last_fix_ns = g.last_fix_ns = stamp_ns
         self.edges[(observer, target)] = stamp_ns
         if admitted:

@@ -26,8 +26,8 @@ import gtsam
 import numpy as np
 from numpy.typing import NDArray
 
-from tagswarm.protocol.geometry import Pose2, se2_between, se2_compose
-from tagswarm.server import odomcal
+from tagswarm.protocol.geometry import Pose2, se2_between, se2_compose, se2_inverse
+from tagswarm.server import odomcal, rangebias
 from tagswarm.server.noise import Cov, FusionParams, odom_increment_cov, still_increment_cov
 from tagswarm.server.smoother import FixedLagSmoother
 
@@ -119,6 +119,15 @@ class KeyframeGraph:
         # (keyframe a, keyframe b) -> (calibration key, increment, covariance) of each calibrated odometry
         # factor: a Python factor GTSAM cannot serialise, so a checkpoint saves these and rebuilds it
         self.cal_factors: dict[tuple[int, int], tuple[int, Pose2, Cov]] = {}
+        # the views' shared range bias ([server] range_bias_sigma, server/rangebias.py): its variable, how many
+        # there have been, its latest estimate and variance and stamp; and (keyframe a, keyframe b) -> the
+        # (bias key, da, view, db, covariance) of each view factor through it, in the order they were added
+        self.bias_key: int | None = None
+        self.bias_gen = 0
+        self.bias = 0.0
+        self.bias_var: float | None = None
+        self.bias_stamp = 0.0
+        self.view_factors: dict[tuple[int, int], list[tuple[int, Pose2, Pose2, Pose2, Cov]]] = {}
 
     def _new_smoother(self) -> FixedLagSmoother:
         isam = gtsam.ISAM2Params()
@@ -219,6 +228,25 @@ class KeyframeGraph:
         self.stamps[r.cal_key] = stamp_ns / 1e9
         return r.cal_key
 
+    def add_view(self, ka: int, kb: int, da: Pose2, rel: Pose2, db: Pose2, cov: Cov, stamp_ns: int) -> None:
+        """Stage the factor of a view ``rel`` (target in the observer's frame) between keyframes ``ka`` and
+        ``kb``, which the two robots have moved ``da`` and ``db`` from (odometry), with (3, 3) tangent-space
+        covariance ``cov``: a plain between-factor, or one through the shared range bias."""
+        if self.p.range_bias_sigma <= 0 or math.hypot(rel[0], rel[1]) < rangebias.MIN_RANGE_M:
+            z = se2_compose(se2_compose(da, rel), se2_inverse(db))
+            self.factors.add(gtsam.BetweenFactorPose2(ka, kb, gtsam.Pose2(*z), self.robust(cov)))
+            return
+        if self.bias_key is None or (self.bias_key not in self.smoother and self.bias_key not in self.stamps):
+            self.bias_gen += 1
+            self.bias_key = rangebias.key(self.bias_gen)
+            sigma = self.p.range_bias_sigma if self.bias_var is None else math.sqrt(self.bias_var)
+            self.factors.add(rangebias.prior(self.bias_key, self.bias, sigma))
+            self.values.insert(self.bias_key, rangebias.value(self.bias))
+        self.bias_stamp = max(self.bias_stamp, stamp_ns / 1e9)  # a late view must not age it
+        self.stamps[self.bias_key] = self.bias_stamp
+        self.factors.add(rangebias.factor(ka, kb, self.bias_key, da, rel, db, self.robust(cov)))
+        self.view_factors.setdefault((ka, kb), []).append((self.bias_key, da, rel, db, np.asarray(cov, float)))
+
     def anchor(self, rid: int, stamp_ns: int, odom_pose: Pose2, guess: Pose2) -> tuple[int, Pose2, Cov]:
         """Keyframe an observation at ``stamp_ns`` attaches to: the robot's latest
         keyframe if it has barely moved since or ``stamp_ns`` is older than it (a late
@@ -249,6 +277,16 @@ class KeyframeGraph:
         self.stamps = {}
         if self.cal_factors and self.updates % 64 == 0:  # forget the factors marginalisation has taken
             self.cal_factors = {ab: v for ab, v in self.cal_factors.items() if ab[1] in self.smoother}
+        if self.view_factors and self.updates % 64 == 0:
+            self.view_factors = {ab: v for ab, v in self.view_factors.items()
+                                 if ab[0] in self.smoother and ab[1] in self.smoother}
+        if self.bias_key is not None and self.bias_key in self.smoother:
+            try:
+                self.bias = float(self.smoother.isam.calculateEstimateVector(self.bias_key)[0])
+                if watermark_ns >= self.next_cov_ns:
+                    self.bias_var = float(self.smoother.marginalCovariance(self.bias_key)[0, 0])
+            except RuntimeError:
+                pass
         # only each robot's newest keyframe is needed; per-key retrieval avoids
         # materialising every variable of the window on every update
         with_cov = watermark_ns >= self.next_cov_ns
@@ -293,6 +331,8 @@ class KeyframeGraph:
                     "every robot's last estimate", why)
         self.smoother = self._new_smoother()
         self.cal_factors.clear()
+        self.view_factors.clear()
+        self.bias_key = None  # a new bias variable at the next view, from self.bias / self.bias_var
         factors, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
         stamps: dict[int, float] = {}
         for r in self.robots.values():

@@ -32,9 +32,9 @@ from tagswarm.runtime.lockstep import Participant
 from tagswarm.runtime.presence import Presence, RunEnd, silence_ns
 from tagswarm.runtime.process import serve_node
 from tagswarm.server import journal as jr
-from tagswarm.server import odomcal, outputs
+from tagswarm.server import outputs
 from tagswarm.server.config import ServerConfig, build_config
-from tagswarm.server.estimator import Estimator, make_estimator
+from tagswarm.server.estimator import Estimator, learnt, make_estimator
 from tagswarm.server.estimator import make_fusion as make_fusion  # re-exported: tests build a server's fusion from here
 from tagswarm.server.fusion import Fusion
 from tagswarm.server.intake import AckLog, Intake, OdometryWait, SilentRobots
@@ -401,10 +401,8 @@ class ServerNode(NodeJournal):
         self._publish_status()
         log.info("server stopping at t=%.2f s: %s", self.time_ns / 1e9,
                  {k: v for k, v in self.fusion.counters.items()})
-        if isinstance(self.fusion, Fusion) and self.fusion.p.odom_calibration:
-            for rid, r in self.fusion.robots.items():
-                if r.cal_key is not None:
-                    log.info("%s", odomcal.summary(rid, r.cal, r.cal_cov))
+        for line in learnt(self.fusion):
+            log.info("%s", line)
         return 0
 
     def close(self) -> None:

@@ -30,6 +30,9 @@ class FusionParams:
     # no relative observation is trusted better than this (m, position): the detector's systematic error at a
     # viewpoint, which repeated sightings do not average out ([server] obs_sigma_floor_m)
     obs_sigma_floor_m: float = 0.0
+    # the views' shared range bias coefficient (m^-2; bias = b r^3 along the line of sight) as one graph
+    # variable with this prior sigma; 0: none, plain between-factors (server/rangebias.py)
+    range_bias_sigma: float = 0.0
     kf_dist_m: float = 0.2
     kf_angle_rad: float = 0.2
     kf_max_interval_s: float = 2.0

@@ -215,6 +215,20 @@ class Recovery:
         since = min(t for t, _ in recent)
         return not any(since <= t <= stamp_ns for t, _ in self.partners.get(witness, ()))
 
+    def lone_pair(self, witness: int, suspect: int, stamp_ns: int) -> bool:
+        """Whether ``witness`` and ``suspect`` disagree lately with each other only and the witness agrees
+        with nobody since: either of them may have moved, so neither judges the other until a third
+        robot (or the origin, or a landmark) does.  Measured in the yard of :meth:`doubtful` with honest
+        view covariances: after the push the witness saw only one robot, which nobody else saw then,
+        and re-localised it 0.36 m the wrong way (2026-12-07)."""
+        horizon = stamp_ns - int(self.p.reloc_window_s * 1e9)
+        mine = [(t, o) for t, o in self.disputes.get(witness, ()) if horizon <= t <= stamp_ns]
+        theirs = {o for t, o in self.disputes.get(suspect, ()) if horizon <= t <= stamp_ns}
+        if {o for _, o in mine} != {suspect} or theirs != {witness}:
+            return False
+        since = min(t for t, _ in mine)
+        return not any(since <= t <= stamp_ns for t, _ in self.partners.get(witness, ()))
+
     def shifted(self, suspect: int, witness: int, stamp_ns: int, shift_m: float) -> None:
         """A contradicting observation (gated out, or surprising) puts ``suspect`` ``shift_m`` metres
         from its estimate, as ``witness`` sees it."""
@@ -290,7 +304,7 @@ class Recovery:
             return True
         if witness == self.origin_id and self.anchored_origin:
             return True
-        if self.doubtful(witness, stamp_ns):
+        if self.doubtful(witness, stamp_ns) or self.lone_pair(witness, suspect, stamp_ns):
             return False
         if variances is not None and variances[0] < self.p.reloc_trust_sigma_ratio**2 * variances[1]:
             return True

@@ -134,7 +134,9 @@ def test_a_depot_bay_dropped_at_random_ends_with_every_robot_within_10cm(tmp_pat
     # the origin that fix it were rejected, and three robots stayed 10-17 cm off to the end (time localised
     # 57 % over 45 s)
     scene = Path(__file__).with_name("depot_as_written.toml")
-    run = _up(tmp_path / "run", "--scenario", str(scene), "--duration", "30")
+    # 36 s: after the push robot 1 sees only robot 4 until robot 5 sees robot 1 at 27.5 s, and a pair that
+    # disagrees with nobody else waits for a third robot (server/recovery.py, lone_pair); robot 1 is back at 31.9 s
+    run = _up(tmp_path / "run", "--scenario", str(scene), "--duration", "36")
     errors = {rid: _final_error(run, rid) for rid in range(8)}
     assert max(errors.values()) < 0.10, errors
     m = json.loads((run / "metrics.json").read_text())
@@ -152,18 +154,23 @@ def test_a_pushed_robot_sure_of_itself_is_put_right_and_moves_nobody_it_sees(tmp
     # nobody else sees then.  Trusting it, the server re-localised those three 0.36-0.43 m the wrong way and left
     # robot 1 itself 16 cm off (and robot 8, driving on its wrong estimate, later ran into a pillar)
     scene = Path(__file__).with_name("yard_as_written.toml")
-    run = _up(tmp_path / "run", "--scenario", str(scene), "--duration", "30")
+    # 36 s: after the push robot 1 sees only robot 4 until robot 5 sees robot 1 at 27.5 s, and a pair that
+    # disagrees with nobody else waits for a third robot (server/recovery.py, lone_pair); robot 1 is back at 31.9 s
+    run = _up(tmp_path / "run", "--scenario", str(scene), "--duration", "36")
     m = json.loads((run / "metrics.json").read_text())
     assert [(round(k["t_s"]), k["robot"]) for k in m["kidnaps"]] == [(25, 1)]
     assert _thrown_off(run, 1, 25.0, 25.2, 0.10), "the push did not throw the estimate off"
     assert all(r["robot"] == 1 for r in m["relocalisations"]), m["relocalisations"]  # nobody it sees is moved
     errors = {rid: _final_error(run, rid) for rid in range(10)}
-    assert max(errors.values()) < 0.05, errors
+    assert max(errors.values()) < 0.05, errors  # measured: all within 1.8 cm at 36 s
     # the robots robot 1 sees after the push (4, 5 and 8 when the test was written; robot 8's patrol now goes
     # round the pillar by a planned way and leaves its view at 20 s, drifting 8 cm unseen)
     with (run / "observations.csv").open() as fh:
         after = {int(r["target_id"]) for r in csv.DictReader(fh)
                  if r["observer"] == "1" and r["target_kind"] == "robot" and float(r["stamp_ns"]) >= 25.5e9}
     assert after >= {4, 5}, after
-    seen = {(rid, t): round(_error_at(run, rid, t), 3) for rid in sorted(after) for t in (26.0, 27.0, 28.0, 29.0)}
-    assert max(seen.values()) < 0.05, seen
+    # none of them is moved by robot 1's views: no further off than at the push (robot 8, out of everyone's view
+    # since 20 s, is 8 cm off then and 2 cm by 28 s; believing robot 1 moved them 0.36-0.43 m)
+    seen = {(rid, t): round(_error_at(run, rid, t) - _error_at(run, rid, 25.0), 3)
+            for rid in sorted(after) for t in (26.0, 27.0, 28.0, 29.0)}
+    assert max(seen.values()) < 0.02, seen

@@ -34,26 +34,28 @@ UNINTERRUPTED_TOL_M = 0.001
 Poses = dict[int, tuple[float, ...] | None]
 
 
-CALIBRATED = [False]  # whether the fusions of the test running calibrate odometry (server/odomcal.py)
+# whether the fusions of the test running calibrate odometry (server/odomcal.py), and "bias": that and the
+# views through the shared range bias (server/rangebias.py)
+CALIBRATED: list[bool | str] = [False]
 
 
-@pytest.fixture(scope="module", params=[False, True], ids=["plain", "calibrated"])
-def calibrated(request: pytest.FixtureRequest) -> bool:
-    """Every test twice: with the plain odometry factors, and with the calibrated ones that a
-    checkpoint saves apart from GTSAM's serialisation."""
-    return bool(request.param)
+@pytest.fixture(scope="module", params=[False, True, "bias"], ids=["plain", "calibrated", "range_bias"])
+def calibrated(request: pytest.FixtureRequest) -> bool | str:
+    """Every test three times: with the plain odometry factors, with the calibrated ones that a
+    checkpoint saves apart from GTSAM's serialisation, and with those and the range bias's view factors."""
+    return request.param  # type: ignore[no-any-return]
 
 
 @pytest.fixture(autouse=True)
-def _use_calibrated(calibrated: bool) -> Iterator[None]:
+def _use_calibrated(calibrated: bool | str) -> Iterator[None]:
     CALIBRATED[0] = calibrated
     yield
     CALIBRATED[0] = False
 
 
 def _fusion() -> Fusion:
-    return Fusion(FusionParams(odom_scale_sigma=0.05, lag_s=LAG_S, odom_calibration=CALIBRATED[0]), 0,
-                  tuple(range(N)))
+    return Fusion(FusionParams(odom_scale_sigma=0.05, lag_s=LAG_S, odom_calibration=bool(CALIBRATED[0]),
+                               range_bias_sigma=1.5e-4 if CALIBRATED[0] == "bias" else 0.0), 0, tuple(range(N)))
 
 
 def _poses(f: Fusion) -> Poses:
@@ -125,7 +127,7 @@ class Live:
 
 
 @pytest.fixture(scope="module")
-def written(tmp_path_factory: pytest.TempPathFactory, calibrated: bool) -> tuple[Live, jr.Journal]:
+def written(tmp_path_factory: pytest.TempPathFactory, calibrated: bool | str) -> tuple[Live, jr.Journal]:
     CALIBRATED[0] = calibrated  # (built before the function-scoped fixture sets it)
     live = Live(tmp_path_factory.mktemp("ckpt") / "j")
     return live, live.run(_stream())

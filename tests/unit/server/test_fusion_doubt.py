@@ -94,3 +94,29 @@ def test_without_a_push_nobody_is_in_doubt_or_moved() -> None:
     for rid in START:
         assert max(e for t, e in hist[rid] if t >= 3.0) < 0.03, rid
     assert not any(fusion.recovery.doubtful(rid, 100 * DT_NS) for rid in START)
+
+
+def test_a_lone_pair_that_disagrees_waits_for_a_third_robot() -> None:
+    # robot 3 watches robot 1 only and is pushed; nobody else sees either of them then: one of the two moved,
+    # the views cannot say which, so neither is re-localised on the other's word (measured in the yard: the
+    # witness re-localised the one robot it saw 0.36 m the wrong way)
+    rng = np.random.default_rng(2)
+    fusion = Fusion(FusionParams(), 0, tuple(START))
+    truth = dict(START)
+    for k in range(121):
+        t_ns = k * DT_NS
+        if k == 60:
+            truth[3] = se2_compose(truth[3], PUSH)
+        for rid in START:
+            fusion.add_odometry(rid, t_ns, (0.0, 0.0, 0.0), 0.0)
+        pairs = [(3, 1)] + ([(1, 0), (2, 0), (3, 2)] if k < 60 and k % 4 == 0 else [])
+        for obs, tgt in pairs:
+            rel = se2_between(truth[obs], truth[tgt])
+            noisy = (rel[0] + rng.normal(0, 0.01), rel[1] + rng.normal(0, 0.01), rel[2] + rng.normal(0, 0.01))
+            fusion.add_observation(obs, tgt, t_ns, noisy, COV)
+        fusion.advance(t_ns)
+    assert fusion.recovery.lone_pair(3, 1, 120 * DT_NS) and fusion.recovery.lone_pair(1, 3, 120 * DT_NS)
+    assert 1 not in [e.robot_id for e in fusion.take_relocalisations()]
+    est = fusion.pose(1)
+    assert est is not None and math.dist(est[0][:2], truth[1][:2]) < 0.05, est
+

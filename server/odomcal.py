@@ -24,6 +24,7 @@ from numpy.typing import NDArray
 
 from tagswarm.protocol.geometry import Pose2
 from tagswarm.server.noise import Cov, FusionParams
+from tagswarm.server.through import between_through
 
 
 def arc_of(delta: Pose2) -> tuple[float, float]:
@@ -72,28 +73,7 @@ def factor(ka: int, kb: int, kc: int, delta: Pose2, cov: Cov, base_m: float) -> 
     def meas(c: Any) -> gtsam.Pose2:
         return d0.compose(nominal.between(arc_pose(*corrected_arc(ds, dth, c, base_m))))
 
-    def error(this: gtsam.CustomFactor, values: gtsam.Values, jac: list[np.ndarray] | None) -> np.ndarray:
-        xa, xb, c = values.atPose2(ka), values.atPose2(kb), values.atVector(kc)
-        ha, hb = np.zeros((3, 3), order="F"), np.zeros((3, 3), order="F")
-        pred = xa.between(xb, ha, hb)
-        m = meas(c)
-        hm, hp = np.zeros((3, 3), order="F"), np.zeros((3, 3), order="F")
-        rel = m.between(pred, hm, hp)
-        hl = np.zeros((3, 3), order="F")
-        e = gtsam.Pose2.Logmap(rel, hl)
-        if jac is not None:
-            jc = np.empty((3, 3))
-            for i in range(3):
-                cc = np.array(c, float)
-                cc[i] += 1e-6
-                jc[:, i] = gtsam.Pose2.Logmap(m.between(meas(cc))) / 1e-6
-            jac[0] = hl @ hp @ ha
-            jac[1] = hl @ hp @ hb
-            jac[2] = hl @ hm @ jc
-        return np.asarray(e)
-
-    keys = gtsam.KeyVector([ka, kb, kc])
-    return gtsam.CustomFactor(gtsam.noiseModel.Gaussian.Covariance(np.asarray(cov, float)), keys, error)
+    return between_through(ka, kb, kc, meas, gtsam.noiseModel.Gaussian.Covariance(np.asarray(cov, float)), 1e-6)
 
 
 def prior_cov(p: FusionParams) -> Cov:

@@ -18,8 +18,10 @@ from typing import Any
 
 import gtsam
 import numpy as np
+from numpy.typing import NDArray
 
 from tagswarm.protocol.geometry import Pose2
+from tagswarm.server.through import between_through
 
 STEP = 1e-7  # numerical derivative step in b (m^-2); b itself is of order 1e-4
 # nearer views keep GTSAM's own between-factor: their bias is at most b 8 m^3 (1.2 mm at the fit), a third of
@@ -52,27 +54,10 @@ def factor(ka: int, kb: int, kbias: int, da: Pose2, rel: Pose2, db: Pose2,
     view, back along the target's), with ``noise`` in its tangent space."""
     pa, pb_inv = gtsam.Pose2(*da), gtsam.Pose2(*db).inverse()
 
-    def meas(b: float) -> gtsam.Pose2:
-        return pa.compose(scaled(rel, b)).compose(pb_inv)
+    def meas(b: NDArray[np.float64]) -> gtsam.Pose2:
+        return pa.compose(scaled(rel, float(b[0]))).compose(pb_inv)
 
-    def error(this: gtsam.CustomFactor, values: gtsam.Values, jac: list[np.ndarray] | None) -> np.ndarray:
-        xa, xb = values.atPose2(ka), values.atPose2(kb)
-        b = float(values.atVector(kbias)[0])
-        ha, hb = np.zeros((3, 3), order="F"), np.zeros((3, 3), order="F")
-        pred = xa.between(xb, ha, hb)
-        m = meas(b)
-        hm, hp = np.zeros((3, 3), order="F"), np.zeros((3, 3), order="F")
-        r = m.between(pred, hm, hp)
-        hl = np.zeros((3, 3), order="F")
-        e = gtsam.Pose2.Logmap(r, hl)
-        if jac is not None:
-            dm = gtsam.Pose2.Logmap(m.between(meas(b + STEP))) / STEP
-            jac[0] = hl @ hp @ ha
-            jac[1] = hl @ hp @ hb
-            jac[2] = (hl @ hm @ dm).reshape(3, 1)
-        return np.asarray(e)
-
-    return gtsam.CustomFactor(noise, gtsam.KeyVector([ka, kb, kbias]), error)
+    return between_through(ka, kb, kbias, meas, noise, STEP)
 
 
 def prior(kbias: int, mean: float, sigma: float) -> gtsam.PriorFactorVector:

@@ -50,16 +50,19 @@ def _poison(fusion: Fusion) -> None:
                                               gtsam.noiseModel.Diagonal.Sigmas(np.array([1e-9, 1e9, 1e9]))))
 
 
-@pytest.mark.parametrize("calibrated", [False, True], ids=["plain", "calibrated"])
-def test_a_refused_update_restarts_the_smoother_from_the_estimates(calibrated: bool) -> None:
+@pytest.mark.parametrize(("calibrated", "bias_sigma"), [(False, 0.0), (True, 0.0), (False, 1.5e-4)],
+                         ids=["plain", "calibrated", "range_bias"])
+def test_a_refused_update_restarts_the_smoother_from_the_estimates(calibrated: bool, bias_sigma: float) -> None:
     sw = SyntheticSwarm(n=3, seed=3, outlier_rate=0.0)
-    params = FusionParams(odom_scale_sigma=0.05, odom_calibration=calibrated)
+    params = FusionParams(odom_scale_sigma=0.05, odom_calibration=calibrated, range_bias_sigma=bias_sigma)
     fusion = Fusion(params, 0, tuple(range(sw.n)))
     _feed(fusion, sw, 0.0, 20.0)
     before = {rid: fusion.pose(rid) for rid in range(sw.n)}
+    bias_before = (fusion.graph.bias_gen, fusion.graph.bias, fusion.graph.bias_var)
     _poison(fusion)
     fusion.advance(fusion.watermark_ns)  # would raise RuntimeError out of iSAM2 without the reset
     assert fusion.counters["smoother_resets"] == 1
+    assert fusion.graph.bias_key is None  # the old variable went with the old smoother
     assert fusion.counters["smoother_rebuild_failures"] == 0
     for rid, (pose, cov) in ((r, p) for r, p in before.items() if p is not None):
         after = fusion.pose(rid)
@@ -71,6 +74,14 @@ def test_a_refused_update_restarts_the_smoother_from_the_estimates(calibrated: b
     _feed(fusion, sw, 20.0, 60.0)
     assert fusion.counters["smoother_resets"] == 1
     assert max(_errors(fusion, sw, 59.9)) < 0.05
+    if bias_sigma > 0:
+        # a new bias variable of the next generation, started from what the old one had learnt (its prior
+        # the old marginal), in the smoother and estimated; without far views it would not exist at all
+        assert bias_before[0] >= 1 and bias_before[2] is not None
+        assert fusion.graph.bias_gen == bias_before[0] + 1
+        assert fusion.graph.bias_key is not None and fusion.graph.bias_key in fusion.graph.smoother
+        assert abs(fusion.graph.bias) < 1e-3  # the swarm's views are unbiased: it stays near 0 (m^-2)
+        assert fusion.graph.bias_var is not None and fusion.graph.bias_var <= bias_before[2] * 1.01
     # and the state after a reset checkpoints and restores like any other
     blob = checkpoint.snapshot(fusion)
     other = Fusion(params, 0, tuple(range(sw.n)))

@@ -54,7 +54,8 @@ from tagswarm.agents.avoidgeom import Arr, Box, Neighbour, box_distance, closed_
 from tagswarm.protocol.geometry import Pose2
 
 __all__ = ["CLEAR_RESET_S", "MAX_SIGMA_MARGIN_M", "MAX_YIELDS", "NEIGHBOUR_PREDICT_S", "PASS_RANGE_M",
-           "PROGRESS_EPS_M", "SOFT_GAP_M", "STATIC_MIN_GAP_M", "STEP_S", "YIELD_PLACE_M", "YIELD_SPEED_M_S",
+           "PROGRESS_EPS_M", "REROUTE_PLACE_M", "SOFT_GAP_M", "STATIC_MIN_GAP_M", "STEP_S", "YIELD_PLACE_M",
+           "YIELD_SPEED_M_S",
            "Avoider", "Box", "Neighbour", "box_distance", "closed_loop", "rollout", "static_boxes"]
 
 Mask = NDArray[np.bool_]
@@ -78,6 +79,10 @@ YIELD_PLACE_M = 1.0  # moving this far from where it first gave way ends a robot
 # is clear and an avoiding turn back can alternate every cycle on the spot (test_avoid.py: a robot beside a door
 # held by a station keeper did so from 10 s to the end, each clear cycle restarting the clock)
 CLEAR_RESET_S = 1.0
+# a stall within this of where the last stall found a way round: that way did not get the robot moving (a patrol
+# on the clearance's edge beside a station keeper, its way round starting along that edge, where standing costs
+# less than passing: an office's patrol stood there from 21 s to the end), so it flips side and goes assertive
+REROUTE_PLACE_M = 0.2
 
 
 @dataclass
@@ -103,6 +108,7 @@ class Avoider:
     cycles_avoiding: int = 0
     _yield_streak: int = 0
     _yield_at: tuple[float, float] = (math.inf, math.inf)
+    _rerouted_at: tuple[float, float] = (math.inf, math.inf)
     _yield_until: float = -math.inf
     _assertive_until: float = -math.inf
     _last_w: float = 0.0
@@ -193,9 +199,9 @@ class Avoider:
         to drive is clear (see the module docstring).  ``round_boxes`` False: a box on the straight
         way is not driven round by its corner (the target is a planned way's carrot, which already
         goes round it: the corner on the preferred side led a robot away from its way out of a pocket);
-        ``round_robots`` False: nor a robot by its tangent (the carrot's way goes round the robots too: the
-        tangent on the preferred side of a station keeper beside a wall pointed into the wall, and a patrol
-        stood between them for 15 s).
+        ``round_robots`` False: nor a robot by its tangent, nor is passing one on the side not preferred
+        charged (the carrot's way goes round the robots too: the tangent on the preferred side of a station
+        keeper beside a wall pointed into the wall, and a patrol stood between them for 15 s).
         ``pos_sigma_m`` is the robot's own
         position sigma (m, None if unknown): walls and obstacles, whose geometry is known exactly,
         are kept ``sigma_k`` of it farther (at most ``MAX_SIGMA_MARGIN_M``), so a robot that slipped
@@ -239,8 +245,10 @@ class Avoider:
                 if self._yield_streak == 0:
                     self._yield_at = (pose[0], pose[1])
                 self._yield_streak += 1
-            elif self.replan is not None and self.replan(pose, target, neighbours, boxes):
+            elif (self.replan is not None and math.hypot(pose[0] - self._rerouted_at[0], pose[1] - self._rerouted_at[1])
+                  > REROUTE_PLACE_M and self.replan(pose, target, neighbours, boxes)):
                 self.reroutes += 1
+                self._rerouted_at = (pose[0], pose[1])
             else:
                 self.side = -self.side
                 self.side_flips += 1
@@ -273,7 +281,9 @@ class Avoider:
         cost = ((end_dist - math.hypot(aim[0] - pose[0], aim[1] - pose[1])) / scale  # progress to the goal
                 + 0.1 * heading / math.pi
                 + soft * 0.6 * tight  # room kept from everything
-                + soft * 0.3 * wrong_side
+                # a carrot's way round the robots has chosen the side to pass each on: preferring the other one
+                # left a patrol on the edge of a station keeper's clearance, its way round starting along it
+                + soft * (0.3 if round_robots else 0.0) * wrong_side
                 # turning to the unpreferred side while driving: turning on the spot passes nobody (with it, a patrol
                 # facing away from its way round a station keeper beside a wall stood still rather than turn back)
                 + 0.08 * np.maximum(0.0, -self.side * w) * (v > 0.0) / max(w_max, 1e-6)

@@ -187,7 +187,9 @@ class Behaviour:
         goal = self._goal or target
         grid = self._room
         points = None if grid is None else plan(grid, (pose[0], pose[1]), goal, neighbours, self._keep_m)
-        self.route = None if points is None or len(points) < 2 else Route(goal, points, around_robots=True)
+        keep = footprint_radius(self.robot) + self.cfg.avoid_clearance_m
+        self.route = None if points is None or len(points) < 2 else Route(
+            goal, points, around_robots=True, clear_of=tuple((nb.x_m, nb.y_m, nb.radius_m + keep) for nb in neighbours))
         return self.route is not None
 
     @cached_property

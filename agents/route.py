@@ -32,6 +32,7 @@ import numpy as np
 
 from tagswarm.agents.avoid import Box, Neighbour, box_distance
 from tagswarm.agents.avoidgeom import box_corners
+from tagswarm.protocol.freespace import point_segment_distance
 
 RESOLUTION_M = 0.1
 LOOKAHEAD_M = 0.6  # the carrot: this far along the path from the nearest point not yet passed
@@ -145,12 +146,14 @@ def plan(grid: Grid, start: tuple[float, float], goal: tuple[float, float], othe
 @dataclass
 class Route:
     """A planned way to ``goal`` being followed; :meth:`carrot` once per cycle.  ``around_robots``: planned
-    round the robots the map had as well as the walls (after a stall)."""
+    round the robots the map had as well as the walls (after a stall); ``clear_of``: those robots as
+    (x_m, y_m, centre distance the avoidance keeps) discs, which the straight way to the carrot stays out of."""
 
     goal: tuple[float, float]
     points: list[tuple[float, float]]
     index: int = field(default=0)
     around_robots: bool = False
+    clear_of: tuple[tuple[float, float, float], ...] = ()
 
     def carrot(self, x_m: float, y_m: float) -> tuple[float, float] | None:
         """Where to head from (x_m, y_m): ``LOOKAHEAD_M`` along the path from its point nearest to
@@ -161,9 +164,22 @@ class Route:
         self.index += near
         along = 0.0
         prev = (x_m, y_m)
-        for p in self.points[self.index:]:
+        for i in range(self.index, len(self.points)):
+            p = self.points[i]
             along += math.dist(prev, p)
             prev = p
             if along >= LOOKAHEAD_M:
-                return p
+                return self._cut_back(x_m, y_m, i)
         return None
+
+    def _cut_back(self, x_m: float, y_m: float, i: int) -> tuple[float, float]:
+        """The path's point ``i``, or the farthest one before it (not before the nearest) that the straight way
+        from (x_m, y_m) reaches without cutting into a ``clear_of`` disc deeper than the robot already is: the
+        lookahead cuts the corner of a way round a robot, and a patrol on the edge of a station keeper's
+        clearance, its carrot across it, could neither head there nor turn away (it stood 20 s)."""
+        for j in range(i, self.index, -1):
+            p = self.points[j]
+            if all(point_segment_distance((cx, cy), (x_m, y_m), p) >= min(r, math.hypot(x_m - cx, y_m - cy)) - 1e-3
+                   for cx, cy, r in self.clear_of):
+                return p
+        return self.points[min(self.index + 1, len(self.points) - 1)]

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import itertools
 import math
+from pathlib import Path
 
 import pytest
 
@@ -586,3 +587,49 @@ def test_a_station_keeper_beside_a_wall_is_passed_on_its_open_side(open_side: bo
         assert w.pose[7][:2] == pytest.approx((0.0, -1.2))
     else:
         assert not b.done and b.avoider.reroutes >= 1
+
+
+def test_a_patrol_on_the_edge_of_a_station_keeper_s_clearance_gets_going_again(tmp_path: Path) -> None:
+    """An office of two rooms: robot 1, on its way to the door, comes to a stop on the edge of station keeper
+    7's clearance, the keeper between it and the door.  Every way on starts along that edge, where standing
+    costs less than passing; its stall found a way round (robots included) that starts there too, and the
+    next stall found the same one again: it stood from 21 s to the end (a user's scene, 2026-12-07).  Now the
+    second stall at one place goes the other way, assertively, and a way round the robots is followed on the
+    side it chose."""
+    scene = tmp_path / "office.toml"
+    scene.write_text(OFFICE)
+    s = load_scenario(str(scene))
+    t = arena_to_map(s)
+    boxes = static_boxes(s)
+    goal = se2_compose(t, (3.5, -3.0, 0.0))[:2]
+    w = World({7: ((1.277, 0.316, 0.683), hold(7), None), 1: ((1.713, 0.823, -2.593), hold(1), goal)},
+              boxes=boxes, exact=True).run(25.0)
+    start = (1.713, 0.823)
+    assert math.dist(w.pose[1][:2], start) > 1.5, w.pose[1]  # past the keeper, through the door (it stood at 0.2)
+    assert w.min_dist >= CLEAR - 0.02, w.min_dist
+    assert w.pose[7][:2] == pytest.approx((1.277, 0.316), abs=0.05)  # the keeper did not have to step aside
+
+
+OFFICE = """
+name = "office"
+seed = 31
+[arena]
+size_x_m = 10.0
+size_y_m = 8.0
+obstacles = [
+  { x_m = 0.0, y_m = -3.0, size_x_m = 0.2, size_y_m = 2.0, size_z_m = 1.2 },
+  { x_m = 0.0, y_m = 0.5, size_x_m = 0.2, size_y_m = 3.0, size_z_m = 1.2 },
+  { x_m = 0.0, y_m = 3.7, size_x_m = 0.2, size_y_m = 0.6, size_z_m = 1.2 },
+  { x_m = -3.0, y_m = 2.0, size_x_m = 1.2, size_y_m = 0.8, size_z_m = 0.8 },
+  { x_m = 3.0, y_m = -1.5, size_x_m = 1.0, size_y_m = 1.0, size_z_m = 0.8 },
+]
+[robots]
+count = 8
+placement = "explicit"
+start = [
+  { x_m = -0.509, y_m = -2.882, yaw_rad = 2.4086 }, { x_m = -2.163, y_m = 0.983, yaw_rad = -2.283 },
+  { x_m = -4.089, y_m = -1.737, yaw_rad = 1.824 }, { x_m = -0.322, y_m = 3.030, yaw_rad = 0.707 },
+  { x_m = 2.353, y_m = 0.332, yaw_rad = -0.185 }, { x_m = 1.571, y_m = 2.859, yaw_rad = -2.941 },
+  { x_m = 1.641, y_m = 0.006, yaw_rad = -1.820 }, { x_m = -1.670, y_m = -2.264, yaw_rad = 2.869 },
+]
+"""

@@ -64,24 +64,32 @@ def test_a_pushed_witness_sure_of_itself_does_not_move_the_robots_it_sees() -> N
     assert fusion.counters["relocalisations"] + fusion.counters["disturbances"] >= 1
 
 
-def test_a_witness_that_contradicts_one_robot_only_still_judges_it() -> None:
-    # the same watcher, not pushed; robot 1 is carried off 0.5 m where only robot 3 sees it: a witness that
-    # disagrees with one robot while agreeing with another is not in doubt, and robot 1 is re-localised
-    rng = np.random.default_rng(1)
+def _moved_at_60(seed: int, mover: int, to: Pose2, always: list[tuple[int, int]],
+                 before: list[tuple[int, int]]) -> tuple[Fusion, dict[int, Pose2]]:
+    """Robots standing at START for 12 s (10 Hz); robot ``mover`` is carried to ``to`` at step 60. The
+    (observer, target) pairs ``always`` see each other every step, ``before`` every 4th step until then
+    (1 cm, 0.01 rad noise). The fusion afterwards and the truth at the end."""
+    rng = np.random.default_rng(seed)
     fusion = Fusion(FusionParams(), 0, tuple(START))
     truth = dict(START)
     for k in range(121):
         t_ns = k * DT_NS
         if k == 60:
-            truth[1] = (2.0, 1.5, math.pi)
+            truth[mover] = to
         for rid in START:
             fusion.add_odometry(rid, t_ns, (0.0, 0.0, 0.0), 0.0)
-        pairs = [(3, 1), (3, 2)] + ([(1, 0), (2, 0)] if k < 60 and k % 4 == 0 else [])
-        for obs, tgt in pairs:
+        for obs, tgt in always + (before if k < 60 and k % 4 == 0 else []):
             rel = se2_between(truth[obs], truth[tgt])
             noisy = (rel[0] + rng.normal(0, 0.01), rel[1] + rng.normal(0, 0.01), rel[2] + rng.normal(0, 0.01))
             fusion.add_observation(obs, tgt, t_ns, noisy, COV)
         fusion.advance(t_ns)
+    return fusion, truth
+
+
+def test_a_witness_that_contradicts_one_robot_only_still_judges_it() -> None:
+    # the same watcher, not pushed; robot 1 is carried off 0.5 m where only robot 3 sees it: a witness that
+    # disagrees with one robot while agreeing with another is not in doubt, and robot 1 is re-localised
+    fusion, truth = _moved_at_60(1, 1, (2.0, 1.5, math.pi), [(3, 1), (3, 2)], [(1, 0), (2, 0)])
     est = fusion.pose(1)
     assert est is not None and math.dist(est[0][:2], truth[1][:2]) < 0.05, est
     assert [e.robot_id for e in fusion.take_relocalisations()] == [1]
@@ -100,21 +108,7 @@ def test_a_lone_pair_that_disagrees_waits_for_a_third_robot() -> None:
     # robot 3 watches robot 1 only and is pushed; nobody else sees either of them then: one of the two moved,
     # the views cannot say which, so neither is re-localised on the other's word (measured in the yard: the
     # witness re-localised the one robot it saw 0.36 m the wrong way)
-    rng = np.random.default_rng(2)
-    fusion = Fusion(FusionParams(), 0, tuple(START))
-    truth = dict(START)
-    for k in range(121):
-        t_ns = k * DT_NS
-        if k == 60:
-            truth[3] = se2_compose(truth[3], PUSH)
-        for rid in START:
-            fusion.add_odometry(rid, t_ns, (0.0, 0.0, 0.0), 0.0)
-        pairs = [(3, 1)] + ([(1, 0), (2, 0), (3, 2)] if k < 60 and k % 4 == 0 else [])
-        for obs, tgt in pairs:
-            rel = se2_between(truth[obs], truth[tgt])
-            noisy = (rel[0] + rng.normal(0, 0.01), rel[1] + rng.normal(0, 0.01), rel[2] + rng.normal(0, 0.01))
-            fusion.add_observation(obs, tgt, t_ns, noisy, COV)
-        fusion.advance(t_ns)
+    fusion, truth = _moved_at_60(2, 3, se2_compose(START[3], PUSH), [(3, 1)], [(1, 0), (2, 0), (3, 2)])
     assert fusion.recovery.lone_pair(3, 1, 120 * DT_NS) and fusion.recovery.lone_pair(1, 3, 120 * DT_NS)
     assert 1 not in [e.robot_id for e in fusion.take_relocalisations()]
     est = fusion.pose(1)

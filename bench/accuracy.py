@@ -156,8 +156,21 @@ def static_trial(seed: int, work: Path, *extra: str, tag: str = "", look_around:
         if last is not None and t_now is not None:
             out["fusion"].append({"robot": r, "err_m": math.hypot(last[1] - t_now[1], last[2] - t_now[2]),
                                   "yaw_deg": abs(math.degrees(wrap_angle(_yaw(last) - _yaw(t_now)))),
+                                  "yaw_sigma_deg": _last_yaw_sigma_deg(run / "trajectories" / f"fused_cov_{r}.csv"),
                                   "dist_m": nearest(r, seen)})
     return out
+
+
+def _last_yaw_sigma_deg(path: Path) -> float | None:
+    """The fused heading's standard deviation (degrees) at the last row of a ``fused_cov_N.csv``
+    (columns stamp_ns, c00 .. c22 of the (x, y, yaw) covariance)."""
+    if not path.exists():
+        return None
+    with open(path) as f:
+        rows = list(csv.DictReader(f))
+    if not rows or float(rows[-1]["c22"]) <= 0:
+        return None
+    return math.degrees(math.sqrt(float(rows[-1]["c22"])))
 
 
 def summarise_static(trials: list[dict[str, Any]]) -> dict[str, Any]:
@@ -179,6 +192,13 @@ def summarise_static(trials: list[dict[str, Any]]) -> dict[str, Any]:
                      "yaw_median_deg": float(np.median(y)) if len(y) else None,
                      "yaw_p95_deg": float(np.percentile(y, 95)) if len(y) else None,
                      "by_distance": bins}
+        # the fused heading against the uncertainty the server states for it: a large error on a
+        # heading nobody could observe (only odometry since the last sighting) is not a bad estimate
+        z = [r["yaw_deg"] / r["yaw_sigma_deg"] for r in rows if r.get("yaw_sigma_deg")]
+        if z:
+            res[kind]["yaw_within_2sigma"] = float(np.mean(np.array(z) <= 2.0))
+            res[kind]["yaw_sigma_median_deg"] = float(np.median([r["yaw_sigma_deg"] for r in rows
+                                                                 if r.get("yaw_sigma_deg")]))
     return res
 
 

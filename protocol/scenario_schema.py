@@ -342,7 +342,13 @@ class Server(Spec, frozen=True, kw_only=True, forbid_unknown_fields=True):
     evidence that moves it takes a second).  Until then it is in the map, fused and shown with its
     covariance, but reported unlocalised.  A robot placed through a chain of far views starts with
     a heading several degrees unsure and a position decimetres to a metre unsure.  0 vouches for
-    every robot as soon as it is placed."""
+    every robot as soon as it is placed.
+
+    ``start_prior_sigma`` (m and rad, 0 = off, the default): the robots' start poses of the
+    scenario (``robots.start``, or the ones ``grid`` / ``random`` draw) are known to the server, as
+    when robots start from docks at surveyed places; each robot is in the map from its first
+    odometry with a prior of this standard deviation on its start pose (the graph only).  Off, a
+    robot is in the map once a camera links it to the origin robot, the paper's way."""
 
     method: Literal["graph", "stitch"] = "graph"
     odom_wheel_sigma: NonNeg | None = None
@@ -351,6 +357,7 @@ class Server(Spec, frozen=True, kw_only=True, forbid_unknown_fields=True):
     claim_sigma_m: NonNeg = 0.5
     odom_calibration: bool = True
     range_bias_sigma: NonNeg = 1.5e-4
+    start_prior_sigma: NonNeg = 0.0
 
 
 class Event(Spec, frozen=True, kw_only=True, forbid_unknown_fields=True):

@@ -15,7 +15,9 @@ from typing import Protocol
 
 import numpy as np
 
-from tagswarm.protocol.geometry import Pose2
+from tagswarm.protocol.geometry import Pose2, se2_between
+from tagswarm.protocol.layout import start_poses
+from tagswarm.protocol.scenario import Scenario
 from tagswarm.server import journal_format as jf
 from tagswarm.server import odomcal, rangebias
 from tagswarm.server.config import ServerConfig
@@ -75,9 +77,20 @@ def make_fusion(config: ServerConfig) -> Fusion:
                                            s.server.odom_scale_sigma)
     params = FusionParams(wheel_base_m=s.robot.wheel_base_m, odom_wheel_sigma=wheel, odom_scale_sigma=scale,
                           obs_sigma_floor_m=s.server.obs_sigma_floor_m, odom_calibration=cal, lag_s=config.lag_s,
-                          range_bias_sigma=s.server.range_bias_sigma)
+                          range_bias_sigma=s.server.range_bias_sigma, start_prior_sigma=s.server.start_prior_sigma)
     landmarks = {lm.id: (lm.x_m, lm.y_m, lm.yaw_rad) for lm in s.landmarks}
-    return Fusion(params, s.map.origin_id, s.robot_ids, landmarks)
+    return Fusion(params, s.map.origin_id, s.robot_ids, landmarks, start_poses_in_map(s) if s.server.start_prior_sigma
+                  else None)
+
+
+def start_poses_in_map(s: Scenario) -> dict[int, Pose2]:
+    """Each robot's start pose (:func:`tagswarm.protocol.layout.start_poses`) in the map frame: the
+    arena frame when landmarks hold the map, else the origin robot's start pose."""
+    arena = dict(enumerate(start_poses(s)))
+    if s.landmarks:
+        return arena
+    frame = arena[s.map.origin_id]
+    return {rid: se2_between(frame, pose) for rid, pose in arena.items()}
 
 
 def make_estimator(config: ServerConfig) -> Estimator:

@@ -74,10 +74,11 @@ class Fusion:
     """Incremental pose graph of the whole swarm.  Feed events, then :meth:`advance`."""
 
     def __init__(self, params: FusionParams, origin_id: int, robot_ids: tuple[int, ...],
-                 landmarks: dict[int, Pose2] | None = None) -> None:
+                 landmarks: dict[int, Pose2] | None = None, start_poses: dict[int, Pose2] | None = None) -> None:
         self.p = params
         self.origin_id = origin_id
         self.landmarks = dict(landmarks or {})
+        self.start_poses = dict(start_poses or {})  # map frame; used with params.start_prior_sigma
         self.counters: Counter[str] = Counter()
         # without landmarks the origin robot's first chain holds the map frame (its first keyframe pinned,
         # held while it stands, never re-localised)
@@ -94,7 +95,7 @@ class Fusion:
 
     def reset(self) -> None:
         """Forget everything: the empty fusion of the same map (a restarted world)."""
-        self.__init__(self.p, self.origin_id, tuple(self.robots), self.landmarks)  # type: ignore[misc]
+        self.__init__(self.p, self.origin_id, tuple(self.robots), self.landmarks, self.start_poses)  # type: ignore[misc]
 
     @property
     def robots(self) -> dict[int, Robot]:
@@ -182,6 +183,9 @@ class Fusion:
             elif r.reset_hint is not None:
                 self.graph.new_keyframe(rid, stamp_ns, pose, initial=r.reset_hint, prior=0.3)
                 r.reset_hint = None
+            elif r.chain == 0 and self.p.start_prior_sigma > 0 and rid in self.start_poses:  # odom starts there
+                self.graph.new_keyframe(rid, stamp_ns, pose, initial=se2_compose(self.start_poses[rid], pose),
+                                        prior=self.p.start_prior_sigma)
             return
         delta = se2_between(r.kf_odom, pose)
         moved = math.hypot(delta[0], delta[1]) > self.p.kf_dist_m or abs(delta[2]) > self.p.kf_angle_rad

@@ -33,6 +33,9 @@ class FusionParams:
     # the views' shared range bias coefficient (m^-2; bias = b r^3 along the line of sight) as one graph
     # variable with this prior sigma; 0: none, plain between-factors (server/rangebias.py)
     range_bias_sigma: float = 0.0
+    # each robot's known start pose (map frame) pins its first keyframe with this sigma (m and rad); 0: robots
+    # are placed only by the views that link them to the origin ([server] start_prior_sigma)
+    start_prior_sigma: float = 0.0
     kf_dist_m: float = 0.2
     kf_angle_rad: float = 0.2
     kf_max_interval_s: float = 2.0

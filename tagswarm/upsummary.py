@@ -79,7 +79,9 @@ def print_summary(console: Console, metrics: dict[str, Any], *, failed: bool = F
                       "no robot saw their tags well enough to place them before (too far for the camera, hidden or "
                       "out of view), or the server did not vouch for their place before (logs/server.log), and time "
                       "localised counts those seconds as lost; robots within each other's view and decoding range, "
-                      "or missions that pass them, help (README, 'Your own scene')[/]", highlight=False)
+                      "or missions that pass them, help; robots that start at known places (docks) can be in the map "
+                      "from the start: --set server.start_prior_sigma=0.02 (README, 'Your own scene')[/]",
+                      highlight=False)
     over = {k: ((r.get("fused") or {}).get("ate_unaligned") or {}) for k, r in metrics.get("robots", {}).items()}
     over = {k: a for k, a in over.items() if a.get("max") is not None and a["max"] >= LOCALISED_M}
     if over:

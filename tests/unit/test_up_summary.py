@@ -43,6 +43,7 @@ def test_robots_placed_late_are_named_with_when() -> None:
     m["run"]["sim_time_s"] = 45.0
     text = _printed(m)
     assert "localised late: robot(s) 2 (25.8 s), 4 (23.7 s)" in text and "1 (6.2 s)" not in text
+    assert "start_prior_sigma" in text  # the way out for robots that start at known places
     m["run"]["sim_time_s"] = 200.0  # 25.8 s of a 200 s run is not late
     assert "localised late" not in _printed(m)
     assert "localised late" not in _printed(_metrics({"0": 0.0, "1": 9.0}, []))

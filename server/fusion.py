@@ -146,9 +146,8 @@ class Fusion:
         return -1 if lo is None else lo[0]
 
     def advance(self, watermark_ns: int) -> int:
-        """Apply every queued event stamped at or before ``watermark_ns`` in time
-        order (odometry before observations of the same instant) and update the
-        smoother.  Returns the number of events applied."""
+        """Apply every queued event stamped at or before ``watermark_ns`` in time order (odometry before
+        observations of the same instant) and update the smoother.  Returns the number of events applied."""
         n = 0
         while self._events and self._events[0].stamp_ns <= watermark_ns:
             ev = heapq.heappop(self._events)
@@ -184,8 +183,9 @@ class Fusion:
                 self.graph.new_keyframe(rid, stamp_ns, pose, initial=r.reset_hint, prior=0.3)
                 r.reset_hint = None
             elif r.chain == 0 and self.p.start_prior_sigma > 0 and rid in self.start_poses:  # odom starts there
-                self.graph.new_keyframe(rid, stamp_ns, pose, initial=se2_compose(self.start_poses[rid], pose),
-                                        prior=self.p.start_prior_sigma)
+                start, var = se2_compose(self.start_poses[rid], pose), np.eye(3) * self.p.start_prior_sigma**2
+                key = self.graph.new_keyframe(rid, stamp_ns, pose, initial=start)  # robust: a start written wrong
+                self.graph.add(gtsam.PriorFactorPose2(key, gtsam.Pose2(*start), self.graph.robust(var)))
             return
         delta = se2_between(r.kf_odom, pose)
         moved = math.hypot(delta[0], delta[1]) > self.p.kf_dist_m or abs(delta[2]) > self.p.kf_angle_rad

@@ -94,3 +94,15 @@ def test_start_poses_are_put_in_the_map_frame(landmarks: bool) -> None:
     fusion = make_fusion(ServerConfig(scenario=s, bus=BusConfig()))
     assert fusion.p.start_prior_sigma == 0.02 and fusion.start_poses == poses
     assert make_fusion(ServerConfig(scenario=load_scenario("paper"), bus=BusConfig())).start_poses == {}
+
+
+def test_a_start_pose_a_little_wrong_gives_way_to_the_views() -> None:
+    # 15 cm off with a stated 2 cm: within the gate, so not a re-localisation; the prior is robust (Huber),
+    # so the views win over the run (a Gaussian prior still held the robot 4.5 cm off after 20 s)
+    wrong = dict(TRUTH)
+    wrong[1] = se2_compose(TRUTH[1], (0.0, 0.15, 0.0))
+    fusion, seen = _run(20.0, 0.02, wrong, sees={0: (1, 2), 2: (1,)}, from_s=1.0)
+    assert _err(seen[0.9][1], 1) > 0.14
+    assert _err(seen[20.0][1], 1) < 0.02
+    assert _err(seen[20.0][2], 2) < 0.02
+    assert fusion.counters["relocalisations"] == 0

@@ -54,10 +54,10 @@ def test_scene_localises_every_robot(scene: str, tmp_path: Path) -> None:
 def test_hall_with_known_start_poses_is_localised_from_the_first_instant(tmp_path: Path) -> None:
     """``[server] start_prior_sigma``: robots starting from surveyed places are in the map from t = 0.
     Without it the hall's robots 3 and 4 face nobody placeable and are first placed after 7-10 s (the
-    20 s run measures 79.8 % then; with it 100 %)."""
+    10 s run measures 59.9 % then; with it 100 %)."""
     out = tmp_path / "run"
     res = subprocess.run([script("tagswarm"), "up", "--scenario", "hall", "--clock", "lockstep", "--seed", "0",
-                          "--duration", "20", "--out", str(out), "--no-live",
+                          "--duration", "10", "--out", str(out), "--no-live",
                           "--set", "server.start_prior_sigma=0.02"],
                          capture_output=True, text=True, timeout=900)
     assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]

@@ -116,9 +116,10 @@ class ServerNode(NodeJournal):
                         self.method)
         self.journal = self._open_journal() if config.journal and isinstance(self.fusion, Fusion) else None
         bus.declare_token(self.keys.alive(config.participant))
-        log.info("server up: method %s, %d robots, origin %d, %s clock, lag %.0f s, journal %s", self.method,
-                 len(self.roster), s.map.origin_id, s.clock.mode, config.lag_s,
-                 (config.journal or "off") if self.journal is not None or not config.journal else "off")
+        log.info("server up: method %s, %d robots, origin %d, %s clock, lag %.0f s, journal %s, start poses %s",
+                 self.method, len(self.roster), s.map.origin_id, s.clock.mode, config.lag_s,
+                 (config.journal or "off") if self.journal is not None or not config.journal else "off",
+                 f"known (sigma {s.server.start_prior_sigma:g})" if s.server.start_prior_sigma else "unknown")
 
     def _publish(self, key: str, msg: m.Msg) -> None:
         self.bus.put(key, codec.encode(msg))

@@ -61,6 +61,7 @@ def test_hall_with_known_start_poses_is_localised_from_the_first_instant(tmp_pat
                           "--set", "server.start_prior_sigma=0.02"],
                          capture_output=True, text=True, timeout=900)
     assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
+    assert "start poses known (sigma 0.02)" in (out / "logs" / "server.log").read_text()
     m = json.loads((out / "metrics.json").read_text())
     assert m["swarm"]["fused"]["time_localised"] >= 0.99
     for rid, r in m["robots"].items():

@@ -194,11 +194,10 @@ def summarise_static(trials: list[dict[str, Any]]) -> dict[str, Any]:
                      "by_distance": bins}
         # the fused heading against the uncertainty the server states for it: a large error on a
         # heading nobody could observe (only odometry since the last sighting) is not a bad estimate
-        z = [r["yaw_deg"] / r["yaw_sigma_deg"] for r in rows if r.get("yaw_sigma_deg")]
-        if z:
-            res[kind]["yaw_within_2sigma"] = float(np.mean(np.array(z) <= 2.0))
-            res[kind]["yaw_sigma_median_deg"] = float(np.median([r["yaw_sigma_deg"] for r in rows
-                                                                 if r.get("yaw_sigma_deg")]))
+        stated = np.array([(r["yaw_deg"], r["yaw_sigma_deg"]) for r in rows if r.get("yaw_sigma_deg")])
+        if len(stated):
+            res[kind]["yaw_within_2sigma"] = float(np.mean(stated[:, 0] <= 2.0 * stated[:, 1]))
+            res[kind]["yaw_sigma_median_deg"] = float(np.median(stated[:, 1]))
     return res
 
 

@@ -15,8 +15,8 @@ from typing import Protocol
 
 import numpy as np
 
-from tagswarm.protocol.geometry import Pose2, se2_between
-from tagswarm.protocol.layout import start_poses
+from tagswarm.protocol.geometry import Pose2, se2_compose
+from tagswarm.protocol.layout import arena_to_map, start_poses
 from tagswarm.protocol.scenario import Scenario
 from tagswarm.server import journal_format as jf
 from tagswarm.server import odomcal, rangebias
@@ -84,13 +84,10 @@ def make_fusion(config: ServerConfig) -> Fusion:
 
 
 def start_poses_in_map(s: Scenario) -> dict[int, Pose2]:
-    """Each robot's start pose (:func:`tagswarm.protocol.layout.start_poses`) in the map frame: the
-    arena frame when landmarks hold the map, else the origin robot's start pose."""
-    arena = dict(enumerate(start_poses(s)))
-    if s.landmarks:
-        return arena
-    frame = arena[s.map.origin_id]
-    return {rid: se2_between(frame, pose) for rid, pose in arena.items()}
+    """Each robot's start pose (:func:`tagswarm.protocol.layout.start_poses`) in the map frame
+    (:func:`tagswarm.protocol.layout.arena_to_map`)."""
+    t_map_arena = arena_to_map(s)
+    return {rid: se2_compose(t_map_arena, pose) for rid, pose in enumerate(start_poses(s))}
 
 
 def make_estimator(config: ServerConfig) -> Estimator:
